@@ -1,0 +1,24 @@
+"""Physically based in-air sonar and LiDAR simulation on NVIDIA Warp (CPU and CUDA)."""
+
+from importlib.metadata import PackageNotFoundError, version
+
+from .config import LidarConfig, PolarGrid
+from .lidar import Lidar, LidarScan, check_poses, lidar_image, ranges_to_points
+from .scene import WarpScene, warp_scene
+
+try:
+    __version__ = version("sonar2lidar")
+except PackageNotFoundError:  # running from a source tree that was not installed
+    __version__ = "0+unknown"
+
+__all__ = [
+    "Lidar",
+    "LidarConfig",
+    "LidarScan",
+    "PolarGrid",
+    "WarpScene",
+    "check_poses",
+    "lidar_image",
+    "ranges_to_points",
+    "warp_scene",
+]

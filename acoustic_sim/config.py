@@ -1,0 +1,154 @@
+"""Configuration dataclasses. Units are SI unless a name ends in `_deg`."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+NOISE_KINDS = ("none", "gaussian", "uniform")
+
+
+@dataclass(frozen=True, kw_only=True)
+class PolarGrid:
+    """Range x azimuth grid shared by energyscapes and LiDAR images.
+
+    Bins are [range_min_m + k * range_bin_m, ... + range_bin_m); azimuth bins are centred on
+    azimuth_min_deg + j * azimuth_step_deg (azimuth 0 ahead, positive to the left).
+    """
+
+    range_min_m: float = 0.2
+    range_max_m: float = 5.0
+    range_bin_m: float = 0.02
+    azimuth_min_deg: float = -90.0
+    azimuth_max_deg: float = 90.0
+    azimuth_step_deg: float = 1.0
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.range_min_m < self.range_max_m:
+            raise ValueError("PolarGrid needs 0 <= range_min_m < range_max_m")
+        if self.range_bin_m <= 0 or self.azimuth_step_deg <= 0:
+            raise ValueError("PolarGrid bin sizes must be positive")
+        if not -180 <= self.azimuth_min_deg <= self.azimuth_max_deg <= 180:
+            raise ValueError("PolarGrid needs -180 <= azimuth_min_deg <= azimuth_max_deg <= 180")
+
+    @property
+    def range_count(self) -> int:
+        return round((self.range_max_m - self.range_min_m) / self.range_bin_m)
+
+    @property
+    def azimuth_count(self) -> int:
+        return round((self.azimuth_max_deg - self.azimuth_min_deg) / self.azimuth_step_deg) + 1
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.range_count, self.azimuth_count
+
+    @property
+    def range_m(self) -> np.ndarray:
+        """Range bin centres [m], shape (range_count,)."""
+        return self.range_min_m + (np.arange(self.range_count) + 0.5) * self.range_bin_m
+
+    @property
+    def azimuth_rad(self) -> np.ndarray:
+        """Azimuth bin centres [rad], shape (azimuth_count,)."""
+        return np.deg2rad(self.azimuth_min_deg + np.arange(self.azimuth_count) * self.azimuth_step_deg)
+
+
+@dataclass(frozen=True, kw_only=True)
+class LidarConfig:
+    """A scanning LiDAR: beam pattern, range limits and measurement noise.
+
+    Beams form a regular azimuth x elevation pattern in the sensor frame (x forward, y left,
+    z up); with one elevation the scan is planar. Returns closer than `range_min_m` or farther
+    than `range_max_m` are misses (inf).
+    """
+
+    azimuth_min_deg: float
+    azimuth_max_deg: float
+    azimuth_count: int
+    elevation_min_deg: float = 0.0
+    elevation_max_deg: float = 0.0
+    elevation_count: int = 1
+    range_min_m: float
+    range_max_m: float
+    rate_hz: float
+    noise: str = "none"  # "none", "gaussian" (std noise_m) or "uniform" (+-noise_m, as in the paper)
+    noise_m: float = 0.0
+    dropout_probability: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.azimuth_count < 1 or self.elevation_count < 1:
+            raise ValueError("LidarConfig needs azimuth_count >= 1 and elevation_count >= 1")
+        if self.azimuth_max_deg < self.azimuth_min_deg or self.elevation_max_deg < self.elevation_min_deg:
+            raise ValueError("LidarConfig angle ranges must have max >= min")
+        if not -90 <= self.elevation_min_deg <= self.elevation_max_deg <= 90:
+            raise ValueError("LidarConfig elevations must lie in [-90, 90] degrees")
+        if not 0 <= self.range_min_m < self.range_max_m:
+            raise ValueError("LidarConfig needs 0 <= range_min_m < range_max_m")
+        if self.noise not in NOISE_KINDS:
+            raise ValueError(f"LidarConfig.noise must be one of {NOISE_KINDS}, got {self.noise!r}")
+        if self.noise_m < 0 or not 0 <= self.dropout_probability <= 1:
+            raise ValueError("LidarConfig needs noise_m >= 0 and dropout_probability in [0, 1]")
+        if self.rate_hz <= 0:
+            raise ValueError("LidarConfig.rate_hz must be positive")
+
+    @classmethod
+    def hokuyo_ust20lx(cls, **overrides) -> LidarConfig:
+        """Hokuyo UST-20LX planar scanner: 270 deg in 0.25 deg steps (1081 beams), 0.06-20 m, 40 Hz.
+
+        Noise-free by default; e.g. `noise="gaussian", noise_m=0.012` adds the sensor's ~1.2 cm.
+        """
+        return dataclasses.replace(
+            cls(
+                azimuth_min_deg=-135.0,
+                azimuth_max_deg=135.0,
+                azimuth_count=1081,
+                range_min_m=0.06,
+                range_max_m=20.0,
+                rate_hz=40.0,
+            ),
+            **overrides,
+        )
+
+    @classmethod
+    def multibeam_64x1024(cls, **overrides) -> LidarConfig:
+        """Spinning 3D LiDAR: 64 channels over -22.5..+22.5 deg, 1024 azimuths over 360 deg, 0.3-100 m."""
+        step = 360.0 / 1024
+        return dataclasses.replace(
+            cls(
+                azimuth_min_deg=-180.0,
+                azimuth_max_deg=180.0 - step,
+                azimuth_count=1024,
+                elevation_min_deg=-22.5,
+                elevation_max_deg=22.5,
+                elevation_count=64,
+                range_min_m=0.3,
+                range_max_m=100.0,
+                rate_hz=10.0,
+            ),
+            **overrides,
+        )
+
+    @property
+    def beam_count(self) -> int:
+        return self.azimuth_count * self.elevation_count
+
+    @property
+    def azimuth_rad(self) -> np.ndarray:
+        """Beam azimuths [rad], shape (azimuth_count,)."""
+        return np.deg2rad(np.linspace(self.azimuth_min_deg, self.azimuth_max_deg, self.azimuth_count))
+
+    @property
+    def elevation_rad(self) -> np.ndarray:
+        """Beam elevations [rad], shape (elevation_count,)."""
+        return np.deg2rad(np.linspace(self.elevation_min_deg, self.elevation_max_deg, self.elevation_count))
+
+    def beam_directions(self) -> np.ndarray:
+        """Unit beam directions in the sensor frame, shape (beam_count, 3), elevation-major.
+
+        Beam b = e * azimuth_count + a, so ranges reshape to (elevation_count, azimuth_count).
+        """
+        el, az = np.meshgrid(self.elevation_rad, self.azimuth_rad, indexing="ij")
+        return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1).reshape(-1, 3)

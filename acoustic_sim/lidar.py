@@ -1,0 +1,173 @@
+"""LiDAR simulation: batched ray casting of many poses in one Warp launch, plus scan helpers."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from scenes import Scene
+
+from .config import NOISE_KINDS, LidarConfig, PolarGrid
+from .kernels import lidar as kernels
+from .scene import warp_scene
+
+
+def check_poses(poses: np.ndarray) -> np.ndarray:
+    """Validate sensor-to-world poses; returns float64 (N, 4, 4). A single (4, 4) pose gives N = 1."""
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.shape == (4, 4):
+        poses = poses[None]
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise ValueError(f"poses must have shape (N, 4, 4) or (4, 4), got {poses.shape}")
+    if len(poses) == 0:
+        raise ValueError("poses is empty")
+    if not np.isfinite(poses).all():
+        raise ValueError("poses contain NaN or inf")
+    rot = poses[:, :3, :3]
+    err = np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2))
+    if (err > 1e-4).any() or not np.allclose(poses[:, 3], (0.0, 0.0, 0.0, 1.0)):
+        bad = int(np.argmax(err))
+        raise ValueError(
+            f"pose {bad} is not a rigid transform (rotation error {err[bad]:.2g}, or last row is not [0, 0, 0, 1])"
+        )
+    return poses
+
+
+@dataclass
+class LidarScan:
+    """Device-resident result of `Lidar.cast`; overwritten by the next call.
+
+    Attributes:
+        range_m: Range per (pose, beam) [m], float32 (pose_count, beam_count); inf = no return.
+        face: Index of the face hit, int32 (pose_count, beam_count); -1 = no return.
+    """
+
+    range_m: wp.array
+    face: wp.array
+
+
+class Lidar:
+    """Scanning LiDAR: casts every beam of many poses in one launch on a Warp device.
+
+    Args:
+        config: Beam pattern, limits and noise.
+        device: Warp device ("cpu", "cuda:0", ...); None for Warp's default.
+        seed: Seeds the measurement noise. Each call draws fresh noise, in a sequence that
+            is the same for the same seed; pass `seed=` to a call to pin its noise.
+    """
+
+    def __init__(self, config: LidarConfig, *, device=None, seed: int = 0):
+        self.config = config
+        self.device = wp.get_device(device)
+        self.seed = int(seed)
+        self._calls = 0
+        self._beam_dirs = wp.array(config.beam_directions().astype(np.float32), dtype=wp.vec3, device=self.device)
+        self._buffers: dict[int, tuple[wp.array, wp.array, wp.array]] = {}
+
+    @property
+    def beam_count(self) -> int:
+        return self.config.beam_count
+
+    def _buffers_for(self, pose_count: int) -> tuple[wp.array, wp.array, wp.array]:
+        if pose_count not in self._buffers:
+            self._buffers.clear()  # keep one size: a stream of equal batches reuses memory
+            with wp.ScopedDevice(self.device):
+                self._buffers[pose_count] = (
+                    wp.empty(pose_count, dtype=wp.mat44),
+                    wp.empty((pose_count, self.beam_count), dtype=float),
+                    wp.empty((pose_count, self.beam_count), dtype=wp.int32),
+                )
+        return self._buffers[pose_count]
+
+    def cast(self, scene: Scene, poses: np.ndarray, *, seed: int | None = None) -> LidarScan:
+        """Cast all beams from every pose; results stay on the device (no copy, no sync).
+
+        Args:
+            scene: The world.
+            poses: Sensor-to-world transforms, shape (N, 4, 4) or (4, 4).
+            seed: Noise seed for this call; default: the next in the Lidar's sequence.
+        """
+        poses = check_poses(poses)
+        if seed is None:
+            seed = (self.seed * 1_000_003 + self._calls) % (2**31 - 1)
+            self._calls += 1
+        ws = warp_scene(scene, self.device)
+        pose_buf, range_out, face_out = self._buffers_for(len(poses))
+        pose_buf.assign(poses.astype(np.float32))
+        cfg = self.config
+        wp.launch(
+            kernels.lidar_scan,
+            dim=(len(poses), self.beam_count),
+            inputs=[
+                ws.mesh.id,
+                ws.face_lidar_transparent,
+                pose_buf,
+                self._beam_dirs,
+                cfg.range_min_m,
+                cfg.range_max_m,
+                NOISE_KINDS.index(cfg.noise),
+                cfg.noise_m,
+                cfg.dropout_probability,
+                int(seed),
+            ],
+            outputs=[range_out, face_out],
+            device=self.device,
+        )
+        return LidarScan(range_m=range_out, face=face_out)
+
+    def scan(self, scene: Scene, poses: np.ndarray, *, seed: int | None = None) -> np.ndarray:
+        """Ranges [m] of every beam from every pose, float32 (N, beam_count); inf = no return."""
+        # On the CPU .numpy() is a view of the reused buffer: copy so results survive the next call.
+        return np.array(self.cast(scene, poses, seed=seed).range_m.numpy(), copy=True)
+
+
+def ranges_to_points(ranges: np.ndarray, config: LidarConfig, poses: np.ndarray | None = None) -> np.ndarray:
+    """Beam end points [m], shape (N, beam_count, 3); NaN where there was no return.
+
+    In the sensor frame, or in the world frame when `poses` (N, 4, 4) are given.
+    """
+    ranges = np.atleast_2d(np.asarray(ranges, dtype=np.float64))
+    if ranges.shape[-1] != config.beam_count:
+        raise ValueError(f"ranges have {ranges.shape[-1]} beams, the config {config.beam_count}")
+    r = np.where(np.isfinite(ranges), ranges, np.nan)
+    points = r[..., None] * config.beam_directions()
+    if poses is not None:
+        poses = check_poses(poses)
+        if len(poses) != len(points):
+            raise ValueError(f"{len(poses)} poses for {len(points)} scans")
+        points = points @ poses[:, :3, :3].transpose(0, 2, 1) + poses[:, None, :3, 3]
+    return points
+
+
+def lidar_image(ranges: np.ndarray, config: LidarConfig, grid: PolarGrid | None = None) -> np.ndarray:
+    """Rasterise scans onto the range x azimuth grid of the energyscapes.
+
+    A cell is 1 where a beam of the scan ends in it, else 0. Beams are assigned to the nearest
+    azimuth bin; for 3D LiDARs only the ring closest to elevation 0 is used.
+
+    Args:
+        ranges: (N, beam_count) or (beam_count,) [m], inf = no return.
+        config: The LiDAR's configuration.
+        grid: Target grid; default `PolarGrid()` (0.2-5 m in 2 cm x -90..90 deg in 1 deg).
+
+    Returns:
+        float32 (N, range_count, azimuth_count).
+    """
+    grid = grid or PolarGrid()
+    ranges = np.atleast_2d(np.asarray(ranges, dtype=np.float64))
+    if ranges.shape[-1] != config.beam_count:
+        raise ValueError(f"ranges have {ranges.shape[-1]} beams, the config {config.beam_count}")
+    ring = int(np.argmin(np.abs(config.elevation_rad)))
+    ranges = ranges.reshape(len(ranges), config.elevation_count, config.azimuth_count)[:, ring]
+    az_bin = np.rint((np.rad2deg(config.azimuth_rad) - grid.azimuth_min_deg) / grid.azimuth_step_deg)
+    az_bin = az_bin.astype(np.int64)
+    with np.errstate(invalid="ignore"):
+        r_bin = np.floor((ranges - grid.range_min_m) / grid.range_bin_m)
+    valid = np.isfinite(r_bin) & (r_bin >= 0) & (r_bin < grid.range_count)
+    valid &= ((az_bin >= 0) & (az_bin < grid.azimuth_count))[None, :]
+    frame, beam = np.nonzero(valid)
+    image = np.zeros((len(ranges), *grid.shape), dtype=np.float32)
+    image[frame, r_bin[frame, beam].astype(np.int64), az_bin[beam]] = 1.0
+    return image

@@ -1,0 +1,110 @@
+"""Pictures of simulation output: scenes from above, trajectories, scans and polar images."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.collections import LineCollection
+
+from scenes import Scene
+
+from .config import LidarConfig, PolarGrid
+from .lidar import ranges_to_points
+
+_MATERIAL_COLORS = {
+    "painted_wall": "0.25",
+    "brick": "tab:brown",
+    "floor": "0.6",
+    "ceiling_tile": "0.7",
+    "wood": "tab:orange",
+    "metal": "tab:purple",
+    "fabric": "tab:green",
+    "glass": "tab:cyan",
+    "mirror": "tab:pink",
+}
+
+
+def draw_scene_top(ax, scene: Scene, *, height: float) -> None:
+    """Cross-section of the scene `height` [m] above the floor, coloured by material."""
+    segments, faces = scene.section(height)
+    material_ids = scene.face_material[faces]
+    for k, mat in enumerate(scene.materials):
+        sel = material_ids == k
+        if sel.any():
+            ax.add_collection(
+                LineCollection(
+                    segments[sel], colors=_MATERIAL_COLORS.get(mat.name, "k"), linewidths=1.6, label=mat.name
+                )
+            )
+    lo, hi = scene.mesh.bounds[:, :2]
+    pad = 0.05 * float(np.max(hi - lo))
+    ax.set_xlim(lo[0] - pad, hi[0] + pad)
+    ax.set_ylim(lo[1] - pad, hi[1] + pad)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+
+
+def draw_polar_image(
+    ax, image: np.ndarray, grid: PolarGrid, *, title: str, cmap: str = "magma", label: str | None = None
+) -> None:
+    """A (range, azimuth) image with azimuth [deg] across (left = +90 deg, as seen from above)
+    and range [m] upwards."""
+    half = grid.azimuth_step_deg / 2
+    extent = (grid.azimuth_max_deg + half, grid.azimuth_min_deg - half, grid.range_min_m, grid.range_max_m)
+    im = ax.imshow(image[:, ::-1], origin="lower", aspect="auto", extent=extent, cmap=cmap, interpolation="nearest")
+    ax.set_xlabel("azimuth [deg] (+ = left)")
+    ax.set_ylabel("range [m]")
+    ax.set_title(title)
+    if label:
+        plt.colorbar(im, ax=ax, label=label, fraction=0.046)
+
+
+def render_lidar(
+    scene: Scene,
+    poses: np.ndarray,
+    ranges: np.ndarray,
+    config: LidarConfig,
+    image: np.ndarray,
+    grid: PolarGrid,
+    out: str | Path,
+    *,
+    frame: int = 0,
+) -> Path:
+    """Top view (scene section, trajectory, one scan) beside that scan's LiDAR image; writes a PNG."""
+    out = Path(out)
+    sensor_height = float(poses[frame, 2, 3] - scene.floor_z)
+    fig, (top, polar) = plt.subplots(1, 2, figsize=(14, 6), gridspec_kw={"width_ratios": [1.25, 1]})
+    draw_scene_top(top, scene, height=sensor_height)
+    xy = poses[:, :2, 3]
+    top.plot(xy[:, 0], xy[:, 1], "-", color="tab:blue", lw=1.2, label="trajectory")
+    top.plot(*xy[0], "o", color="tab:blue", ms=6, label="start")
+    points = ranges_to_points(ranges[frame : frame + 1], config, poses[frame : frame + 1])[0]
+    top.scatter(points[:, 0], points[:, 1], s=2, color="tab:red", label=f"LiDAR scan (frame {frame})", zorder=3)
+    heading = poses[frame, :2, 0]
+    top.annotate(
+        "",
+        xy=xy[frame] + 0.6 * heading,
+        xytext=xy[frame],
+        arrowprops={"arrowstyle": "->", "color": "k", "lw": 1.5},
+        zorder=4,
+    )
+    # Outline of the polar image's field of view.
+    az = np.linspace(grid.azimuth_min_deg, grid.azimuth_max_deg, 91)
+    yaw = np.arctan2(heading[1], heading[0])
+    ring = np.deg2rad(az) + yaw
+    fov = np.concatenate([[xy[frame]], xy[frame] + grid.range_max_m * np.c_[np.cos(ring), np.sin(ring)], [xy[frame]]])
+    top.plot(fov[:, 0], fov[:, 1], "--", color="0.5", lw=0.8, label=f"image field ({grid.range_max_m:g} m)")
+    top.set_title(f"{scene.name}: section at {sensor_height:.2f} m, {len(poses)} poses")
+    top.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=4, fontsize=8)
+    draw_polar_image(polar, image[frame], grid, title=f"LiDAR image (frame {frame})", cmap="Greys", label="return")
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=110)
+    plt.close(fig)
+    return out

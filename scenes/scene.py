@@ -1,0 +1,177 @@
+"""Scene: one triangle mesh, a material id per face and the material table."""
+
+from __future__ import annotations
+
+import json
+import warnings
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import trimesh
+
+from .materials import Material, material
+
+
+class SceneError(ValueError):
+    """A scene or its input geometry cannot be used (empty, non-finite, degenerate, ...)."""
+
+
+@dataclass(eq=False)
+class Scene:
+    """A static 3D world: one triangle mesh whose faces each carry a material.
+
+    Build scenes with the builders (`box_room`, `corridor`, `office`, `random_world`,
+    `from_svg`, `from_mesh`) rather than by hand: they validate their input. The
+    mesh is treated as immutable; simulators cache device copies of it.
+
+    Attributes:
+        mesh: Triangle mesh in the world frame [m], z up, floor at `mesh.bounds[0, 2]`.
+        face_material: Index into `materials` for every face, shape (face_count,).
+        materials: Material table.
+        name: Builder name, e.g. "office".
+        params: The builder's arguments (JSON-serialisable), so a scene can be described
+            and rebuilt.
+    """
+
+    mesh: trimesh.Trimesh
+    face_material: np.ndarray
+    materials: tuple[Material, ...]
+    name: str = "scene"
+    params: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.face_material = np.ascontiguousarray(self.face_material, dtype=np.int32)
+        if self.face_material.shape != (len(self.mesh.faces),):
+            raise SceneError(f"face_material has shape {self.face_material.shape}, expected ({len(self.mesh.faces)},)")
+        if len(self.materials) == 0:
+            raise SceneError("the material table is empty")
+        bad = (self.face_material < 0) | (self.face_material >= len(self.materials))
+        if bad.any():
+            raise SceneError(f"{int(bad.sum())} faces have a material id outside 0..{len(self.materials) - 1}")
+
+    @property
+    def face_count(self) -> int:
+        return len(self.mesh.faces)
+
+    @property
+    def floor_z(self) -> float:
+        """Height of the lowest point of the scene [m]; trajectories drive on it."""
+        return float(self.mesh.bounds[0, 2])
+
+    def section(self, height: float) -> tuple[np.ndarray, np.ndarray]:
+        """Horizontal cut `height` [m] above the floor: 2D segments (S, 2, 2) [m] and their faces (S,)."""
+        lines, faces = trimesh.intersections.mesh_plane(
+            self.mesh, plane_normal=(0.0, 0.0, 1.0), plane_origin=(0.0, 0.0, self.floor_z + height), return_faces=True
+        )
+        if len(lines) == 0:
+            return np.zeros((0, 2, 2)), np.zeros(0, dtype=np.int64)
+        return np.asarray(lines)[:, :, :2], np.asarray(faces, dtype=np.int64)
+
+    def material_table(self, attribute: str) -> np.ndarray:
+        """Per-face value of a material attribute, e.g. "acoustic_reflection", shape (face_count,)."""
+        values = np.array([getattr(m, attribute) for m in self.materials])
+        return values[self.face_material]
+
+    def describe(self) -> str:
+        """JSON description (builder, parameters, size, materials) for dataset files."""
+        return json.dumps(
+            {
+                "name": self.name,
+                "params": self.params,
+                "faces": self.face_count,
+                "bounds_m": np.round(self.mesh.bounds, 4).tolist(),
+                "materials": [m.__dict__ for m in self.materials],
+            },
+            sort_keys=True,
+        )
+
+    def __repr__(self) -> str:
+        size = np.round(self.mesh.extents, 2).tolist()
+        names = [m.name for m in self.materials]
+        return f"Scene({self.name!r}, faces={self.face_count}, size_m={size}, materials={names})"
+
+
+def clean_mesh(mesh: trimesh.Trimesh, *, what: str = "mesh") -> tuple[trimesh.Trimesh, np.ndarray]:
+    """Validate a mesh and drop its degenerate faces; raise SceneError when nothing usable is left.
+
+    Returns a new mesh (the input is not modified) with float64 vertices, and the boolean
+    mask of the input faces that were kept.
+    """
+    if not isinstance(mesh, trimesh.Trimesh):
+        raise SceneError(f"{what} is a {type(mesh).__name__}, expected a trimesh.Trimesh")
+    vertices = np.asarray(mesh.vertices, dtype=np.float64)
+    faces = np.asarray(mesh.faces, dtype=np.int64)
+    if len(faces) == 0 or len(vertices) == 0:
+        raise SceneError(f"{what} is empty: it has {len(vertices)} vertices and {len(faces)} faces")
+    if faces.min() < 0 or faces.max() >= len(vertices):
+        raise SceneError(f"{what} has face indices outside 0..{len(vertices) - 1}")
+    finite = np.isfinite(vertices).all(axis=1)
+    if not finite.all():
+        raise SceneError(f"{what} has {int((~finite).sum())} vertices with non-finite (NaN or inf) coordinates")
+    tri = vertices[faces]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    scale = max(float(np.ptp(vertices, axis=0).max()), 1e-9)
+    keep = area > 1e-12 * scale * scale
+    if not keep.any():
+        raise SceneError(f"all {len(faces)} faces of {what} are degenerate (zero area)")
+    if not keep.all():
+        warnings.warn(f"{what}: dropped {int((~keep).sum())} degenerate faces", stacklevel=3)
+    return trimesh.Trimesh(vertices=vertices, faces=faces[keep], process=False), keep
+
+
+def assemble(
+    parts: Iterable[tuple[trimesh.Trimesh, str | Material]],
+    *,
+    name: str,
+    params: dict | None = None,
+) -> Scene:
+    """Concatenate (mesh, material) parts into one Scene with a compact material table."""
+    table: list[Material] = []
+    meshes: list[trimesh.Trimesh] = []
+    ids: list[np.ndarray] = []
+    for mesh, mat in parts:
+        mat = material(mat)
+        if mat not in table:
+            if any(m.name == mat.name for m in table):
+                raise SceneError(f"two different materials are both named {mat.name!r}")
+            table.append(mat)
+        mesh, _ = clean_mesh(mesh, what=f"{name} part")
+        meshes.append(mesh)
+        ids.append(np.full(len(mesh.faces), table.index(mat), dtype=np.int32))
+    if not meshes:
+        raise SceneError(f"{name}: no geometry to build a scene from")
+    combined = trimesh.util.concatenate(meshes)
+    combined.merge_vertices()  # parts that share corners become one connected surface
+    return Scene(combined, np.concatenate(ids), tuple(table), name=name, params=dict(params or {}))
+
+
+def box_mesh(center: Sequence[float], extents: Sequence[float], yaw: float = 0.0) -> trimesh.Trimesh:
+    """Closed box with outward normals, rotated by `yaw` [rad] about z."""
+    transform = trimesh.transformations.rotation_matrix(yaw, (0, 0, 1))
+    transform[:3, 3] = center
+    return trimesh.creation.box(extents=extents, transform=transform)
+
+
+def cylinder_mesh(x: float, y: float, radius: float, z0: float, z1: float, *, sections: int = 32) -> trimesh.Trimesh:
+    """Closed vertical cylinder from z0 to z1 [m]."""
+    transform = np.eye(4)
+    transform[:3, 3] = (x, y, 0.5 * (z0 + z1))
+    return trimesh.creation.cylinder(radius=radius, height=z1 - z0, sections=sections, transform=transform)
+
+
+def room_shell(size: Sequence[float], *, origin: Sequence[float] = (0.0, 0.0, 0.0)) -> dict[str, trimesh.Trimesh]:
+    """Inside of a box room with inward normals, split into "floor", "walls" and "ceiling".
+
+    The room spans origin .. origin + size [m].
+    """
+    size = np.asarray(size, dtype=np.float64)
+    shell = box_mesh(np.asarray(origin) + size / 2, size)
+    shell.invert()  # normals point into the room
+    normals = shell.face_normals
+    pick = {
+        "floor": normals[:, 2] > 0.5,
+        "ceiling": normals[:, 2] < -0.5,
+        "walls": np.abs(normals[:, 2]) <= 0.5,
+    }
+    return {k: shell.submesh([np.flatnonzero(v)], append=True) for k, v in pick.items()}

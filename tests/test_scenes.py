@@ -1,0 +1,169 @@
+"""Scene builders, SVG import, mesh import and the errors bad input must give."""
+
+import warnings
+
+import numpy as np
+import pytest
+import trimesh
+
+import scenes
+from scenes import SceneError
+
+SVG_HEAD = '<svg xmlns="http://www.w3.org/2000/svg">'
+
+
+@pytest.mark.parametrize(
+    "build",
+    [
+        lambda seed: scenes.office(seed=seed),
+        lambda seed: scenes.corridor(reflectors="many", seed=seed),
+        lambda seed: scenes.random_world(seed=seed),
+    ],
+)
+def test_builders_are_valid_and_seeded(build):
+    """Finite geometry, a material for every face, same seed -> same mesh, new seed -> new mesh."""
+    a, b, c = build(0), build(0), build(1)
+    assert np.isfinite(a.mesh.vertices).all() and a.face_count > 12
+    assert a.face_material.shape == (a.face_count,)
+    assert set(np.unique(a.face_material)) == set(range(len(a.materials)))
+    np.testing.assert_array_equal(a.mesh.vertices, b.mesh.vertices)
+    assert a.mesh.vertices.shape != c.mesh.vertices.shape or not np.allclose(a.mesh.vertices, c.mesh.vertices)
+
+
+def test_box_room_is_closed_with_inward_normals():
+    """The 6 x 4 x 3 m shoebox is watertight, spans its size, and every normal points inside."""
+    scene = scenes.box_room((6.0, 4.0, 3.0))
+    assert scene.mesh.is_watertight
+    np.testing.assert_allclose(scene.mesh.bounds, [[0, 0, 0], [6, 4, 3]])
+    inward = (np.array([3.0, 2.0, 1.5]) - scene.mesh.triangles_center) * scene.mesh.face_normals
+    assert (inward.sum(axis=1) > 0).all()
+    names = {m.name for m in scene.materials}
+    assert names == {"floor", "painted_wall"}
+
+
+def test_reflector_counts_grow_with_clutter():
+    """'many' corridors carry door frames, radiators and skirting: far more faces than 'few';
+    a high-clutter office has more objects than a low-clutter one; offices have LiDAR-clear glass."""
+    assert scenes.corridor(reflectors="many").face_count > 5 * scenes.corridor(reflectors="few").face_count
+    assert scenes.office(clutter="high").face_count > scenes.office(clutter="low").face_count
+    glass = [m for m in scenes.office(clutter="medium").materials if m.name == "glass"]
+    assert glass and glass[0].lidar_transparent
+
+
+def test_random_world_counts_and_scale():
+    """Explicit counts give that many walls (12 faces) and cylinders (48 sides) when they fit."""
+    scene = scenes.random_world(seed=2, wall_count=2, cylinder_count=3, object_scale=0.5)
+    assert scene.face_count == 12 + 2 * 12 + 3 * (48 * 4)
+
+
+def section_extent(scene, height=1.0):
+    segments, _ = scene.section(height)
+    pts = segments.reshape(-1, 2)
+    return pts.min(axis=0), pts.max(axis=0)
+
+
+def test_svg_line_becomes_a_wall():
+    """A 200-unit line at scale 0.01 -> a 2 m wall (+ thickness at the ends), 0.1 m thick, 2.5 m high."""
+    scene = scenes.from_svg(SVG_HEAD + '<line x1="0" y1="0" x2="200" y2="0"/></svg>', ceiling=False)
+    walls = scene.mesh.submesh([np.flatnonzero(scene.face_material == 0)], append=True)
+    np.testing.assert_allclose(walls.extents, [2.1, 0.1, 2.5], atol=1e-9)
+
+
+def test_svg_rect_transform_and_circle():
+    """A translated 400 x 300 rect -> a closed 4 x 3 m room outline; a circle of r = 50 -> a pillar
+    of 0.5 m radius at its (flipped, shifted) centre; the group transform is applied."""
+    svg = (
+        SVG_HEAD + '<g transform="translate(100,50)"><rect x="0" y="0" width="400" height="300"/></g>'
+        '<circle cx="200" cy="150" r="50"/></svg>'
+    )
+    scene = scenes.from_svg(svg, scale=0.01, wall_thickness=0.1)
+    lo, hi = section_extent(scene)
+    np.testing.assert_allclose(hi - lo, [4.1, 3.1], atol=1e-6)
+    segments, faces = scene.section(1.0)
+    pillar = scene.face_material[faces] == scene.materials.index(scenes.MATERIALS["painted_wall"])
+    pts = segments.reshape(-1, 2)
+    # The pillar centre: svg (200, 150) -> world (2.0, -1.5) minus the plan's lower-left corner.
+    centre = np.array([2.0, -1.5]) - (np.array([1.0, -3.5]) - 0.1)
+    radius = np.linalg.norm(pts - centre, axis=1)
+    assert np.sum(np.abs(radius - 0.5) < 1e-6) >= 48 and pillar.any()
+
+
+def test_svg_curved_path_and_polyline():
+    """A quadratic curve is walled in short pieces; a polyline gives one wall per segment."""
+    curve = scenes.from_svg(SVG_HEAD + '<path d="M 0 0 Q 100 100 200 0"/></svg>', ceiling=False)
+    poly = scenes.from_svg(SVG_HEAD + '<polyline points="0,0 100,0 100,100"/></svg>', ceiling=False)
+    assert curve.face_count - 2 >= 12 * 10  # >= 10 wall boxes of 12 faces, plus the floor
+    assert poly.face_count == 2 * 12 + 2
+
+
+@pytest.mark.parametrize(
+    "svg, message",
+    [
+        (SVG_HEAD + '<text x="0" y="0">hello</text></svg>', "no usable shapes"),
+        ("<svg><unclosed", "could not parse"),
+        ("/nonexistent/plan.svg", "not found"),
+    ],
+)
+def test_svg_errors(svg, message):
+    with pytest.raises(SceneError, match=message):
+        scenes.from_svg(svg)
+
+
+def test_from_mesh_file_and_trimesh(tmp_path):
+    box = trimesh.creation.box(extents=(1.0, 2.0, 3.0))
+    path = tmp_path / "box.stl"
+    box.export(path)
+    scene = scenes.from_mesh(str(path), material="metal")
+    assert scene.face_count == 12 and scene.materials[0].name == "metal"
+    assert scenes.from_mesh(box).face_count == 12
+
+
+def test_bad_meshes_raise_clear_errors():
+    with pytest.raises(SceneError, match="empty"):
+        scenes.from_mesh(trimesh.Trimesh())
+    box = trimesh.creation.box()
+    vertices = box.vertices.copy()
+    vertices[0, 1] = np.nan
+    with pytest.raises(SceneError, match="non-finite"):
+        scenes.from_mesh(trimesh.Trimesh(vertices, box.faces, process=False))
+    flat = trimesh.Trimesh([[0, 0, 0], [1, 0, 0], [2, 0, 0]], [[0, 1, 2], [0, 0, 1]], process=False)
+    with pytest.raises(SceneError, match="degenerate"):
+        scenes.from_mesh(flat)
+    with pytest.raises(SceneError, match="could not load"):
+        scenes.from_mesh("/nonexistent/mesh.obj")
+    with pytest.raises(SceneError, match=r"trimesh\.Trimesh"):
+        scenes.from_mesh(np.zeros((3, 3)))
+
+
+def test_some_degenerate_faces_are_dropped_with_a_warning():
+    box = trimesh.creation.box()
+    faces = np.vstack([box.faces, [[0, 0, 1]]])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        scene = scenes.from_mesh(trimesh.Trimesh(box.vertices, faces, process=False))
+    assert scene.face_count == 12
+    assert any("degenerate" in str(w.message) for w in caught)
+
+
+@pytest.mark.parametrize(
+    "call, message",
+    [
+        (lambda: scenes.box_room((0.1, 4.0, 3.0)), "too small"),
+        (lambda: scenes.box_room((np.nan, 4.0, 3.0)), "finite"),
+        (lambda: scenes.office(clutter="extreme"), "clutter"),
+        (lambda: scenes.corridor(reflectors="lots"), "reflectors"),
+        (lambda: scenes.random_world(object_scale=0.0), "object_scale"),
+        (lambda: scenes.from_mesh(trimesh.creation.box(), material="unobtainium"), "unknown material"),
+    ],
+)
+def test_bad_builder_arguments(call, message):
+    with pytest.raises(ValueError, match=message):
+        call()
+
+
+def test_describe_is_json_with_builder_params():
+    import json
+
+    info = json.loads(scenes.office(seed=3, clutter="low").describe())
+    assert info["name"] == "office" and info["params"]["seed"] == 3 and info["params"]["clutter"] == "low"
+    assert {m["name"] for m in info["materials"]} >= {"painted_wall", "wood"}

@@ -1,0 +1,90 @@
+"""Trajectories: smooth, at the requested speed, clear of obstacles and inside free space.
+
+Clearance is checked with Open3D horizontal rays against the 3D mesh, not with the 2D map the
+planner used.
+"""
+
+import numpy as np
+import pytest
+
+import scenes
+from scenes import SceneError
+
+from .reference.raycast import first_hits
+
+SCENES = {
+    "box_room": lambda: scenes.box_room((5.0, 4.0, 2.5)),
+    "corridor": lambda: scenes.corridor(reflectors="many", seed=1),
+    "office": lambda: scenes.office(seed=0, clutter="high"),
+    "random_world": lambda: scenes.random_world(seed=0),
+}
+
+
+def horizontal_clearance(scene, xy, heights, ray_count=720):
+    """Shortest horizontal distance [m] from each point to the mesh, over rays at several heights."""
+    angles = np.linspace(0, 2 * np.pi, ray_count, endpoint=False)
+    dirs = np.c_[np.cos(angles), np.sin(angles), np.zeros(ray_count)]
+    out = np.full(len(xy), np.inf)
+    for h in heights:
+        origins = np.repeat(np.c_[xy, np.full(len(xy), scene.floor_z + h)], ray_count, axis=0)
+        t, _ = first_hits(scene.mesh.vertices, scene.mesh.faces, origins, np.tile(dirs, (len(xy), 1)))
+        out = np.minimum(out, t.reshape(len(xy), ray_count).min(axis=1))
+    return out
+
+
+@pytest.mark.parametrize("name", sorted(SCENES))
+def test_trajectory_is_clear_smooth_and_inside(name):
+    """150 poses at 0.3 m/s, dt 0.1 s, clearance 0.35 m: every pose >= 0.35 m from any surface
+    between 5 cm and 0.6 m (Open3D rays); steps of 3 cm (or 0 when turning on the spot),
+    turn rate <= 1 rad/s, heading along the motion, sensor at 0.3 m; and enclosed: every
+    horizontal ray and the floor/ceiling rays hit."""
+    scene = SCENES[name]()
+    poses = scenes.trajectory(scene, frames=150, dt=0.1, speed=0.3, clearance=0.35, seed=2)
+    assert poses.shape == (150, 4, 4)
+    rot = poses[:, :3, :3]
+    np.testing.assert_allclose(rot @ rot.transpose(0, 2, 1), np.broadcast_to(np.eye(3), rot.shape), atol=1e-12)
+    np.testing.assert_allclose(poses[:, 2, 3], scene.floor_z + 0.3)
+    xy = poses[:, :2, 3]
+    steps = np.linalg.norm(np.diff(xy, axis=0), axis=1)
+    moving = steps > 1e-9  # otherwise turning on the spot at a dead end
+    np.testing.assert_allclose(steps[moving], 0.03, rtol=2e-3)  # chords of 3 cm arcs
+    assert moving.mean() > 0.8
+    yaw = np.unwrap(np.arctan2(poses[:, 1, 0], poses[:, 0, 0]))
+    assert np.abs(np.diff(yaw)).max() <= 1.0 * 0.1 + 1e-9
+    heading = np.arctan2(*np.diff(xy, axis=0)[moving].T[::-1])
+    lag = np.angle(np.exp(1j * (heading - yaw[1:][moving])))
+    assert np.abs(lag).max() < 0.1  # the sensor looks where the robot drives
+    clearance = horizontal_clearance(scene, xy, heights=np.linspace(0.05, 0.6, 6))
+    assert clearance.min() >= 0.35 - 1e-3, f"closest approach {clearance.min():.3f} m"
+    assert np.isfinite(clearance).all()  # enclosed: no horizontal ray escapes
+    up_down = np.repeat(np.c_[xy, poses[:, 2, 3]], 2, axis=0)
+    t, _ = first_hits(scene.mesh.vertices, scene.mesh.faces, up_down, np.tile([[0, 0, 1], [0, 0, -1]], (150, 1)))
+    assert np.isfinite(t).all()
+
+
+def test_trajectory_is_seeded():
+    scene = scenes.office(seed=0)
+    a = scenes.trajectory(scene, frames=30, seed=4)
+    np.testing.assert_array_equal(a, scenes.trajectory(scene, frames=30, seed=4))
+    assert not np.allclose(a, scenes.trajectory(scene, frames=30, seed=5))
+
+
+def test_no_free_space_raises():
+    """A 0.6 m wide room cannot hold a robot that needs 0.35 m on every side."""
+    with pytest.raises(SceneError, match="no free space"):
+        scenes.trajectory(scenes.box_room((0.6, 0.6, 2.0)), frames=5, clearance=0.35)
+
+
+def test_bad_trajectory_arguments():
+    room = scenes.box_room()
+    with pytest.raises(SceneError, match="frames"):
+        scenes.trajectory(room, frames=0)
+    with pytest.raises(SceneError, match="dt"):
+        scenes.trajectory(room, frames=5, dt=0.0)
+
+
+def test_pose_helpers_agree():
+    """pose() and poses() build the same rigid transforms; yaw 90 deg maps sensor x to world y."""
+    batch = scenes.poses([[1.0, 2.0], [3.0, 4.0]], [np.pi / 2, 0.3], 0.5)
+    np.testing.assert_allclose(batch[0], scenes.pose(1.0, 2.0, np.pi / 2, 0.5))
+    np.testing.assert_allclose(batch[0][:3, :3] @ [1, 0, 0], [0, 1, 0], atol=1e-12)
