@@ -33,7 +33,9 @@ def _scene_from_args(args):
 def _render(args) -> int:
     import warp as wp
 
-    wp.config.quiet = not args.verbose
+    if not args.verbose:  # Warp's start-up banner and per-module load times
+        wp.config.quiet = True
+        wp.config.log_level = wp.LOG_WARNING
     import scenes
 
     from .config import LidarConfig, PolarGrid

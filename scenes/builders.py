@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -30,26 +31,39 @@ def _shell_parts(
 
 
 class _Placer:
-    """Rejection sampler for object footprints (circles) that keeps passages free for a robot."""
+    """Rejection sampler for object footprints (circles) that keeps passages free for a robot.
+
+    Two objects stay `passage` [m] apart, where each object brings its own passage and the
+    smaller of the two applies: large furniture keeps robot-wide passages, small clutter may
+    stand closer.
+    """
 
     def __init__(self, rng: np.random.Generator, size: np.ndarray, passage: float):
         self.rng = rng
         self.size = size
         self.passage = passage
-        self.placed: list[tuple[float, float, float]] = []
+        self.placed: list[tuple[float, float, float, float]] = []
+        self.skipped = 0
 
-    def place(self, radius: float, *, wall_gap: float | None = None, tries: int = 200):
-        """Return (x, y) of a free spot for a footprint of `radius` [m], or None."""
-        wall_gap = self.passage if wall_gap is None else wall_gap
+    def place(self, radius: float, *, wall_gap: float | None = None, passage: float | None = None, tries: int = 200):
+        """Return (x, y) of a free spot for a footprint of `radius` [m], or None (and count a skip)."""
+        passage = self.passage if passage is None else passage
+        wall_gap = passage if wall_gap is None else wall_gap
         lo, hi = radius + wall_gap, self.size[:2] - radius - wall_gap
-        if (hi <= lo).any():
-            return None
-        for _ in range(tries):
-            x, y = self.rng.uniform(lo, hi)
-            if all(np.hypot(x - px, y - py) > radius + pr + self.passage for px, py, pr in self.placed):
-                self.placed.append((x, y, radius))
-                return float(x), float(y)
+        if (hi > lo).all():
+            for _ in range(tries):
+                x, y = self.rng.uniform(lo, hi)
+                if all(np.hypot(x - px, y - py) > radius + pr + min(passage, pp) for px, py, pr, pp in self.placed):
+                    self.placed.append((x, y, radius, passage))
+                    return float(x), float(y)
+        self.skipped += 1
         return None
+
+    def warn_skipped(self, scene: str) -> None:
+        if self.skipped:
+            warnings.warn(
+                f"{scene}: {self.skipped} objects did not fit with free passages and were left out", stacklevel=3
+            )
 
 
 def box_room(
@@ -146,8 +160,8 @@ def corridor(
 _CLUTTER = {
     # desks, chairs, shelves, pillars, boxes, glass panels
     "low": (2, 2, 1, 0, 2, 0),
-    "medium": (3, 4, 2, 1, 5, 1),
-    "high": (5, 6, 3, 2, 10, 1),
+    "medium": (3, 3, 2, 1, 5, 1),
+    "high": (3, 6, 3, 1, 12, 1),
 }
 
 
@@ -193,25 +207,27 @@ def office(
     def yaw() -> float:
         return float(rng.choice([0.0, np.pi / 2]) + rng.normal(0.0, 0.1))
 
+    # Largest footprints first: they are the hardest to fit.
+    for _ in range(desks):
+        if (xy := placer.place(0.8, wall_gap=0.2)) is not None:
+            parts += _desk(*xy, yaw())
     for _ in range(glass):
-        if (xy := placer.place(0.7)) is not None:
+        if (xy := placer.place(0.7, wall_gap=0.5)) is not None:
             parts.append((box_mesh((*xy, 1.0), (1.2, 0.012, 2.0), yaw()), "glass"))
     for _ in range(pillars):
         if (xy := placer.place(0.3)) is not None:
             parts.append((box_mesh((*xy, size[2] / 2), (0.4, 0.4, size[2]), yaw()), "painted_wall"))
     for _ in range(shelves):
-        if (xy := placer.place(0.45, wall_gap=0.05)) is not None:
+        if (xy := placer.place(0.45, wall_gap=0.05, passage=0.5)) is not None:
             parts.append((box_mesh((*xy, 0.9), (0.8, 0.35, 1.8), yaw()), "wood"))
-    for _ in range(desks):
-        if (xy := placer.place(0.8)) is not None:
-            parts += _desk(*xy, yaw())
     for _ in range(chairs):
-        if (xy := placer.place(0.35)) is not None:
+        if (xy := placer.place(0.35, passage=0.15)) is not None:
             parts += _chair(*xy, float(rng.uniform(0, 2 * np.pi)))
     for _ in range(boxes):
-        if (xy := placer.place(0.3, wall_gap=0.1)) is not None:
+        if (xy := placer.place(0.3, wall_gap=0.05, passage=0.05)) is not None:
             extents = rng.uniform((0.2, 0.2, 0.2), (0.5, 0.5, 0.6))
             parts.append((box_mesh((*xy, extents[2] / 2), extents, float(rng.uniform(0, np.pi))), "wood"))
+    placer.warn_skipped("office")
     return assemble(parts, name="office", params={"seed": seed, "size": size.tolist(), "clutter": clutter})
 
 

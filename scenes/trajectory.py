@@ -148,6 +148,27 @@ def _resample(points: np.ndarray, spacing: float) -> np.ndarray:
     return np.column_stack([np.interp(s, arc, points[:, 0]), np.interp(s, arc, points[:, 1])])
 
 
+def _walk(points: np.ndarray, step: float, count: int) -> np.ndarray:
+    """Up to `count` points along a polyline, each exactly `step` [m] (straight line) from the last.
+
+    Unlike equal arc-length sampling, this keeps the robot's speed constant through corners.
+    """
+    out = [points[0]]
+    current, start, k = points[0], points[0], 0
+    while len(out) < count and k < len(points) - 1:
+        end = points[k + 1]
+        if np.linalg.norm(end - current) < step:
+            k, start = k + 1, end
+            continue
+        # Far intersection of segment start..end with the circle of radius `step` around `current`.
+        d, f = end - start, start - current
+        a, b, c = d @ d, 2.0 * (f @ d), f @ f - step * step
+        t = (-b + np.sqrt(max(b * b - 4.0 * a * c, 0.0))) / (2.0 * a)
+        current = start = start + t * d
+        out.append(current)
+    return np.array(out)
+
+
 def _drive(samples: np.ndarray, frames: int, max_turn: float) -> tuple[np.ndarray, np.ndarray]:
     """Frames along equally spaced path samples, heading along the path; where the heading
     changes by more than `max_turn` [rad] per frame the robot stops and turns on the spot."""
@@ -256,7 +277,7 @@ def trajectory(
         xy = np.repeat(dense[:1], frames, axis=0)
         yaw = np.full(frames, heading)
     else:
-        xy, yaw = _drive(_resample(dense, speed * dt), frames, turn_rate * dt)
+        xy, yaw = _drive(_walk(dense, speed * dt, frames + 1), frames, turn_rate * dt)
         if len(xy) < frames:  # pragma: no cover - the route is built longer than needed
             raise SceneError(f"{scene.name}: route too short for {frames} frames")
     return poses(xy, yaw, scene.floor_z + sensor_height)

@@ -2,6 +2,7 @@ import pytest
 import warp as wp
 
 wp.config.quiet = True
+wp.config.log_level = wp.LOG_WARNING
 
 
 def pytest_addoption(parser):

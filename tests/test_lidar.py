@@ -214,8 +214,18 @@ def test_bad_poses_raise(device):
         lidar.scan(scene, np.eye(3))
     with pytest.raises(ValueError, match="NaN"):
         lidar.scan(scene, np.full((4, 4), np.nan))
+    moved = np.tile(np.eye(4), (3, 1, 1))
+    moved[2, 0, 3] = np.inf
+    with pytest.raises(ValueError, match="pose 2 contains NaN or inf"):
+        lidar.scan(scene, moved)
     with pytest.raises(ValueError, match="rigid"):
         lidar.scan(scene, np.diag([2.0, 1.0, 1.0, 1.0]))
+    sheared = np.eye(4)
+    sheared[0, 1] = 0.01
+    with pytest.raises(ValueError, match="pose 0 is not a rigid"):
+        lidar.scan(scene, sheared)
+    with pytest.raises(ValueError, match="rigid"):
+        lidar.scan(scene, np.array([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0.5, 1.0]]))
     with pytest.raises(ValueError, match="empty"):
         lidar.scan(scene, np.zeros((0, 4, 4)))
 

@@ -35,7 +35,7 @@ def horizontal_clearance(scene, xy, heights, ray_count=720):
 @pytest.mark.parametrize("name", sorted(SCENES))
 def test_trajectory_is_clear_smooth_and_inside(name):
     """150 poses at 0.3 m/s, dt 0.1 s, clearance 0.35 m: every pose >= 0.35 m from any surface
-    between 5 cm and 0.6 m (Open3D rays); steps of 3 cm (or 0 when turning on the spot),
+    between 5 cm and 0.6 m (Open3D rays); steps of exactly 3 cm (or 0 when turning on the spot),
     turn rate <= 1 rad/s, heading along the motion, sensor at 0.3 m; and enclosed: every
     horizontal ray and the floor/ceiling rays hit."""
     scene = SCENES[name]()
@@ -47,7 +47,7 @@ def test_trajectory_is_clear_smooth_and_inside(name):
     xy = poses[:, :2, 3]
     steps = np.linalg.norm(np.diff(xy, axis=0), axis=1)
     moving = steps > 1e-9  # otherwise turning on the spot at a dead end
-    np.testing.assert_allclose(steps[moving], 0.03, rtol=2e-3)  # chords of 3 cm arcs
+    np.testing.assert_allclose(steps[moving], 0.03, rtol=1e-9)
     assert moving.mean() > 0.8
     yaw = np.unwrap(np.arctan2(poses[:, 1, 0], poses[:, 0, 0]))
     assert np.abs(np.diff(yaw)).max() <= 1.0 * 0.1 + 1e-9

@@ -1,11 +1,20 @@
-"""Independent ray-cast reference: Open3D's RaycastingScene (Intel Embree), float32 on the CPU."""
+"""Independent ray-cast reference: Open3D's RaycastingScene (Intel Embree), float32 on the CPU.
+
+Where Open3D is not installed (the GPU machine), embreex, a second Embree binding, stands in.
+"""
 
 import numpy as np
-import open3d as o3d
+
+try:
+    import open3d as o3d
+except ImportError:
+    o3d = None
 
 
 def first_hits(vertices: np.ndarray, faces: np.ndarray, origins: np.ndarray, dirs: np.ndarray):
     """Distance to the first face hit along unit rays; inf on a miss. Returns (t (N,), face (N,))."""
+    if o3d is None:
+        return _first_hits_embreex(vertices, faces, origins, dirs)
     scene = o3d.t.geometry.RaycastingScene()
     scene.add_triangles(
         o3d.core.Tensor(np.asarray(vertices, np.float32)), o3d.core.Tensor(np.asarray(faces, np.uint32))
@@ -16,6 +25,18 @@ def first_hits(vertices: np.ndarray, faces: np.ndarray, origins: np.ndarray, dir
     face = hit["primitive_ids"].numpy().astype(np.int64)
     face[~np.isfinite(t)] = -1
     return t, face
+
+
+def _first_hits_embreex(vertices, faces, origins, dirs):
+    from embreex import rtcore_scene
+    from embreex.mesh_construction import TriangleMesh
+
+    scene = rtcore_scene.EmbreeScene()
+    TriangleMesh(scene, np.asarray(vertices, np.float32)[np.asarray(faces)])
+    out = scene.run(np.ascontiguousarray(origins, np.float32), np.ascontiguousarray(dirs, np.float32), output=1)
+    hit = out["geomID"] >= 0
+    t = np.where(hit, out["tfar"], np.inf).astype(np.float64)
+    return t, np.where(hit, out["primID"], -1).astype(np.int64)
 
 
 def lidar_reference(scene, poses: np.ndarray, config) -> np.ndarray:
