@@ -2,7 +2,7 @@
 
 from importlib.metadata import PackageNotFoundError, version
 
-from .config import LidarConfig, PolarGrid
+from .config import AtmosphereConfig, ChirpConfig, LidarConfig, PolarGrid, SonarConfig
 from .lidar import Lidar, LidarScan, check_poses, lidar_image, ranges_to_points
 from .scene import WarpScene, warp_scene
 
@@ -12,6 +12,9 @@ except PackageNotFoundError:  # running from a source tree that was not installe
     __version__ = "0+unknown"
 
 __all__ = [
+    "AtmosphereConfig",
+    "ChirpConfig",
+    "SonarConfig",
     "Lidar",
     "LidarConfig",
     "LidarScan",

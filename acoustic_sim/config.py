@@ -152,3 +152,101 @@ class LidarConfig:
         """
         el, az = np.meshgrid(self.elevation_rad, self.azimuth_rad, indexing="ij")
         return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1).reshape(-1, 3)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ChirpConfig:
+    """The emitted call: an FM sweep with Hann tapers (see `signals.chirp`)."""
+
+    start_frequency_hz: float = 50e3
+    stop_frequency_hz: float = 25e3
+    duration_s: float = 2.5e-3
+    sample_rate_hz: float = 450e3
+    sweep: str = "hyperbolic"  # or "linear"
+    taper_fraction: float = 0.1
+
+    def __post_init__(self) -> None:
+        from .signals import chirp
+
+        chirp(**dataclasses.asdict(self))  # validates every field with a clear message
+
+    @classmethod
+    def band_20_80khz(cls, **overrides) -> ChirpConfig:
+        return dataclasses.replace(cls(start_frequency_hz=80e3, stop_frequency_hz=20e3), **overrides)
+
+    @classmethod
+    def band_25_80khz(cls, **overrides) -> ChirpConfig:
+        return dataclasses.replace(cls(start_frequency_hz=80e3, stop_frequency_hz=25e3), **overrides)
+
+    @property
+    def sample_count(self) -> int:
+        return round(self.duration_s * self.sample_rate_hz) + 1
+
+    def samples(self) -> np.ndarray:
+        """The call, float64 (sample_count,)."""
+        from .signals import chirp
+
+        return chirp(**dataclasses.asdict(self))
+
+
+@dataclass(frozen=True, kw_only=True)
+class AtmosphereConfig:
+    """Air the sound travels through: sets the speed of sound and ISO 9613-1 absorption."""
+
+    temperature_c: float = 20.0
+    relative_humidity: float = 50.0
+    pressure_kpa: float = 101.325
+
+    def __post_init__(self) -> None:
+        if not -50.0 <= self.temperature_c <= 60.0:
+            raise ValueError(f"temperature_c must lie in [-50, 60], got {self.temperature_c}")
+        if not 0.0 <= self.relative_humidity <= 100.0:
+            raise ValueError(f"relative_humidity must lie in [0, 100], got {self.relative_humidity}")
+        if self.pressure_kpa <= 0:
+            raise ValueError(f"pressure_kpa must be positive, got {self.pressure_kpa}")
+
+    @property
+    def speed_of_sound(self) -> float:
+        from .signals import speed_of_sound
+
+        return speed_of_sound(self.temperature_c)
+
+
+@dataclass(frozen=True, kw_only=True)
+class SonarConfig:
+    """An in-air 3D sonar: one emitter, a planar microphone array, its call and the air.
+
+    Positions are in the sensor frame (x forward along the array normal, y left, z up) [m].
+    """
+
+    chirp: ChirpConfig = dataclasses.field(default_factory=ChirpConfig)
+    atmosphere: AtmosphereConfig = dataclasses.field(default_factory=AtmosphereConfig)
+    microphones_m: tuple[tuple[float, float, float], ...] = ()
+    emitter_m: tuple[float, float, float] = (0.0, 0.0, 0.05)
+    emitter_radius_m: float = 0.005  # baffled piston model of the emitter's directivity
+    record_samples: int = 16384
+
+    def __post_init__(self) -> None:
+        mics = np.asarray(self.microphones_m, dtype=np.float64)
+        if mics.ndim != 2 or mics.shape[1] != 3 or len(mics) < 2 or not np.isfinite(mics).all():
+            raise ValueError(f"microphones_m must be >= 2 finite (x, y, z) positions, got shape {mics.shape}")
+        if len(self.emitter_m) != 3 or not np.isfinite(self.emitter_m).all():
+            raise ValueError("emitter_m must be a finite (x, y, z) position")
+        if self.emitter_radius_m <= 0 or self.record_samples < self.chirp.sample_count:
+            raise ValueError("emitter_radius_m must be positive and record_samples >= the call's length")
+
+    @classmethod
+    def ertis(cls, **overrides) -> SonarConfig:
+        """The eRTIS (v3D1): 32 MEMS microphones, 50 -> 25 kHz hyperbolic call, 16,384 samples at 450 kHz."""
+        from .array import ertis_microphones
+
+        mics = tuple(tuple(float(v) for v in row) for row in ertis_microphones())
+        return dataclasses.replace(cls(microphones_m=mics), **overrides)
+
+    @property
+    def microphone_count(self) -> int:
+        return len(self.microphones_m)
+
+    @property
+    def record_duration_s(self) -> float:
+        return self.record_samples / self.chirp.sample_rate_hz
