@@ -14,11 +14,11 @@ except PackageNotFoundError:  # running from a source tree that was not installe
 __all__ = [
     "AtmosphereConfig",
     "ChirpConfig",
-    "SonarConfig",
     "Lidar",
     "LidarConfig",
     "LidarScan",
     "PolarGrid",
+    "SonarConfig",
     "WarpScene",
     "check_poses",
     "lidar_image",

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import warnings
 from collections.abc import Sequence
 
@@ -282,7 +283,7 @@ def random_world(
 
 
 def from_mesh(
-    mesh: trimesh.Trimesh | str,
+    mesh: trimesh.Trimesh | str | os.PathLike,
     *,
     material: str | Material = "painted_wall",
     name: str = "mesh",
@@ -291,10 +292,10 @@ def from_mesh(
 
     Degenerate faces are dropped with a warning; an empty or non-finite mesh raises SceneError.
     """
-    source = mesh if isinstance(mesh, str) else None
-    if isinstance(mesh, str):
+    source = os.fspath(mesh) if isinstance(mesh, (str, os.PathLike)) else None
+    if source is not None:
         try:
-            mesh = trimesh.load(mesh, force="mesh")
+            mesh = trimesh.load(source, force="mesh")
         except Exception as err:
             raise SceneError(f"could not load a mesh from {source!r}: {err}") from err
     return assemble([(mesh, material)], name=name, params={"source": source})

@@ -116,6 +116,7 @@ def test_from_mesh_file_and_trimesh(tmp_path):
     scene = scenes.from_mesh(str(path), material="metal")
     assert scene.face_count == 12 and scene.materials[0].name == "metal"
     assert scenes.from_mesh(box).face_count == 12
+    assert scenes.from_mesh(path).face_count == 12  # pathlib.Path too
 
 
 def test_bad_meshes_raise_clear_errors():
