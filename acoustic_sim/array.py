@@ -24,8 +24,9 @@ def ertis_microphones() -> np.ndarray:
     return positions
 
 
-def piston_directivity(theta: np.ndarray, frequency_hz: np.ndarray | float, radius_m: float,
-                       speed_of_sound: float) -> np.ndarray:
+def piston_directivity(
+    theta: np.ndarray, frequency_hz: np.ndarray | float, radius_m: float, speed_of_sound: float
+) -> np.ndarray:
     """Pressure directivity of a baffled circular piston, 2 J1(ka sin t) / (ka sin t); 1 on axis.
 
     Args:

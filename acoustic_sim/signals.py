@@ -80,8 +80,10 @@ def chirp(
     if min(start_frequency_hz, stop_frequency_hz) <= 0 or duration_s <= 0:
         raise ValueError("chirp frequencies and duration must be positive")
     if max(start_frequency_hz, stop_frequency_hz) >= sample_rate_hz / 2:
-        raise ValueError(f"chirp reaches {max(start_frequency_hz, stop_frequency_hz)} Hz, above the "
-                         f"Nyquist frequency {sample_rate_hz / 2} Hz")
+        raise ValueError(
+            f"chirp reaches {max(start_frequency_hz, stop_frequency_hz)} Hz, above the "
+            f"Nyquist frequency {sample_rate_hz / 2} Hz"
+        )
     if not 0.0 <= taper_fraction <= 0.5:
         raise ValueError(f"taper_fraction must lie in [0, 0.5], got {taper_fraction}")
     count = round(duration_s * sample_rate_hz) + 1
@@ -102,8 +104,9 @@ def chirp(
     return signal
 
 
-def instantaneous_frequency(start_frequency_hz: float, stop_frequency_hz: float, duration_s: float,
-                            t: np.ndarray, *, sweep: str = "hyperbolic") -> np.ndarray:
+def instantaneous_frequency(
+    start_frequency_hz: float, stop_frequency_hz: float, duration_s: float, t: np.ndarray, *, sweep: str = "hyperbolic"
+) -> np.ndarray:
     """Instantaneous frequency [Hz] of `chirp` at times t [s]."""
     f0, f1 = start_frequency_hz, stop_frequency_hz
     t = np.asarray(t, dtype=np.float64)

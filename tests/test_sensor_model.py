@@ -14,13 +14,16 @@ from acoustic_sim.array import ertis_microphones, piston_directivity
 from acoustic_sim.signals import air_absorption_db_per_m, chirp, instantaneous_frequency, speed_of_sound
 
 
-@pytest.mark.parametrize("frequency_hz, expected_db_per_m, rel", [
-    (1e3, 4.66e-3, 0.01),  # ISO 9613-1 Table 1, 20 C, 50 % RH: 4.66 dB/km
-    (8e3, 105e-3, 0.01),  # ... 105 dB/km
-    (25e3, 0.73, 0.01),  # eRTIS band, ../shared/DESIGN.md: ~0.73, 1.66, 2.61 dB/m
-    (50e3, 1.66, 0.01),
-    (80e3, 2.61, 0.01),
-])
+@pytest.mark.parametrize(
+    "frequency_hz, expected_db_per_m, rel",
+    [
+        (1e3, 4.66e-3, 0.01),  # ISO 9613-1 Table 1, 20 C, 50 % RH: 4.66 dB/km
+        (8e3, 105e-3, 0.01),  # ... 105 dB/km
+        (25e3, 0.73, 0.01),  # eRTIS band, ../shared/DESIGN.md: ~0.73, 1.66, 2.61 dB/m
+        (50e3, 1.66, 0.01),
+        (80e3, 2.61, 0.01),
+    ],
+)
 def test_air_absorption_matches_published_values(frequency_hz, expected_db_per_m, rel):
     assert air_absorption_db_per_m(frequency_hz) == pytest.approx(expected_db_per_m, rel=rel)
 
