@@ -30,6 +30,7 @@ demo: $(VENV)/.installed
 	@echo "pictures in $(OUT)/"
 
 test: $(VENV)/.installed
+	$(VENV)/bin/ruff check .
 	$(PY) -m pytest -q
 
 lint: $(VENV)/.installed
