@@ -57,7 +57,7 @@ class LidarScan:
 
 
 class Lidar:
-    """Scanning LiDAR: casts every beam of many poses in one launch on a Warp device.
+    """Scanning LiDAR: casts every beam of many poses in one kernel launch on a Warp device.
 
     Args:
         config: Beam pattern, limits and noise.
