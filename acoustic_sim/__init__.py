@@ -4,6 +4,7 @@ from importlib.metadata import PackageNotFoundError, version
 
 from .config import AtmosphereConfig, ChirpConfig, LidarConfig, PolarGrid, SonarConfig
 from .lidar import Lidar, LidarScan, check_poses, lidar_image, ranges_to_points
+from .paths import Arrivals, Sonar
 from .scene import WarpScene, warp_scene
 
 try:
@@ -12,12 +13,14 @@ except PackageNotFoundError:  # running from a source tree that was not installe
     __version__ = "0+unknown"
 
 __all__ = [
+    "Arrivals",
     "AtmosphereConfig",
     "ChirpConfig",
     "Lidar",
     "LidarConfig",
     "LidarScan",
     "PolarGrid",
+    "Sonar",
     "SonarConfig",
     "WarpScene",
     "check_poses",

@@ -17,7 +17,25 @@ class WarpScene:
 
     mesh: wp.Mesh
     face_lidar_transparent: wp.array  # uint8 (face_count,)
+    face_plane: wp.array  # int32 (face_count,): coplanar faces of one orientation share a plane
+    plane_normal: wp.array  # vec3 (plane_count,), unit, as the faces' winding gives
+    plane_offset: wp.array  # float (plane_count,): n . x = offset on the plane [m]
+    face_reflection: wp.array  # float (face_count,): energy reflection coefficient
+    face_scattering: wp.array  # float (face_count,): scattered fraction of the reflected energy
     mesh_hash: int
+
+
+def face_planes(scene: Scene, *, tolerance: float = 1e-5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Group faces by their plane: (face_plane (F,), plane_normal (P, 3), plane_offset (P,)).
+
+    Faces whose unit normals and offsets agree within `tolerance` (in metres for the offset)
+    share a plane, so a wall split into triangles is one mirror for image sources.
+    """
+    normals = np.asarray(scene.mesh.face_normals, dtype=np.float64)
+    offsets = np.einsum("ij,ij->i", normals, scene.mesh.triangles[:, 0])
+    keys = np.rint(np.c_[normals, offsets] / tolerance).astype(np.int64)
+    _, first, face_plane = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    return face_plane.reshape(-1).astype(np.int32), normals[first], offsets[first]
 
 
 _CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -37,6 +55,7 @@ def warp_scene(scene: Scene, device=None) -> WarpScene:
         return cached
     vertices = np.ascontiguousarray(scene.mesh.vertices, dtype=np.float32)
     faces = np.ascontiguousarray(scene.mesh.faces, dtype=np.int32).reshape(-1)
+    face_plane, plane_normal, plane_offset = face_planes(scene)
     with wp.ScopedDevice(device):
         points = wp.array(vertices, dtype=wp.vec3)
         indices = wp.array(faces, dtype=wp.int32)
@@ -45,6 +64,11 @@ def warp_scene(scene: Scene, device=None) -> WarpScene:
             # rays/s on an H100 than the LBVH Warp builds on GPUs by default.
             mesh=wp.Mesh(points=points, indices=indices, bvh_constructor="sah"),
             face_lidar_transparent=wp.array(scene.material_table("lidar_transparent").astype(np.uint8), dtype=wp.uint8),
+            face_plane=wp.array(face_plane, dtype=wp.int32),
+            plane_normal=wp.array(plane_normal.astype(np.float32), dtype=wp.vec3),
+            plane_offset=wp.array(plane_offset.astype(np.float32), dtype=float),
+            face_reflection=wp.array(scene.material_table("acoustic_reflection").astype(np.float32), dtype=float),
+            face_scattering=wp.array(scene.material_table("acoustic_scattering").astype(np.float32), dtype=float),
             mesh_hash=mesh_hash,
         )
     per_device[device.alias] = built

@@ -1,0 +1,186 @@
+"""Acoustic path tracing: rays discover specular reflection sequences, image sources make them exact."""
+
+import warp as wp
+
+MAX_ORDER = 11  # reflections per path: max_bounces <= 10 secondary bounces after the first
+SequenceVec = wp.types.vector(length=MAX_ORDER, dtype=wp.int32)
+TABLE_PROBES = 32  # linear probes before an insertion into a pose's sequence table gives up
+HASH_SEED = wp.constant(wp.uint64(14695981039346656037))  # FNV-1a 64-bit offset basis
+HASH_PRIME = wp.constant(wp.uint64(1099511628211))
+SURFACE_STEP = 1.0e-4  # [m] step off a surface before the next query
+PLANE_MATCH = 2.0e-3  # [m] how far a validation hit may lie from the image-source reflection point
+
+
+@wp.func
+def mirror(x: wp.vec3, normal: wp.vec3, offset: float) -> wp.vec3:
+    """Mirror point x in the plane normal . y = offset."""
+    return x - 2.0 * (wp.dot(normal, x) - offset) * normal
+
+
+@wp.kernel(enable_backward=False)
+def discover_sequences(
+    # in
+    mesh: wp.uint64,
+    face_plane: wp.array[wp.int32],
+    poses: wp.array[wp.mat44],
+    emitter: wp.vec3,
+    ray_dirs: wp.array[wp.vec3],
+    max_order: int,
+    # out
+    table_key: wp.array2d[wp.uint64],
+    table_order: wp.array2d[wp.int32],
+    table_planes: wp.array3d[wp.int32],
+    overflow_out: wp.array[wp.int32],
+):
+    """One thread per (pose, ray); launch with dim=pose_count * ray_count.
+
+    Follows the ray's specular bounces and records every prefix of its plane sequence (orders
+    1..max_order) once per pose in an open-addressing hash table keyed by the sequence hash.
+    Rays leave the emitter (sensor frame position `emitter`) along `ray_dirs` (sensor frame).
+    """
+    tid = wp.tid()
+    ray_count = ray_dirs.shape[0]
+    p = tid // ray_count
+    r = tid - p * ray_count
+    pose = poses[p]
+    origin = wp.transform_point(pose, emitter)
+    direction = wp.normalize(wp.transform_vector(pose, ray_dirs[r]))
+    mask = table_key.shape[1] - 1
+    planes = SequenceVec()
+    key = HASH_SEED
+    for k in range(max_order):
+        q = wp.mesh_query_ray(mesh, origin, direction, 1.0e6)
+        if not q.result:
+            break
+        plane = face_plane[q.face]
+        planes[k] = plane
+        key = (key ^ wp.uint64(plane + 1)) * HASH_PRIME
+        slot = int(key & wp.uint64(mask))
+        stored = int(0)
+        for _probe in range(TABLE_PROBES):
+            old = wp.atomic_cas(table_key, p, slot, wp.uint64(0), key)
+            if old == wp.uint64(0):
+                table_order[p, slot] = k + 1
+                for j in range(k + 1):
+                    table_planes[p, slot, j] = planes[j]
+                stored = 1
+                break
+            if old == key:
+                stored = 1
+                break
+            slot = (slot + 1) & mask
+        if stored == 0:
+            wp.atomic_add(overflow_out, 0, 1)
+        hit = origin + direction * q.t
+        normal = wp.normalize(q.normal)
+        side = wp.sign(wp.dot(direction, normal))
+        direction = direction - 2.0 * wp.dot(direction, normal) * normal
+        # Step off along the normal, to the side the ray came from (along the new direction, rays
+        # near an edge can slip behind the next face and escape a closed room).
+        origin = hit - normal * (side * SURFACE_STEP)
+
+
+@wp.kernel(enable_backward=False)
+def validate_sequences(
+    # in
+    mesh: wp.uint64,
+    face_plane: wp.array[wp.int32],
+    plane_normal: wp.array[wp.vec3],
+    plane_offset: wp.array[float],
+    face_reflection: wp.array[float],
+    face_scattering: wp.array[float],
+    poses: wp.array[wp.mat44],
+    emitter: wp.vec3,
+    table_key: wp.array2d[wp.uint64],
+    table_order: wp.array2d[wp.int32],
+    table_planes: wp.array3d[wp.int32],
+    # out
+    valid_out: wp.array2d[wp.int32],
+    length_out: wp.array2d[float],
+    gain_out: wp.array2d[float],
+    image_out: wp.array2d[wp.vec3],
+    arrival_dir_out: wp.array2d[wp.vec3],
+    emit_dir_out: wp.array2d[wp.vec3],
+):
+    """One thread per (pose, table slot); launch with dim=(pose_count, table_size).
+
+    Exact image-source check of a discovered sequence: mirror the emitter in each plane, then
+    walk back from the receiver (sensor origin) through the reflection points. Valid when every
+    leg's first hit is at the expected reflection point (within PLANE_MATCH) and the last leg
+    reaches the emitter unoccluded, leaving it forwards. Outputs are in the sensor frame: the image source [m], the
+    direction the echo arrives from, and the direction it left the emitter; `gain` is the
+    product of the specular pressure reflection factors sqrt(R (1 - s)) along the path.
+    """
+    p, s = wp.tid()
+    valid_out[p, s] = 0
+    if table_key[p, s] == wp.uint64(0):
+        return
+    order = table_order[p, s]
+    pose = poses[p]
+    source = wp.transform_point(pose, emitter)
+    receiver = wp.transform_point(pose, wp.vec3(0.0))
+    inverse = wp.inverse(pose)
+
+    image = source
+    for m in range(order):
+        plane = table_planes[p, s, m]
+        image = mirror(image, plane_normal[plane], plane_offset[plane])
+
+    x = receiver
+    gain = float(1.0)
+    face_gain = float(1.0)
+    valid = int(1)
+    arrival = wp.vec3(0.0)
+    for back in range(order):
+        j = order - 1 - back
+        target = source
+        for m in range(j + 1):
+            plane_m = table_planes[p, s, m]
+            target = mirror(target, plane_normal[plane_m], plane_offset[plane_m])
+        plane = table_planes[p, s, j]
+        normal = plane_normal[plane]
+        leg = target - x
+        denom = wp.dot(normal, leg)
+        if wp.abs(denom) < 1.0e-12:
+            valid = 0
+            break
+        t = (plane_offset[plane] - wp.dot(normal, x)) / denom
+        if t < -1.0e-6 or t >= 1.0:
+            valid = 0
+            break
+        point = x + leg * wp.max(t, 0.0)
+        distance = wp.length(point - x)
+        if distance < PLANE_MATCH:
+            # Reflects where the previous reflection did: on the edge where two planes meet (the
+            # corner reflector case). Same material as that face.
+            gain = gain * face_gain
+        else:
+            direction = (point - x) / distance
+            q = wp.mesh_query_ray(mesh, x + direction * SURFACE_STEP, direction, distance + PLANE_MATCH)
+            # The first thing the leg meets must be at the reflection point. Its face may belong
+            # to another plane where two planes meet: corner reflectors reflect on the shared edge.
+            if not q.result:
+                valid = 0
+                break
+            if wp.abs(q.t + SURFACE_STEP - distance) > PLANE_MATCH:
+                valid = 0
+                break
+            face_gain = wp.sqrt(face_reflection[q.face] * (1.0 - face_scattering[q.face]))
+            gain = gain * face_gain
+            if back == 0:
+                arrival = direction
+            x = point
+    if valid == 1:
+        leg = source - x
+        distance = wp.length(leg)
+        direction = leg / distance
+        emit = wp.normalize(wp.transform_vector(inverse, -direction))
+        q = wp.mesh_query_ray(mesh, x + direction * SURFACE_STEP, direction, distance - 2.0 * SURFACE_STEP)
+        # The emitter is baffled in the sensor's y-z plane: nothing leaves it backwards.
+        if not q.result and emit[0] >= -1.0e-6:
+            valid_out[p, s] = 1
+            length_out[p, s] = wp.length(image - receiver)
+            gain_out[p, s] = gain
+            image_out[p, s] = wp.transform_point(inverse, image)
+            arrival_dir_out[p, s] = wp.normalize(wp.transform_vector(inverse, arrival))
+            emit_dir_out[p, s] = emit
