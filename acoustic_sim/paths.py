@@ -89,7 +89,13 @@ class Sonar:
     """
 
     def __init__(
-        self, config: SonarConfig, *, max_bounces: int = 3, ray_count: int = 20_000, table_size: int = 4096, device=None
+        self,
+        config: SonarConfig,
+        *,
+        max_bounces: int = 3,
+        ray_count: int = 20_000,
+        table_size: int = 16384,
+        device=None,
     ):
         if not 0 <= max_bounces <= kernels.MAX_ORDER - 1:
             raise ValueError(f"max_bounces must lie in 0..{kernels.MAX_ORDER - 1}, got {max_bounces}")
