@@ -1,9 +1,10 @@
 """Acoustic path tracer: echoes of the sonar's call in a 3D scene, batched over poses.
 
-So far the tracer finds specular paths (orders 1 .. max_bounces + 1) exactly: rays from the
-emitter discover which planes a path reflects off, and the image-source method turns every
-discovered sequence into an exact path, or rejects it. Scattered (diffuse, edge) arrivals are
-not traced yet.
+Specular paths (orders 1 .. max_bounces + 1) are exact: rays from the emitter discover which
+planes a path reflects off, and the image-source method turns every discovered sequence into
+an exact path, or rejects it. Scattered arrivals are Monte Carlo "diffuse rain": at every hit
+of every ray, the material's scattered share of the ray's energy goes to the array along a
+Lambert lobe if nothing is in the way. Edge diffraction is not modelled yet.
 """
 
 from __future__ import annotations
@@ -85,6 +86,7 @@ class Sonar:
         ray_count: Rays per ping used to discover reflection sequences (front hemisphere; a
             baffled emitter radiates nothing backwards).
         table_size: Distinct reflection sequences kept per ping (power of two).
+        scattering: Trace scattered (diffuse) arrivals as well as specular ones.
         device: Warp device.
     """
 
@@ -95,6 +97,7 @@ class Sonar:
         max_bounces: int = 3,
         ray_count: int = 20_000,
         table_size: int = 16384,
+        scattering: bool = True,
         device=None,
     ):
         if not 0 <= max_bounces <= kernels.MAX_ORDER - 1:
@@ -105,10 +108,23 @@ class Sonar:
         self.max_bounces = max_bounces
         self.ray_count = ray_count
         self.table_size = table_size
+        self.scattering = scattering
         self.device = wp.get_device(device)
+        directions = hemisphere_directions(ray_count)
+        # Each ray carries its share of the half-space (2 pi sr), weighted by the emitter's power
+        # directivity at the call's centre frequency.
+        theta = np.arccos(np.clip(directions[:, 0], -1.0, 1.0))
+        power = (
+            piston_directivity(theta, self._centre_hz, config.emitter_radius_m, config.atmosphere.speed_of_sound) ** 2
+        )
+        self._ray_energy = wp.array((2 * np.pi / ray_count * power).astype(np.float32), dtype=float, device=self.device)
         self._ray_dirs = wp.array(
             hemisphere_directions(ray_count).astype(np.float32), dtype=wp.vec3, device=self.device
         )
+
+    @property
+    def _centre_hz(self) -> float:
+        return 0.5 * (self.config.chirp.start_frequency_hz + self.config.chirp.stop_frequency_hz)
 
     def trace(self, scene: Scene, poses: np.ndarray) -> Arrivals:
         """Specular echoes of one ping from each pose (see the module docstring for what is traced).
@@ -134,14 +150,41 @@ class Sonar:
             image = wp.empty((n, size), dtype=wp.vec3)
             arrival_dir = wp.empty((n, size), dtype=wp.vec3)
             emit_dir = wp.empty((n, size), dtype=wp.vec3)
+            capacity = self.ray_count * (self.max_bounces + 1) if self.scattering else 1
+            scatter_count = wp.zeros(n, dtype=wp.int32)
+            scatter_point = wp.empty((n, capacity), dtype=wp.vec3)
+            scatter_length = wp.empty((n, capacity), dtype=float)
+            scatter_energy = wp.empty((n, capacity), dtype=float)
+            scatter_order = wp.empty((n, capacity), dtype=wp.int32)
         emitter = wp.vec3(*self.config.emitter_m)
         launch(lidar_kernels.pose_error, dim=n, inputs=[pose_buf], outputs=[errors])
         raise_for_pose_error(errors.numpy())
         launch(
             kernels.discover_sequences,
             dim=n * self.ray_count,
-            inputs=[ws.mesh.id, ws.face_plane, pose_buf, emitter, self._ray_dirs, self.max_bounces + 1],
-            outputs=[key, order, planes, overflow],
+            inputs=[
+                ws.mesh.id,
+                ws.face_plane,
+                pose_buf,
+                emitter,
+                self._ray_dirs,
+                self.max_bounces + 1,
+                ws.face_reflection,
+                ws.face_scattering,
+                self._ray_energy,
+                int(self.scattering),
+            ],
+            outputs=[
+                key,
+                order,
+                planes,
+                overflow,
+                scatter_count,
+                scatter_point,
+                scatter_length,
+                scatter_energy,
+                scatter_order,
+            ],
         )
         launch(
             kernels.validate_sequences,
@@ -178,12 +221,11 @@ class Sonar:
         length_m = length.numpy()[ok].astype(np.float64)
         emit = emit_dir.numpy()[ok].astype(np.float64)
         cfg = self.config
-        centre_hz = 0.5 * (cfg.chirp.start_frequency_hz + cfg.chirp.stop_frequency_hz)
         c = cfg.atmosphere.speed_of_sound
         # Angle from the emitter axis (sensor +x).
         theta = np.arccos(np.clip(emit[:, 0], -1.0, 1.0))
-        directivity = piston_directivity(theta, centre_hz, cfg.emitter_radius_m, c)
-        return Arrivals(
+        directivity = piston_directivity(theta, self._centre_hz, cfg.emitter_radius_m, c)
+        specular = Arrivals(
             pose_index=pose_index.astype(np.int64),
             delay_s=length_m / c,
             direction=arrival_dir.numpy()[ok].astype(np.float64),
@@ -193,3 +235,41 @@ class Sonar:
             source_m=image.numpy()[ok].astype(np.float64),
             length_m=length_m,
         )
+        specular = specular.select(specular.amplitude > 0)  # e.g. fully scattering surfaces
+        if not self.scattering:
+            return specular
+        return concatenate(
+            [
+                specular,
+                self._scattered(poses, scatter_count, scatter_point, scatter_length, scatter_energy, scatter_order),
+            ]
+        )
+
+    def _scattered(self, poses, count, point, length, energy, order) -> Arrivals:
+        """Compact the per-pose scattered arrival buffers into Arrivals (sensor frame)."""
+        count = count.numpy()
+        capacity = point.shape[1]
+        if (count > capacity).any():  # cannot happen: each ray scatters at most once per order
+            raise RuntimeError("scattered arrival buffer overflow")
+        keep = np.arange(capacity)[None, :] < count[:, None]
+        pose_index = np.nonzero(keep)[0]
+        world = point.numpy()[keep].astype(np.float64)
+        rotation, origin = poses[pose_index, :3, :3], poses[pose_index, :3, 3]
+        local = np.einsum("nji,nj->ni", rotation, world - origin)
+        distance = np.linalg.norm(local, axis=1)
+        length_m = length.numpy()[keep].astype(np.float64)
+        return Arrivals(
+            pose_index=pose_index.astype(np.int64),
+            delay_s=length_m / self.config.atmosphere.speed_of_sound,
+            direction=local / distance[:, None],
+            amplitude=np.sqrt(energy.numpy()[keep].astype(np.float64)),
+            order=order.numpy()[keep].astype(np.int64),
+            kind=np.full(len(length_m), KIND_SCATTERED, dtype=np.int64),
+            source_m=local,
+            length_m=length_m,
+        )
+
+
+def concatenate(parts: list[Arrivals]) -> Arrivals:
+    """Join arrival sets (kept flat; `for_pose` sorts by delay)."""
+    return Arrivals(**{k: np.concatenate([getattr(a, k) for a in parts]) for k in Arrivals.__dataclass_fields__})

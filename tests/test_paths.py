@@ -7,7 +7,7 @@ import pytest
 
 import acoustic_sim as sim
 import scenes
-from acoustic_sim.paths import Sonar
+from acoustic_sim.paths import KIND_SCATTERED, KIND_SPECULAR, Sonar
 from scenes.scene import assemble, box_mesh
 
 SIZE = np.array([6.0, 4.0, 3.0])
@@ -52,7 +52,7 @@ def test_specular_paths_equal_shoebox_image_sources(device, max_bounces):
     found once (corner echoes on the wall edges included), path lengths within 1e-4 m (0.13 of a
     sample at 450 kHz), amplitude 1 / length, arrival direction towards the image; no extras."""
     room = scenes.box_room(tuple(SIZE), wall="mirror", floor="mirror", ceiling="mirror")
-    arrivals = Sonar(OMNI, max_bounces=max_bounces, ray_count=20_000, device=device).trace(room, POSE)
+    arrivals = Sonar(OMNI, max_bounces=max_bounces, ray_count=20_000, scattering=False, device=device).trace(room, POSE)
     emitter, receiver = emitter_and_receiver(POSE, OMNI)
     lengths, orders, images = shoebox_images(SIZE, emitter, receiver, POSE, max_bounces + 1)
     got = arrivals.for_pose(0)
@@ -74,6 +74,7 @@ def test_reflection_and_scattering_coefficients_scale_amplitude(device):
     """Painted walls (R = 0.97, s = 0.05): each reflection scales pressure by sqrt(R (1 - s))."""
     room = scenes.box_room(tuple(SIZE), wall="painted_wall", floor="painted_wall", ceiling="painted_wall")
     got = Sonar(OMNI, max_bounces=2, device=device).trace(room, POSE)
+    got = got.select(got.kind == KIND_SPECULAR)
     factor = np.sqrt(0.97 * (1 - 0.05)) ** got.order
     np.testing.assert_allclose(got.amplitude * got.length_m, factor, rtol=1e-4)
 
@@ -103,6 +104,47 @@ def test_trace_is_deterministic_and_batched(device):
     both = sonar.trace(room, np.stack([POSE, other]))
     np.testing.assert_array_equal(both.for_pose(1).length_m, sonar.trace(room, other).for_pose(0).length_m)
     np.testing.assert_array_equal(both.for_pose(0).length_m, sonar.trace(room, POSE).for_pose(0).length_m)
+
+
+LOOKING_DOWN = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # sensor x -> world -z
+
+
+@pytest.mark.parametrize("height", [1.0, 2.0])
+def test_scattered_energy_from_a_lambertian_plane(device, height):
+    """Omnidirectional sonar `height` m above an infinite Lambertian floor (R = 1, s = 1), looking
+    down: the scattered energy reaching it is the radiosity integral
+    int cos^2(t) / (pi r^4) dA = 1 / (2 h^2); echoes start at 2 h / c."""
+    floor = trimesh_square(200.0)
+    lambert = scenes.Material(name="lambert", acoustic_reflection=1.0, acoustic_scattering=1.0, lidar_reflectivity=0.5)
+    scene = scenes.from_mesh(floor, material=lambert)
+    pose = np.eye(4)
+    pose[:3, :3] = LOOKING_DOWN
+    pose[2, 3] = height
+    config = sim.SonarConfig.ertis(emitter_radius_m=1e-6, emitter_m=(0.0, 0.0, 0.0))
+    got = Sonar(config, max_bounces=0, ray_count=20_000, device=device).trace(scene, pose)
+    assert np.all(got.kind == KIND_SCATTERED) and np.all(got.order == 1)
+    assert np.sum(got.amplitude**2) == pytest.approx(1.0 / (2 * height**2), rel=2e-3)
+    assert got.length_m.min() == pytest.approx(2 * height, abs=1e-3)
+
+
+def trimesh_square(side: float):
+    import trimesh
+
+    half = side / 2
+    vertices = [[-half, -half, 0.0], [half, -half, 0.0], [half, half, 0.0], [-half, half, 0.0]]
+    return trimesh.Trimesh(vertices, [[0, 1, 2], [0, 2, 3]], process=False)
+
+
+def test_scattering_switch_and_bounce_limit(device):
+    """A painted box room: scattering off leaves only specular arrivals; max_bounces = 0 leaves only
+    first-order arrivals of both kinds; more bounces add higher orders."""
+    room = scenes.box_room(tuple(SIZE))
+    off = Sonar(OMNI, max_bounces=2, scattering=False, device=device).trace(room, POSE)
+    assert np.all(off.kind == KIND_SPECULAR)
+    first = Sonar(OMNI, max_bounces=0, device=device).trace(room, POSE)
+    assert set(first.kind) == {KIND_SPECULAR, KIND_SCATTERED} and np.all(first.order == 1)
+    more = Sonar(OMNI, max_bounces=2, device=device).trace(room, POSE)
+    assert more.order.max() == 3 and np.sum(more.kind == KIND_SCATTERED) > np.sum(first.kind == KIND_SCATTERED)
 
 
 def test_bad_arguments():

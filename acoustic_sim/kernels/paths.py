@@ -17,6 +17,46 @@ def mirror(x: wp.vec3, normal: wp.vec3, offset: float) -> wp.vec3:
     return x - 2.0 * (wp.dot(normal, x) - offset) * normal
 
 
+@wp.func
+def scattered_hit(
+    mesh: wp.uint64,
+    hit: wp.vec3,
+    normal: wp.vec3,
+    incoming: wp.vec3,
+    receiver: wp.vec3,
+    travelled: float,
+    energy: float,
+    order: int,
+    p: int,
+    capacity: int,
+    scatter_count: wp.array[wp.int32],
+    point_out: wp.array2d[wp.vec3],
+    length_out: wp.array2d[float],
+    energy_out: wp.array2d[float],
+    order_out: wp.array2d[wp.int32],
+):
+    """Diffuse rain: the Lambert-scattered share of a hit that reaches the receiver unoccluded."""
+    if energy <= 0.0:
+        return
+    front = -normal * wp.sign(wp.dot(incoming, normal))  # normal on the side the ray came from
+    to_receiver = receiver - hit
+    distance = wp.length(to_receiver)
+    direction = to_receiver / distance
+    cosine = wp.dot(direction, front)
+    if cosine <= 0.0:
+        return
+    start = hit + front * SURFACE_STEP
+    q = wp.mesh_query_ray(mesh, start, wp.normalize(receiver - start), wp.length(receiver - start))
+    if q.result:
+        return
+    slot = wp.atomic_add(scatter_count, p, 1)
+    if slot < capacity:
+        point_out[p, slot] = hit
+        length_out[p, slot] = travelled + distance
+        energy_out[p, slot] = energy * cosine / (wp.pi * distance * distance)
+        order_out[p, slot] = order
+
+
 @wp.kernel(enable_backward=False)
 def discover_sequences(
     # in
@@ -26,17 +66,31 @@ def discover_sequences(
     emitter: wp.vec3,
     ray_dirs: wp.array[wp.vec3],
     max_order: int,
+    face_reflection: wp.array[float],
+    face_scattering: wp.array[float],
+    ray_energy: wp.array[float],
+    scatter: int,
     # out
     table_key: wp.array2d[wp.uint64],
     table_order: wp.array2d[wp.int32],
     table_planes: wp.array3d[wp.int32],
     overflow_out: wp.array[wp.int32],
+    scatter_count: wp.array[wp.int32],
+    scatter_point_out: wp.array2d[wp.vec3],
+    scatter_length_out: wp.array2d[float],
+    scatter_energy_out: wp.array2d[float],
+    scatter_order_out: wp.array2d[wp.int32],
 ):
     """One thread per (pose, ray); launch with dim=pose_count * ray_count.
 
     Follows the ray's specular bounces and records every prefix of its plane sequence (orders
     1..max_order) once per pose in an open-addressing hash table keyed by the sequence hash.
-    Rays leave the emitter (sensor frame position `emitter`) along `ray_dirs` (sensor frame).
+    Rays leave the emitter (sensor frame position `emitter`) along `ray_dirs` (sensor frame),
+    each carrying `ray_energy` (squared pressure at 1 m times its solid angle).
+
+    With `scatter` on, every hit also sends its scattered share (Lambert lobe, energy R s) to
+    the receiver (sensor origin) along an unoccluded shadow ray and appends it to the pose's
+    scattered arrivals: hit point (world), path length, energy at the receiver, order.
     """
     tid = wp.tid()
     ray_count = ray_dirs.shape[0]
@@ -48,10 +102,21 @@ def discover_sequences(
     mask = table_key.shape[1] - 1
     planes = SequenceVec()
     key = HASH_SEED
+    receiver = wp.transform_point(pose, wp.vec3(0.0))
+    energy = ray_energy[r]
+    travelled = float(0.0)
+    capacity = scatter_point_out.shape[1]
     for k in range(max_order):
         q = wp.mesh_query_ray(mesh, origin, direction, 1.0e6)
         if not q.result:
             break
+        travelled = travelled + q.t
+        if scatter != 0:
+            scattered_hit(mesh, origin + direction * q.t, wp.normalize(q.normal), direction, receiver, travelled,
+                          energy * face_reflection[q.face] * face_scattering[q.face], k + 1, p, capacity,
+                          scatter_count, scatter_point_out, scatter_length_out, scatter_energy_out,
+                          scatter_order_out)
+        energy = energy * face_reflection[q.face] * (1.0 - face_scattering[q.face])
         plane = face_plane[q.face]
         planes[k] = plane
         key = (key ^ wp.uint64(plane + 1)) * HASH_PRIME
