@@ -122,6 +122,12 @@ class Sonar:
             hemisphere_directions(ray_count).astype(np.float32), dtype=wp.vec3, device=self.device
         )
 
+    def record(self, arrivals: Arrivals, *, pose_count: int | None = None, **options) -> np.ndarray:
+        """Microphone signals (N, mics, samples) of traced pings; see `signals.record` for options."""
+        from .signals import record
+
+        return record(arrivals, self.config, pose_count=pose_count, device=self.device, **options)
+
     @property
     def _centre_hz(self) -> float:
         return 0.5 * (self.config.chirp.start_frequency_hz + self.config.chirp.stop_frequency_hz)

@@ -112,10 +112,23 @@ def discover_sequences(
             break
         travelled = travelled + q.t
         if scatter != 0:
-            scattered_hit(mesh, origin + direction * q.t, wp.normalize(q.normal), direction, receiver, travelled,
-                          energy * face_reflection[q.face] * face_scattering[q.face], k + 1, p, capacity,
-                          scatter_count, scatter_point_out, scatter_length_out, scatter_energy_out,
-                          scatter_order_out)
+            scattered_hit(
+                mesh,
+                origin + direction * q.t,
+                wp.normalize(q.normal),
+                direction,
+                receiver,
+                travelled,
+                energy * face_reflection[q.face] * face_scattering[q.face],
+                k + 1,
+                p,
+                capacity,
+                scatter_count,
+                scatter_point_out,
+                scatter_length_out,
+                scatter_energy_out,
+                scatter_order_out,
+            )
         energy = energy * face_reflection[q.face] * (1.0 - face_scattering[q.face])
         plane = face_plane[q.face]
         planes[k] = plane
