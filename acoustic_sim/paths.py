@@ -128,6 +128,12 @@ class Sonar:
 
         return record(arrivals, self.config, pose_count=pose_count, device=self.device, **options)
 
+    def energyscape(self, signals: np.ndarray, **options) -> np.ndarray:
+        """Energyscapes (N, R, A) of signals recorded with this sonar; see `beamform.energyscape`."""
+        from .beamform import energyscape
+
+        return energyscape(signals, self.config, **options)
+
     @property
     def _centre_hz(self) -> float:
         return 0.5 * (self.config.chirp.start_frequency_hz + self.config.chirp.stop_frequency_hz)
