@@ -45,6 +45,7 @@ class Arrivals:
         source_m: Where the echo seems to come from, sensor frame [m] (the image source for
             specular paths): per-microphone delays are |source - mic| / c, (n, 3).
         length_m: Path length [m], (n,).
+        point_m: Where the echo last reflected or scattered, sensor frame [m], (n, 3).
     """
 
     pose_index: np.ndarray
@@ -55,6 +56,7 @@ class Arrivals:
     kind: np.ndarray
     source_m: np.ndarray
     length_m: np.ndarray
+    point_m: np.ndarray
 
     def __len__(self) -> int:
         return len(self.delay_s)
@@ -162,6 +164,7 @@ class Sonar:
             image = wp.empty((n, size), dtype=wp.vec3)
             arrival_dir = wp.empty((n, size), dtype=wp.vec3)
             emit_dir = wp.empty((n, size), dtype=wp.vec3)
+            last_point = wp.empty((n, size), dtype=wp.vec3)
             capacity = self.ray_count * (self.max_bounces + 1) if self.scattering else 1
             scatter_count = wp.zeros(n, dtype=wp.int32)
             scatter_point = wp.empty((n, capacity), dtype=wp.vec3)
@@ -214,7 +217,7 @@ class Sonar:
                 order,
                 planes,
             ],
-            outputs=[valid, length, gain, image, arrival_dir, emit_dir],
+            outputs=[valid, length, gain, image, arrival_dir, emit_dir, last_point],
         )
         if (dropped := int(overflow.numpy()[0])) > 0:
             warnings.warn(
@@ -246,6 +249,7 @@ class Sonar:
             kind=np.full(len(length_m), KIND_SPECULAR, dtype=np.int64),
             source_m=image.numpy()[ok].astype(np.float64),
             length_m=length_m,
+            point_m=last_point.numpy()[ok].astype(np.float64),
         )
         specular = specular.select(specular.amplitude > 0)  # e.g. fully scattering surfaces
         if not self.scattering:
@@ -279,6 +283,7 @@ class Sonar:
             kind=np.full(len(length_m), KIND_SCATTERED, dtype=np.int64),
             source_m=local,
             length_m=length_m,
+            point_m=local,
         )
 
 

@@ -28,6 +28,7 @@ def reflectors(ranges_m, azimuths_deg):
         kind=np.full(n, KIND_SPECULAR),
         source_m=source,
         length_m=2 * r,
+        point_m=source / 2,
     )
 
 

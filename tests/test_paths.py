@@ -68,6 +68,11 @@ def test_specular_paths_equal_shoebox_image_sources(device, max_bounces):
     np.testing.assert_allclose(got.delay_s, lengths / OMNI.atmosphere.speed_of_sound, rtol=1e-6)
     np.testing.assert_allclose(got.amplitude * got.length_m, 1.0, rtol=1e-4)
     np.testing.assert_allclose(got.direction, expected_images / lengths[:, None], atol=1e-5)
+    # The last reflection point lies on a wall, straight along the arrival direction.
+    world = got.point_m @ POSE[:3, :3].T + POSE[:3, 3]
+    assert np.all(np.minimum(np.abs(world), np.abs(world - SIZE)).min(axis=1) < 1e-4)
+    along = np.einsum("ij,ij->i", got.point_m, got.direction)
+    np.testing.assert_allclose(got.point_m, along[:, None] * got.direction, atol=1e-4)
 
 
 def test_reflection_and_scattering_coefficients_scale_amplitude(device):

@@ -37,6 +37,7 @@ def single_arrival(source, amplitude=0.5, extra=0.0):
         kind=np.full(1, KIND_SPECULAR),
         source_m=source,
         length_m=length,
+        point_m=source,
     )
 
 

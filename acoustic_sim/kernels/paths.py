@@ -179,6 +179,7 @@ def validate_sequences(
     image_out: wp.array2d[wp.vec3],
     arrival_dir_out: wp.array2d[wp.vec3],
     emit_dir_out: wp.array2d[wp.vec3],
+    last_point_out: wp.array2d[wp.vec3],
 ):
     """One thread per (pose, table slot); launch with dim=(pose_count, table_size).
 
@@ -186,7 +187,8 @@ def validate_sequences(
     walk back from the receiver (sensor origin) through the reflection points. Valid when every
     leg's first hit is at the expected reflection point (within PLANE_MATCH) and the last leg
     reaches the emitter unoccluded, leaving it forwards. Outputs are in the sensor frame: the image source [m], the
-    direction the echo arrives from, and the direction it left the emitter; `gain` is the
+    direction the echo arrives from, the direction it left the emitter and the last reflection
+    point; `gain` is the
     product of the specular pressure reflection factors sqrt(R (1 - s)) along the path.
     """
     p, s = wp.tid()
@@ -209,6 +211,7 @@ def validate_sequences(
     face_gain = float(1.0)
     valid = int(1)
     arrival = wp.vec3(0.0)
+    last_point = wp.vec3(0.0)
     for back in range(order):
         j = order - 1 - back
         target = source
@@ -247,6 +250,7 @@ def validate_sequences(
             gain = gain * face_gain
             if back == 0:
                 arrival = direction
+                last_point = point
             x = point
     if valid == 1:
         leg = source - x
@@ -262,3 +266,4 @@ def validate_sequences(
             image_out[p, s] = wp.transform_point(inverse, image)
             arrival_dir_out[p, s] = wp.normalize(wp.transform_vector(inverse, arrival))
             emit_dir_out[p, s] = emit
+            last_point_out[p, s] = wp.transform_point(inverse, last_point)
