@@ -56,11 +56,33 @@ def _render(args) -> int:
     with wp.ScopedDevice(args.device):
         ranges = Lidar(config, seed=args.seed).scan(scene, poses)
     grid = PolarGrid()
+    if args.sonar:
+        return _render_sonar(args, scene, poses[args.frame], lidar_image(ranges[args.frame], config, grid)[0], grid, t0)
     out = render_lidar(
         scene, poses, ranges, config, lidar_image(ranges, config, grid), grid, args.out, frame=args.frame
     )
     print(
         f"{scene!r}: {len(poses)} poses, {ranges.size} LiDAR rays on {args.device}; "
+        f"wrote {out} in {time.perf_counter() - t0:.1f} s"
+    )
+    return 0
+
+
+def _render_sonar(args, scene, pose, lidar, grid, t0) -> int:
+    """The sonar picture: the same ping simulated with max_bounces 0 and with --max-bounces."""
+    from .config import SonarConfig
+    from .paths import Sonar
+    from .render import render_sonar
+
+    results = []
+    for bounces in sorted({0, args.max_bounces}):
+        sonar = Sonar(SonarConfig.ertis(), max_bounces=bounces, ray_count=args.rays, device=args.device)
+        arrivals = sonar.trace(scene, pose)
+        image = sonar.energyscape(sonar.record(arrivals, pose_count=1, noise="gaussian", seed=args.seed))[0]
+        results.append((f"max_bounces={bounces}", arrivals.for_pose(0), image))
+    out = render_sonar(scene, pose, results, lidar, grid, args.out)
+    print(
+        f"{scene!r}: sonar ping at frame {args.frame} with max_bounces {[r[0] for r in results]}; "
         f"wrote {out} in {time.perf_counter() - t0:.1f} s"
     )
     return 0
@@ -93,6 +115,14 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--frame", type=int, default=0, help="which pose's scan to draw")
     render.add_argument("--lidar-noise", choices=["none", "gaussian", "uniform"], default="none")
     render.add_argument("--lidar-noise-m", type=float, default=0.0, help="noise std / half-width [m]")
+    render.add_argument(
+        "--sonar",
+        action="store_true",
+        help="draw a sonar ping (echo points, energyscape) instead of the LiDAR view, "
+        "with max_bounces 0 beside --max-bounces",
+    )
+    render.add_argument("--max-bounces", type=int, default=3, help="secondary reflections for --sonar")
+    render.add_argument("--rays", type=int, default=20_000, help="rays per ping for --sonar")
     render.add_argument("--device", default="cpu", help="Warp device: cpu, cuda:0, ...")
     render.add_argument("--out", default="scene.png", help="PNG to write")
     render.add_argument("--verbose", action="store_true", help="show Warp's compile messages")

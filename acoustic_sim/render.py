@@ -109,3 +109,66 @@ def render_lidar(
     fig.savefig(out, dpi=110, bbox_inches="tight")
     plt.close(fig)
     return out
+
+
+def render_sonar(
+    scene: Scene,
+    pose: np.ndarray,
+    results: list[tuple[str, object, np.ndarray]],
+    lidar: np.ndarray,
+    grid: PolarGrid,
+    out: str | Path,
+    *,
+    dynamic_range_db: float = 40.0,
+) -> Path:
+    """One row per simulation setting: the scene from above with the echoes' last reflection points
+    coloured by bounce order, beside the energyscape (dB) with the LiDAR image on top.
+
+    Args:
+        results: (label, Arrivals of this single pose, energyscape (R, A)) per row.
+        lidar: LiDAR image (R, A) of the same pose on `grid`.
+    """
+    out = Path(out)
+    rows = len(results)
+    fig, axes = plt.subplots(rows, 2, figsize=(14, 6 * rows), squeeze=False, gridspec_kw={"width_ratios": [1.1, 1]})
+    height = float(pose[2, 3] - scene.floor_z)
+    cmap = plt.get_cmap("viridis")
+    max_order = max(int(a.order.max()) if len(a) else 1 for _, a, _ in results)
+    lidar_r, lidar_a = np.nonzero(lidar)
+    for (label, arrivals, image), (top, polar) in zip(results, axes, strict=True):
+        draw_scene_top(top, scene, height=height)
+        world = arrivals.point_m @ pose[:3, :3].T + pose[:3, 3]
+        strongest = np.argsort(arrivals.amplitude)[::-1][:4000]  # keep the plot readable
+        for order in range(1, max_order + 1):
+            sel = strongest[arrivals.order[strongest] == order]
+            if len(sel):
+                top.scatter(
+                    world[sel, 0],
+                    world[sel, 1],
+                    s=6,
+                    color=cmap((order - 1) / max(max_order - 1, 1)),
+                    label=f"order {order} ({len(sel)})",
+                    zorder=3,
+                    alpha=0.8,
+                )
+        top.plot(*pose[:2, 3], "k^", ms=9, label="sonar", zorder=4)
+        heading = pose[:2, 0]
+        top.annotate(
+            "",
+            xy=pose[:2, 3] + 0.6 * heading,
+            xytext=pose[:2, 3],
+            arrowprops={"arrowstyle": "->", "color": "k", "lw": 1.5},
+            zorder=4,
+        )
+        top.set_title(f"{label}: last reflection points of {len(arrivals)} echoes")
+        top.legend(loc="upper right", fontsize=7, framealpha=0.9)
+        db = 20 * np.log10(np.maximum(image / max(float(image.max()), 1e-30), 10 ** (-dynamic_range_db / 20)))
+        draw_polar_image(polar, db, grid, title=f"{label}: energyscape with the LiDAR image", label="dB")
+        az_deg = grid.azimuth_min_deg + lidar_a * grid.azimuth_step_deg
+        polar.scatter(az_deg, grid.range_m[lidar_r], s=3, color="cyan", label="LiDAR", zorder=3)
+        polar.legend(loc="upper right", fontsize=8)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100, bbox_inches="tight")
+    plt.close(fig)
+    return out

@@ -53,3 +53,27 @@ def test_module_entry_point_help():
         [sys.executable, "-m", "acoustic_sim", "render", "--help"], capture_output=True, text=True, check=True
     )
     assert "--scene" in done.stdout and "--out" in done.stdout
+
+
+def test_render_sonar_writes_png(tmp_path, device):
+    out = tmp_path / "sonar.png"
+    args = [
+        "render",
+        "--sonar",
+        "--scene",
+        "box_room",
+        "--frames",
+        "5",
+        "--frame",
+        "2",
+        "--rays",
+        "2000",
+        "--max-bounces",
+        "2",
+        "--device",
+        device,
+        "--out",
+        str(out),
+    ]
+    assert main(args) == 0
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
