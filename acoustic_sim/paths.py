@@ -4,7 +4,9 @@ Specular paths (orders 1 .. max_bounces + 1) are exact: rays from the emitter di
 planes a path reflects off, and the image-source method turns every discovered sequence into
 an exact path, or rejects it. Scattered arrivals are Monte Carlo "diffuse rain": at every hit
 of every ray, the material's scattered share of the ray's energy goes to the array along a
-Lambert lobe if nothing is in the way. Edge diffraction is not modelled yet.
+Lambert lobe if nothing is in the way; a band of half a wavelength along sharp edges scatters
+everything it reflects, a simple stand-in for edge diffraction that makes edges and corners
+echo.
 """
 
 from __future__ import annotations
@@ -89,6 +91,9 @@ class Sonar:
             baffled emitter radiates nothing backwards).
         table_size: Distinct reflection sequences kept per ping (power of two).
         scattering: Trace scattered (diffuse) arrivals as well as specular ones.
+        edge_width_m: Band along sharp mesh edges (> 20 deg) that scatters everything it reflects,
+            a simple stand-in for edge diffraction; default half a wavelength at the call's centre
+            frequency; 0 turns edge echoes off.
         device: Warp device.
     """
 
@@ -100,6 +105,7 @@ class Sonar:
         ray_count: int = 20_000,
         table_size: int = 16384,
         scattering: bool = True,
+        edge_width_m: float | None = None,
         device=None,
     ):
         if not 0 <= max_bounces <= kernels.MAX_ORDER - 1:
@@ -111,6 +117,10 @@ class Sonar:
         self.ray_count = ray_count
         self.table_size = table_size
         self.scattering = scattering
+        wavelength = config.atmosphere.speed_of_sound / self._centre_hz
+        self.edge_width_m = 0.5 * wavelength if edge_width_m is None else float(edge_width_m)
+        if self.edge_width_m < 0:
+            raise ValueError(f"edge_width_m must be >= 0, got {edge_width_m}")
         self.device = wp.get_device(device)
         directions = hemisphere_directions(ray_count)
         # Each ray carries its share of the half-space (2 pi sr), weighted by the emitter's power
@@ -186,6 +196,9 @@ class Sonar:
                 self.max_bounces + 1,
                 ws.face_reflection,
                 ws.face_scattering,
+                ws.face_sharp_edges,
+                ws.face_altitudes,
+                self.edge_width_m,
                 self._ray_energy,
                 int(self.scattering),
             ],

@@ -22,6 +22,8 @@ class WarpScene:
     plane_offset: wp.array  # float (plane_count,): n . x = offset on the plane [m]
     face_reflection: wp.array  # float (face_count,): energy reflection coefficient
     face_scattering: wp.array  # float (face_count,): scattered fraction of the reflected energy
+    face_sharp_edges: wp.array  # uint8 (face_count,): bit k set = the edge opposite vertex k is sharp
+    face_altitudes: wp.array  # vec3 (face_count,): distance from vertex k to its opposite edge [m]
     mesh_hash: int
 
 
@@ -36,6 +38,32 @@ def face_planes(scene: Scene, *, tolerance: float = 1e-5) -> tuple[np.ndarray, n
     keys = np.rint(np.c_[normals, offsets] / tolerance).astype(np.int64)
     _, first, face_plane = np.unique(keys, axis=0, return_index=True, return_inverse=True)
     return face_plane.reshape(-1).astype(np.int32), normals[first], offsets[first]
+
+
+def face_edges(scene: Scene, *, sharp_deg: float = 20.0) -> tuple[np.ndarray, np.ndarray]:
+    """Sharp edges of every face: (bitmask (F,) uint8, altitudes (F, 3)).
+
+    Bit k of a face's mask is set when the edge opposite its vertex k is sharp: on the mesh
+    boundary, or where the neighbouring face turns by more than `sharp_deg`. Altitude k is the
+    distance from vertex k to that edge, so a point with barycentric weight b_k lies b_k h_k
+    from it.
+    """
+    mesh = scene.mesh
+    count = len(mesh.vertices)
+    edge_key = mesh.edges_unique[:, 0].astype(np.int64) * count + mesh.edges_unique[:, 1]
+    sharp = np.ones(len(edge_key), dtype=bool)
+    pairs = np.sort(mesh.face_adjacency_edges, axis=1).astype(np.int64)
+    smooth = mesh.face_adjacency_angles <= np.deg2rad(sharp_deg)
+    order = np.argsort(edge_key)
+    found = order[np.searchsorted(edge_key, pairs[smooth, 0] * count + pairs[smooth, 1], sorter=order)]
+    sharp[found] = False
+    mask = np.zeros(len(mesh.faces), dtype=np.uint8)
+    for i in range(3):  # faces_unique_edges[:, i] joins vertices i and i + 1: opposite vertex i + 2
+        mask |= (sharp[mesh.faces_unique_edges[:, i]].astype(np.uint8) << ((i + 2) % 3)).astype(np.uint8)
+    tri = mesh.triangles
+    double_area = np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    opposite = np.stack([np.linalg.norm(tri[:, (k + 2) % 3] - tri[:, (k + 1) % 3], axis=1) for k in range(3)], axis=1)
+    return mask, double_area[:, None] / opposite
 
 
 _CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
@@ -56,6 +84,7 @@ def warp_scene(scene: Scene, device=None) -> WarpScene:
     vertices = np.ascontiguousarray(scene.mesh.vertices, dtype=np.float32)
     faces = np.ascontiguousarray(scene.mesh.faces, dtype=np.int32).reshape(-1)
     face_plane, plane_normal, plane_offset = face_planes(scene)
+    sharp_edges, altitudes = face_edges(scene)
     with wp.ScopedDevice(device):
         points = wp.array(vertices, dtype=wp.vec3)
         indices = wp.array(faces, dtype=wp.int32)
@@ -69,6 +98,8 @@ def warp_scene(scene: Scene, device=None) -> WarpScene:
             plane_offset=wp.array(plane_offset.astype(np.float32), dtype=float),
             face_reflection=wp.array(scene.material_table("acoustic_reflection").astype(np.float32), dtype=float),
             face_scattering=wp.array(scene.material_table("acoustic_scattering").astype(np.float32), dtype=float),
+            face_sharp_edges=wp.array(sharp_edges, dtype=wp.uint8),
+            face_altitudes=wp.array(altitudes.astype(np.float32), dtype=wp.vec3),
             mesh_hash=mesh_hash,
         )
     per_device[device.alias] = built

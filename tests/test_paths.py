@@ -91,7 +91,7 @@ def test_obstacle_occludes_its_wall(device):
     walls = dict(wall="mirror", floor="mirror", ceiling="mirror")
     room = scenes.box_room(tuple(SIZE), **walls)
     pillar = assemble([(room.mesh, "mirror"), (box_mesh((4.0, 2.0, 1.5), (0.4, 0.4, 3.0)), "mirror")], name="p")
-    sonar = Sonar(OMNI, max_bounces=0, device=device)
+    sonar = Sonar(OMNI, max_bounces=0, scattering=False, device=device)
     before = sonar.trace(room, pose).length_m
     after = sonar.trace(pillar, pose).length_m
     wall_echo = 2 * (6.0 - 2.0)  # straight ahead and back (the emitter sits 5 cm higher)
@@ -157,3 +157,36 @@ def test_bad_arguments():
         Sonar(OMNI, max_bounces=11)
     with pytest.raises(ValueError, match="power of two"):
         Sonar(OMNI, table_size=1000)
+
+
+def edge_box_scene():
+    """A 0.5 x 0.5 x 1 m mirror box turned 45 deg, its front vertical edge 2 m ahead of the sensor
+    at (0, 0, 0.3): no face sends a specular echo back, only its edges can."""
+    center = (2.0 + 0.25 * np.sqrt(2.0), 0.0, 0.5)
+    return assemble([(box_mesh(center, (0.5, 0.5, 1.0), np.pi / 4), "mirror")], name="edge_box")
+
+
+def test_edges_echo_only_through_scattering(device):
+    """Mirror box corner-on: no arrivals without scattering or with a zero edge band; with the
+    default half-wavelength band, echoes come from within that band of the box's edges, and the
+    energyscape peaks at the front edge (2 m, 0 deg) within a range bin and 2 deg."""
+    scene = edge_box_scene()
+    pose = scenes.pose(0.0, 0.0, 0.0, 0.3)
+    config = sim.SonarConfig.ertis()
+    assert len(Sonar(config, max_bounces=1, scattering=False, device=device).trace(scene, pose)) == 0
+    assert len(Sonar(config, max_bounces=1, edge_width_m=0.0, device=device).trace(scene, pose)) == 0
+    sonar = Sonar(config, max_bounces=1, ray_count=50_000, device=device)
+    got = sonar.trace(scene, pose)
+    assert len(got) > 10 and np.all(got.kind == KIND_SCATTERED)
+    world = got.point_m @ pose[:3, :3].T + pose[:3, 3]
+    corners = scene.mesh.vertices[scene.mesh.edges_unique]  # (E, 2, 3) box edges and face diagonals
+    a, ab = corners[:, 0], corners[:, 1] - corners[:, 0]
+    t = np.clip(np.einsum("pec,ec->pe", world[:, None] - a[None], ab) / np.einsum("ec,ec->e", ab, ab), 0, 1)
+    gap = np.linalg.norm(world[:, None] - (a[None] + t[..., None] * ab[None]), axis=-1)
+    length2 = np.einsum("ec,ec->e", ab, ab)
+    sharp = np.isclose(length2, 0.25) | np.isclose(length2, 1.0)  # the 12 box edges, not face diagonals
+    assert gap[:, sharp].min(axis=1).max() <= sonar.edge_width_m + 1e-3
+    image = sonar.energyscape(sonar.record(got, pose_count=1))[0]
+    grid = sim.PolarGrid()
+    i, j = np.unravel_index(np.argmax(image), image.shape)
+    assert abs(grid.range_m[i] - 2.0) <= grid.range_bin_m and abs(np.rad2deg(grid.azimuth_rad[j])) <= 2.0

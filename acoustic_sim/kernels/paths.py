@@ -57,6 +57,19 @@ def scattered_hit(
         order_out[p, slot] = order
 
 
+@wp.func
+def near_sharp_edge(edges: wp.uint8, altitudes: wp.vec3, u: float, v: float, width: float) -> bool:
+    """Whether barycentric point (u, v) of a face lies within `width` [m] of one of its sharp edges."""
+    mask = int(edges)
+    if mask == 0 or width <= 0.0:
+        return False
+    weights = wp.vec3(u, v, 1.0 - u - v)
+    for k in range(3):
+        if ((mask >> k) & 1) == 1 and weights[k] * altitudes[k] < width:
+            return True
+    return False
+
+
 @wp.kernel(enable_backward=False)
 def discover_sequences(
     # in
@@ -68,6 +81,9 @@ def discover_sequences(
     max_order: int,
     face_reflection: wp.array[float],
     face_scattering: wp.array[float],
+    face_sharp_edges: wp.array[wp.uint8],
+    face_altitudes: wp.array[wp.vec3],
+    edge_width: float,
     ray_energy: wp.array[float],
     scatter: int,
     # out
@@ -90,7 +106,8 @@ def discover_sequences(
 
     With `scatter` on, every hit also sends its scattered share (Lambert lobe, energy R s) to
     the receiver (sensor origin) along an unoccluded shadow ray and appends it to the pose's
-    scattered arrivals: hit point (world), path length, energy at the receiver, order.
+    scattered arrivals: hit point (world), path length, energy at the receiver, order. Within
+    `edge_width` of a sharp edge a face scatters everything it reflects: edges and corners echo.
     """
     tid = wp.tid()
     ray_count = ray_dirs.shape[0]
@@ -111,6 +128,9 @@ def discover_sequences(
         if not q.result:
             break
         travelled = travelled + q.t
+        scattering = face_scattering[q.face]
+        if near_sharp_edge(face_sharp_edges[q.face], face_altitudes[q.face], q.u, q.v, edge_width):
+            scattering = 1.0
         if scatter != 0:
             scattered_hit(
                 mesh,
@@ -119,7 +139,7 @@ def discover_sequences(
                 direction,
                 receiver,
                 travelled,
-                energy * face_reflection[q.face] * face_scattering[q.face],
+                energy * face_reflection[q.face] * scattering,
                 k + 1,
                 p,
                 capacity,
@@ -129,7 +149,7 @@ def discover_sequences(
                 scatter_energy_out,
                 scatter_order_out,
             )
-        energy = energy * face_reflection[q.face] * (1.0 - face_scattering[q.face])
+        energy = energy * face_reflection[q.face] * (1.0 - scattering)
         plane = face_plane[q.face]
         planes[k] = plane
         key = (key ^ wp.uint64(plane + 1)) * HASH_PRIME
