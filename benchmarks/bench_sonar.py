@@ -1,0 +1,145 @@
+"""Sonar throughput on the reference office (85k triangles), stage by stage, with a peer in the same run.
+
+    python benchmarks/bench_sonar.py --device cpu
+    python benchmarks/bench_sonar.py --device cuda:0
+
+Writes benchmarks/results/sonar_<cpu|cuda>.json and .md: pings per second for tracing (max_bounces
+0, 1, 3), recording and energyscapes, end to end, and path-tracer ray queries per second.
+Peer: pyroomacoustics' image-source model of a shoebox of the office's size, order 3, timed per
+ping (room build + image sources), if installed. Medians after a first call reported apart.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+import acoustic_sim as sim  # noqa: E402
+from benchmarks.bench_lidar import load_office, random_poses  # noqa: E402
+
+
+def timed(fn, repeats: int, device) -> tuple[float, float, object]:
+    """(first call [s], median of later calls [s], last result)."""
+    times, result = [], None
+    for _ in range(repeats + 1):
+        t0 = time.perf_counter()
+        result = fn()
+        wp.synchronize_device(device)
+        times.append(time.perf_counter() - t0)
+    return times[0], float(np.median(times[1:])), result
+
+
+def peer_pyroomacoustics(repeats: int) -> dict | None:
+    try:
+        import pyroomacoustics as pra
+    except Exception:
+        return None
+
+    def ping():
+        room = pra.ShoeBox([10.0, 8.0, 3.0], fs=450000, max_order=3)
+        room.add_source([5.0, 4.0, 0.35])
+        room.add_microphone([5.0, 4.0, 0.3])
+        room.image_source_model()
+        return room
+
+    times = []
+    for _ in range(repeats + 1):
+        t0 = time.perf_counter()
+        ping()
+        times.append(time.perf_counter() - t0)
+    dt = float(np.median(times[1:]))
+    return {"name": "pyroomacoustics ShoeBox image sources, order 3", "s_per_ping": dt, "pings_per_s": 1 / dt}
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--pings", type=int, default=None, help="batch size; default 128 on CUDA, 4 on CPU")
+    parser.add_argument("--rays", type=int, default=20_000)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    args = parser.parse_args(argv)
+    wp.config.quiet = True
+    wp.config.log_level = wp.LOG_WARNING
+    wp.init()
+    device = wp.get_device(args.device)
+    pings = args.pings or (128 if device.is_cuda else 4)
+    scene = load_office()
+    poses = random_poses(pings, 3)
+    res = {
+        "device": str(device),
+        "device_name": device.name if device.is_cuda else platform.processor() or "CPU",
+        "warp": wp.__version__,
+        "pings": pings,
+        "rays_per_ping": args.rays,
+        "date": time.strftime("%Y-%m-%d"),
+        "cpu_count": os.cpu_count(),
+        "trace": {},
+    }
+    for bounces in (0, 1, 3):
+        sonar = sim.Sonar(sim.SonarConfig.ertis(), max_bounces=bounces, ray_count=args.rays, device=device)
+        first, dt, arrivals = timed(lambda s=sonar: s.trace(scene, poses), args.repeats, device)
+        res["trace"][bounces] = {
+            "first_call_s": first,
+            "s": dt,
+            "pings_per_s": pings / dt,
+            "max_ray_queries_per_s": pings * args.rays * (bounces + 1) / dt,
+            "arrivals_per_ping": len(arrivals) / pings,
+        }
+        print(f"trace max_bounces={bounces}: {pings / dt:,.1f} pings/s", flush=True)
+    # Recording and energyscapes of the max_bounces=3 arrivals.
+    _, record_s, signals = timed(lambda: sonar.record(arrivals, pose_count=pings), args.repeats, device)
+    _, energy_s, _ = timed(lambda: sonar.energyscape(signals), 1, device)
+    trace_s = res["trace"][3]["s"]
+    res["record"] = {"s": record_s, "pings_per_s": pings / record_s}
+    res["energyscape"] = {"s": energy_s, "pings_per_s": pings / energy_s}
+    res["end_to_end_3_bounces"] = {
+        "s": trace_s + record_s + energy_s,
+        "energyscapes_per_s": pings / (trace_s + record_s + energy_s),
+    }
+    peer = peer_pyroomacoustics(args.repeats)
+    if peer:
+        res["peer"] = peer
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    stem = f"sonar_{'cuda' if device.is_cuda else 'cpu'}"
+    (out / f"{stem}.json").write_text(json.dumps(res, indent=1))
+    lines = [
+        f"# Sonar throughput on {res['device_name']} ({res['device']})",
+        "",
+        f"Reference office (84,612 triangles), {pings} pings per batch, {args.rays:,} rays per ping, warp "
+        f"{res['warp']}, {res['date']}. Medians of {args.repeats} runs.",
+        "",
+        "| stage | pings/s | note |",
+        "|---|---|---|",
+    ]
+    for bounces, r in res["trace"].items():
+        lines.append(
+            f"| trace, max_bounces={bounces} | {r['pings_per_s']:,.1f} | {r['arrivals_per_ping']:,.0f} arrivals/"
+            f"ping; <= {r['max_ray_queries_per_s'] / 1e6:,.0f} M specular ray queries/s |"
+        )
+    lines += [
+        f"| record (32 mics x 16,384 samples) | {res['record']['pings_per_s']:,.1f} | Warp impulses + numpy FFT |",
+        f"| energyscape (181 azimuths) | {res['energyscape']['pings_per_s']:,.1f} | numpy, host |",
+        f"| **end to end, 3 bounces** | **{res['end_to_end_3_bounces']['energyscapes_per_s']:,.1f}** | |",
+    ]
+    if peer:
+        lines.append(f"| peer: {peer['name']} | {peer['pings_per_s']:,.1f} | image sources only, no signals |")
+    (out / f"{stem}.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return res
+
+
+if __name__ == "__main__":
+    main()
