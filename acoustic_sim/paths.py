@@ -22,9 +22,9 @@ from scenes import Scene
 
 from .array import piston_directivity
 from .config import SonarConfig
+from .kernels import lidar as lidar_kernels
 from .kernels import paths as kernels
 from .lidar import check_poses, raise_for_pose_error
-from .lidar import kernels as lidar_kernels
 from .scene import warp_scene
 
 KIND_SPECULAR = 0
