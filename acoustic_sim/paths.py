@@ -130,9 +130,7 @@ class Sonar:
             piston_directivity(theta, self._centre_hz, config.emitter_radius_m, config.atmosphere.speed_of_sound) ** 2
         )
         self._ray_energy = wp.array((2 * np.pi / ray_count * power).astype(np.float32), dtype=float, device=self.device)
-        self._ray_dirs = wp.array(
-            hemisphere_directions(ray_count).astype(np.float32), dtype=wp.vec3, device=self.device
-        )
+        self._ray_dirs = wp.array(directions.astype(np.float32), dtype=wp.vec3, device=self.device)
 
     def record(self, arrivals: Arrivals, *, pose_count: int | None = None, **options) -> np.ndarray:
         """Microphone signals (N, mics, samples) of traced pings; see `signals.record` for options."""
@@ -151,7 +149,7 @@ class Sonar:
         return 0.5 * (self.config.chirp.start_frequency_hz + self.config.chirp.stop_frequency_hz)
 
     def trace(self, scene: Scene, poses: np.ndarray) -> Arrivals:
-        """Specular echoes of one ping from each pose (see the module docstring for what is traced).
+        """Echoes of one ping from each pose, specular and scattered (see the module docstring).
 
         Args:
             scene: The world.
