@@ -9,6 +9,7 @@ HASH_SEED = wp.constant(wp.uint64(14695981039346656037))  # FNV-1a 64-bit offset
 HASH_PRIME = wp.constant(wp.uint64(1099511628211))
 SURFACE_STEP = 1.0e-4  # [m] step off a surface before the next query
 PLANE_MATCH = 2.0e-3  # [m] how far a validation hit may lie from the image-source reflection point
+EDGE_PROBE = 1.0e-3  # [m] probe distance that checks an edge point lies on a face of a plane
 
 
 @wp.func
@@ -178,6 +179,16 @@ def discover_sequences(
         origin = hit - normal * (side * SURFACE_STEP)
 
 
+@wp.func
+def on_plane_face(mesh: wp.uint64, point: wp.vec3, front: wp.vec3) -> bool:
+    """Whether `point` lies on a face of the plane with unit normal `front` (towards the path):
+    a probe from EDGE_PROBE in front of it, back along the normal, must hit at that distance."""
+    q = wp.mesh_query_ray(mesh, point + front * EDGE_PROBE, -front, 2.0 * EDGE_PROBE)
+    if not q.result:
+        return False
+    return wp.abs(q.t - EDGE_PROBE) < 0.5 * EDGE_PROBE
+
+
 @wp.kernel(enable_backward=False)
 def validate_sequences(
     # in
@@ -251,19 +262,27 @@ def validate_sequences(
             break
         point = x + leg * wp.max(t, 0.0)
         distance = wp.length(point - x)
+        # The side of this plane the path reflects on: where the previous image lies.
+        side = wp.sign(wp.dot(normal, mirror(target, normal, plane_offset[plane]) - point))
         if distance < PLANE_MATCH:
             # Reflects where the previous reflection did: on the edge where two planes meet (the
-            # corner reflector case). Same material as that face.
+            # corner reflector case), if that edge point also lies on a face of this plane.
+            if not on_plane_face(mesh, point, normal * side):
+                valid = 0
+                break
             gain = gain * face_gain
         else:
             direction = (point - x) / distance
             q = wp.mesh_query_ray(mesh, x + direction * SURFACE_STEP, direction, distance + PLANE_MATCH)
-            # The first thing the leg meets must be at the reflection point. Its face may belong
-            # to another plane where two planes meet: corner reflectors reflect on the shared edge.
+            # The first thing the leg meets must be at the reflection point, on a face of this
+            # plane; where two planes meet, the face hit may belong to the other one.
             if not q.result:
                 valid = 0
                 break
             if wp.abs(q.t + SURFACE_STEP - distance) > PLANE_MATCH:
+                valid = 0
+                break
+            if face_plane[q.face] != plane and not on_plane_face(mesh, point, normal * side):
                 valid = 0
                 break
             face_gain = wp.sqrt(face_reflection[q.face] * (1.0 - face_scattering[q.face]))
