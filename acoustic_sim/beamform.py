@@ -1,16 +1,192 @@
 """From microphone signals to an energyscape: matched filter, delay-and-sum, envelope, range grid.
 
 Works on simulated and on recorded signals: pass the array geometry and call that recorded them.
-This first implementation runs in numpy (FFT-based, on the host); a Warp version for GPU batches
-is to come.
+Everything runs in Warp kernels, on the CPU or a GPU, on batches of pings:
+
+1. complex baseband: the band around the call's centre frequency f0 shifted to 0 Hz, low-passed
+   and decimated (to 56.25 kHz for the eRTIS call), one FFT per microphone;
+2. per frequency bin: matched filter (the call's conjugate spectrum) and delay-and-sum with
+   far-field delays, exact phase shifts at each bin's true frequency;
+3. one inverse FFT per beam: its magnitude is the envelope of the matched-filtered beam;
+4. zero-phase FIR low-pass of the envelope and linear interpolation to the range bins.
 """
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Sequence
+
 import numpy as np
+import warp as wp
 from scipy import signal as sps
 
 from .config import PolarGrid, SonarConfig
+from .kernels import beamform as kernels
+from .signals import tile_block_dim
+
+NORMALISE = (None, "max", "db")
+FLOOR_DB = -60.0  # lowest value of a "db" energyscape
+
+
+class Beamformer:
+    """Energyscapes of signal batches on a Warp device (see `energyscape` for the arguments)."""
+
+    def __init__(
+        self,
+        config: SonarConfig,
+        *,
+        samples: int,
+        grid: PolarGrid | None = None,
+        speed_of_sound: float = 343.0,
+        elevation_deg: float | Sequence[float] = 0.0,
+        lowpass_hz: float | None = 1e3,
+        normalise: str | None = None,
+        call: np.ndarray | None = None,
+        device=None,
+    ):
+        if normalise not in NORMALISE:
+            raise ValueError(f"normalise must be one of {NORMALISE}, got {normalise!r}")
+        if speed_of_sound <= 0:
+            raise ValueError(f"speed_of_sound must be positive, got {speed_of_sound}")
+        self.config = config
+        self.grid = grid or PolarGrid()
+        self.samples = int(samples)
+        self.normalise = normalise
+        self.device = wp.get_device(device)
+        self.elevations_deg = np.atleast_1d(np.asarray(elevation_deg, dtype=np.float64))
+        self._scalar_elevation = np.ndim(elevation_deg) == 0
+        if self.elevations_deg.ndim != 1 or not np.all(np.abs(self.elevations_deg) <= 90):
+            raise ValueError("elevation_deg must be an angle or a 1-D sequence of angles in [-90, 90]")
+        fs = config.chirp.sample_rate_hz
+        call = config.chirp.samples() if call is None else np.asarray(call, dtype=np.float64)
+        if call.ndim != 1 or len(call) < 2 or not np.isfinite(call).all():
+            raise ValueError("call must be a finite 1-D waveform of at least 2 samples")
+
+        # Band kept around the call: its sweep plus 5 kHz each side.
+        low = max(min(config.chirp.start_frequency_hz, config.chirp.stop_frequency_hz) - 5e3, 0.0)
+        high = max(config.chirp.start_frequency_hz, config.chirp.stop_frequency_hz) + 5e3
+        centre, width = 0.5 * (low + high), high - low
+        self.decimation = 1
+        while fs / (2 * self.decimation) >= 1.6 * width:
+            self.decimation *= 2
+        rate = fs / self.decimation
+        self.baseband_samples = -(-self.samples // self.decimation)
+        needed = self.baseband_samples + -(-len(call) // self.decimation) + 16
+        self.size = 1 << int(np.ceil(np.log2(needed)))
+        if self.size > 8192:
+            raise ValueError(
+                f"{self.samples} samples need a {self.size}-point baseband FFT; at most 8192 fit one GPU block: "
+                "process the recording in shorter pieces"
+            )
+
+        # Anti-alias low-pass for the decimation, shifted to the centre frequency.
+        if self.decimation > 1:
+            taps_count, beta = sps.kaiserord(60.0, (rate - width) / (0.5 * fs))
+            taps = sps.firwin(taps_count | 1, 0.5 * width + 0.25 * (rate - width), window=("kaiser", beta), fs=fs)
+        else:
+            taps = np.ones(1)
+        offsets = np.arange(len(taps)) - len(taps) // 2
+        shifted = taps * np.exp(-2j * np.pi * centre * offsets / fs)
+
+        freqs = centre + np.fft.fftfreq(self.size, 1.0 / rate)
+        band = np.flatnonzero((freqs >= low) & (freqs <= high))
+        # Correlation with the call (its spectrum at each bin's true frequency, conjugated), with
+        # the scale that makes the envelope that of the full-rate analytic matched-filter output.
+        spectrum = np.exp(-2j * np.pi * freqs[band, None] * np.arange(len(call))[None, :] / fs) @ call
+        matched = np.conj(spectrum) * 2.0 / (self.size * config.microphone_count)
+
+        azimuth = self.grid.azimuth_rad
+        elevation = np.deg2rad(self.elevations_deg)
+        el, az = np.meshgrid(elevation, azimuth, indexing="ij")
+        look = np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], -1).reshape(-1, 3)
+        mics = np.asarray(config.microphones_m, dtype=np.float64)
+        delays = look @ mics.T / speed_of_sound  # a wave from u reaches mic m (m . u) / c early
+
+        lowpass = np.ones(1)
+        if lowpass_hz is not None:
+            if not 0 < lowpass_hz < 0.5 * rate:
+                raise ValueError(f"lowpass_hz must lie in (0, {0.5 * rate:g}) Hz, got {lowpass_hz}")
+            lowpass = sps.firwin(2 * round(2.0 * rate / lowpass_hz) + 1, lowpass_hz, window="hamming", fs=rate)
+
+        self._cycles_per_output = centre * self.decimation / fs
+        self._samples_per_m = 2.0 * rate / speed_of_sound
+        self._looks = len(look)
+        with wp.ScopedDevice(self.device):
+            self._taps = wp.array(np.stack([shifted.real, shifted.imag], -1).astype(np.float32), dtype=wp.vec2f)
+            self._band_bin = wp.array(band.astype(np.int32), dtype=wp.int32)
+            self._band_hz = wp.array(freqs[band].astype(np.float32), dtype=float)
+            self._matched = wp.array(np.stack([matched.real, matched.imag], -1).astype(np.float32), dtype=wp.vec2f)
+            self._delays = wp.array(delays.astype(np.float32), dtype=float)
+            self._lowpass = wp.array(lowpass.astype(np.float32), dtype=float)
+            self._range_m = wp.array(self.grid.range_m.astype(np.float32), dtype=float)
+        self._fft = kernels.forward_fft(self.size)
+        self._ifft = kernels.inverse_fft_magnitude(self.size)
+        self._beamform = kernels.delay_and_sum(config.microphone_count)
+
+    @property
+    def output_shape(self) -> tuple[int, ...]:
+        """Shape of one ping's energyscape: (R, A), or (E, R, A) for a sequence of elevations."""
+        per = self.grid.shape
+        return per if self._scalar_elevation else (len(self.elevations_deg), *per)
+
+    def __call__(self, signals: wp.array) -> wp.array:
+        """Energyscapes of a (pings, mics, samples) float32 device array: (pings * E, R, A)."""
+        pings, mics, samples = signals.shape
+        if mics != self.config.microphone_count or samples != self.samples:
+            raise ValueError(f"signals must have shape (N, {self.config.microphone_count}, {self.samples})")
+        elevations = len(self.elevations_deg)
+        block = tile_block_dim(self.size)
+        with wp.ScopedDevice(self.device):
+            spectra = wp.empty((pings * mics, self.size), dtype=wp.vec2f)
+            wp.launch(
+                kernels.demodulate,
+                dim=(pings, mics, self.size),
+                inputs=[signals, samples, self._taps, wp.float64(self._cycles_per_output), self.decimation],
+                outputs=[spectra],
+            )
+            wp.launch_tiled(self._fft, dim=[pings * mics], inputs=[spectra], block_dim=block)
+            beams = wp.zeros((pings * self._looks, self.size), dtype=wp.vec2f)
+            wp.launch(
+                self._beamform,
+                dim=(self._looks, self._band_bin.shape[0]),
+                inputs=[spectra, self._band_bin, self._band_hz, self._matched, self._delays, pings],
+                outputs=[beams],
+            )
+            del spectra
+            envelope = wp.empty((pings * self._looks, self.size), dtype=float)
+            wp.launch_tiled(self._ifft, dim=[pings * self._looks], inputs=[beams], outputs=[envelope], block_dim=block)
+            del beams
+            images = wp.empty((pings * elevations, *self.grid.shape), dtype=float)
+            wp.launch(
+                kernels.envelope_on_grid,
+                dim=images.shape,
+                inputs=[envelope, self.baseband_samples, self._lowpass, self._range_m, self._samples_per_m, elevations],
+                outputs=[images],
+            )
+            if self.normalise is not None:
+                peak = wp.zeros(pings, dtype=float)
+                wp.launch(kernels.image_peak, dim=images.shape, inputs=[images, elevations], outputs=[peak])
+                wp.launch(
+                    kernels.scale_images,
+                    dim=images.shape,
+                    inputs=[peak, elevations, int(self.normalise == "db"), FLOOR_DB],
+                    outputs=[images],
+                )
+        return images
+
+
+@functools.lru_cache(maxsize=8)
+def _beamformer(config, samples, grid, speed_of_sound, elevation, lowpass_hz, normalise, device) -> Beamformer:
+    return Beamformer(
+        config,
+        samples=samples,
+        grid=grid,
+        speed_of_sound=speed_of_sound,
+        elevation_deg=elevation,
+        lowpass_hz=lowpass_hz,
+        normalise=normalise,
+        device=device,
+    )
 
 
 def energyscape(
@@ -19,83 +195,62 @@ def energyscape(
     *,
     grid: PolarGrid | None = None,
     speed_of_sound: float = 343.0,
-    elevation_deg: float = 0.0,
+    elevation_deg: float | Sequence[float] = 0.0,
     lowpass_hz: float | None = 1e3,
-    decimation: int = 10,
     normalise: str | None = None,
+    call: np.ndarray | None = None,
+    batch: int = 64,
+    device=None,
 ) -> np.ndarray:
     """Energyscapes of pings: reflected energy over range x azimuth, float32 (N, R, A).
 
     Processing as on the eRTIS: matched filter with the call; delay-and-sum beamforming with
     far-field delays (m . u) / c for each azimuth of `grid` at `elevation_deg`; envelope
     (magnitude of the analytic beam signal); zero-phase low-pass at `lowpass_hz` (None: off);
-    decimation by `decimation` (3.81 mm range steps at 450 kHz); resampling to the range bins of
-    `grid` with range = c t / 2.
+    values at the range bins of `grid` with range = c t / 2 (t from the start of the call).
 
     Args:
-        signals: Microphone signals (N, M, S) or (M, S), in the order of `config.microphones_m`.
-        config: Array geometry, call (and its sample rate) of the recording.
+        signals: Microphone signals (N, M, S) or (M, S), in the order of `config.microphones_m`,
+            sampled at `config.chirp.sample_rate_hz`.
+        config: Array geometry and call of the recording.
         grid: Output grid; default `PolarGrid()` (0.2-5 m x -90..90 deg).
         speed_of_sound: Used for the steering delays and the range axis [m/s].
-        normalise: None, or "max" to scale each energyscape to a maximum of 1.
+        elevation_deg: Elevation of the beams; a sequence gives (N, E, R, A).
+        normalise: None; "max" scales each ping to a peak of 1; "db" gives 20 log10 of that,
+            floored at FLOOR_DB.
+        call: The emitted waveform, if not the chirp of `config` (e.g. one measured on a sensor).
+        batch: Pings processed at once.
+        device: Warp device.
     """
-    grid = grid or PolarGrid()
     signals = np.asarray(signals)
     if signals.ndim == 2:
         signals = signals[None]
-    mics = np.asarray(config.microphones_m, dtype=np.float64)
-    if signals.ndim != 3 or signals.shape[1] != len(mics):
-        raise ValueError(f"signals must have shape (N, {len(mics)}, samples), got {signals.shape}")
+    mics = config.microphone_count
+    if signals.ndim != 3 or signals.shape[1] != mics:
+        raise ValueError(f"signals must have shape (N, {mics}, samples), got {signals.shape}")
     if not np.isfinite(signals).all():
         raise ValueError("signals contain NaN or inf")
-    if normalise not in (None, "max"):
-        raise ValueError(f"normalise must be None or 'max', got {normalise!r}")
-    fs = config.chirp.sample_rate_hz
-    call = config.chirp.samples()
-    samples = signals.shape[2]
-    # FFT length: long enough for a linear correlation, and a multiple of the decimation so the
-    # envelope can be formed directly at the decimated rate from the band's spectrum.
-    block = decimation * 512
-    nfft = block * int(np.ceil((samples + len(call)) / block))
-    small = nfft // decimation
-    freqs = np.fft.rfftfreq(nfft, 1.0 / fs)
-    low = min(config.chirp.start_frequency_hz, config.chirp.stop_frequency_hz) - 5e3
-    high = max(config.chirp.start_frequency_hz, config.chirp.stop_frequency_hz) + 5e3
-    band = np.flatnonzero((freqs >= max(low, 0.0)) & (freqs <= high))
-    if len(band) > small:
-        raise ValueError(f"the call's band does not fit a decimation by {decimation}")
-    matched = np.conj(np.fft.rfft(call, nfft))[band]
-
-    azimuth = grid.azimuth_rad
-    elevation = np.deg2rad(elevation_deg)
-    look = np.stack(
-        [
-            np.cos(elevation) * np.cos(azimuth),
-            np.cos(elevation) * np.sin(azimuth),
-            np.full_like(azimuth, np.sin(elevation)),
-        ],
-        axis=1,
-    )  # (A, 3)
-    delays = look @ mics.T / speed_of_sound  # (A, M): a wave from u reaches mic m (m . u)/c early
-    steering = np.exp(-2j * np.pi * freqs[band][None, None, :] * delays[:, :, None]) / len(mics)  # (A, M, F)
-
-    decimated_rate = fs / decimation
-    t = np.arange(small) / decimated_rate
-    range_axis = speed_of_sound * t / 2.0
-    sos = sps.butter(4, lowpass_hz, fs=decimated_rate, output="sos") if lowpass_hz else None
-    out = np.empty((len(signals), *grid.shape), dtype=np.float32)
-    for p, ping in enumerate(signals):
-        spectrum = np.fft.rfft(ping.astype(np.float64), nfft)[:, band] * matched  # (M, F)
-        beams = np.einsum("mf,amf->af", spectrum, steering)  # (A, F)
-        # Analytic signal of each beam at the decimated rate, with the band shifted to start at
-        # 0 Hz: the shift multiplies the signal by a unit phase, which the magnitude removes.
-        baseband = np.zeros((len(azimuth), small), dtype=np.complex128)
-        baseband[:, : len(band)] = 2.0 * beams
-        envelope = np.abs(np.fft.ifft(baseband, axis=1)) / decimation  # same scale as a full-rate IFFT
-        if sos is not None:
-            envelope = sps.sosfiltfilt(sos, envelope, axis=1)
-        image = np.stack([np.interp(grid.range_m, range_axis, row) for row in envelope], axis=1)  # (R, A)
-        if normalise == "max":
-            image = image / max(float(image.max()), 1e-30)
-        out[p] = image
+    device = wp.get_device(device)
+    scalar = np.ndim(elevation_deg) == 0
+    elevation = float(elevation_deg) if scalar else tuple(np.asarray(elevation_deg, dtype=float).ravel())
+    if call is None:
+        former = _beamformer(
+            config, signals.shape[2], grid, speed_of_sound, elevation, lowpass_hz, normalise, str(device)
+        )
+    else:
+        former = Beamformer(
+            config,
+            samples=signals.shape[2],
+            grid=grid,
+            speed_of_sound=speed_of_sound,
+            elevation_deg=elevation_deg,
+            lowpass_hz=lowpass_hz,
+            normalise=normalise,
+            call=call,
+            device=device,
+        )
+    out = np.empty((len(signals), *former.output_shape), dtype=np.float32)
+    for start in range(0, len(signals), batch):
+        chunk = wp.array(np.ascontiguousarray(signals[start : start + batch], dtype=np.float32), device=device)
+        out[start : start + len(chunk)] = former(chunk).numpy().reshape(len(chunk), *former.output_shape)
     return out

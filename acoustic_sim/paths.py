@@ -17,18 +17,23 @@ from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
+from tqdm.auto import tqdm
 
 from scenes import Scene
 
 from .array import piston_directivity
+from .beamform import Beamformer, energyscape
 from .config import SonarConfig
 from .kernels import lidar as lidar_kernels
 from .kernels import paths as kernels
 from .lidar import check_poses, raise_for_pose_error
 from .scene import warp_scene
+from .signals import EchoBuffer, ping_seeds, record
+from .signals import recorder as signals_recorder
 
 KIND_SPECULAR = 0
 KIND_SCATTERED = 1
+DIRECTIVITY_STEPS = 1024  # steps of the emitter's directivity table over the cosine from its axis
 
 
 @dataclass
@@ -131,54 +136,120 @@ class Sonar:
         )
         self._ray_energy = wp.array((2 * np.pi / ray_count * power).astype(np.float32), dtype=float, device=self.device)
         self._ray_dirs = wp.array(directions.astype(np.float32), dtype=wp.vec3, device=self.device)
+        cosine = np.linspace(0.0, 1.0, DIRECTIVITY_STEPS + 1)
+        pattern = piston_directivity(
+            np.arccos(cosine), self._centre_hz, config.emitter_radius_m, config.atmosphere.speed_of_sound
+        )
+        self._directivity = wp.array(pattern.astype(np.float32), dtype=float, device=self.device)
 
     def record(self, arrivals: Arrivals, *, pose_count: int | None = None, **options) -> np.ndarray:
         """Microphone signals (N, mics, samples) of traced pings; see `signals.record` for options."""
-        from .signals import record
-
         return record(arrivals, self.config, pose_count=pose_count, device=self.device, **options)
 
     def energyscape(self, signals: np.ndarray, **options) -> np.ndarray:
         """Energyscapes (N, R, A) of signals recorded with this sonar; see `beamform.energyscape`."""
-        from .beamform import energyscape
-
-        return energyscape(signals, self.config, **options)
+        return energyscape(signals, self.config, device=self.device, **options)
 
     @property
     def _centre_hz(self) -> float:
         return 0.5 * (self.config.chirp.start_frequency_hz + self.config.chirp.stop_frequency_hz)
 
-    def trace(self, scene: Scene, poses: np.ndarray) -> Arrivals:
+    def trace(self, scene: Scene, poses: np.ndarray, *, batch: int = 64) -> Arrivals:
         """Echoes of one ping from each pose, specular and scattered (see the module docstring).
 
         Args:
             scene: The world.
             poses: Sensor-to-world transforms (N, 4, 4) or (4, 4).
+            batch: Pings traced at once.
+
+        Returns:
+            Arrivals sorted by pose, kind, delay.
         """
         poses = check_poses(poses)
+        parts = []
+        for start in range(0, len(poses), batch):
+            echoes = self._trace_batch(scene, poses[start : start + batch])
+            found = echoes.arrivals(self.config.atmosphere.speed_of_sound)
+            found.pose_index += start
+            parts.append(found)
+        return concatenate(parts)
+
+    def simulate(
+        self,
+        scene: Scene,
+        poses: np.ndarray,
+        *,
+        noise: str = "none",
+        snr_db: float = 40.0,
+        seed: int = 0,
+        absorption: bool = True,
+        batch: int | None = None,
+        keep_signals: bool = False,
+        progress: bool = False,
+        **processing,
+    ) -> SonarFrames:
+        """Trace, record and beamform every pose on the device, batch by batch (the fast path).
+
+        The same as `energyscape(record(trace(scene, poses)))` but without the host round trips.
+
+        Args:
+            scene, poses: As for `trace`.
+            noise, snr_db, seed, absorption: As for `signals.record`; ping i's noise comes
+                from (seed, i).
+            batch: Pings at once (default 256 on a GPU, 8 on the CPU).
+            keep_signals: Also return the microphone signals (N, mics, samples).
+            progress: Show a progress bar.
+            **processing: Options of `beamform.energyscape` (grid, lowpass_hz, normalise, ...).
+        """
+        poses = check_poses(poses)
+        batch = batch or (256 if self.device.is_cuda else 8)
+        recorder = signals_recorder(self.config, absorption, str(self.device))
+        former = Beamformer(self.config, samples=self.config.record_samples, device=self.device, **processing)
+        images = np.empty((len(poses), *former.output_shape), dtype=np.float32)
+        kept = None
+        if keep_signals:
+            kept = np.empty((len(poses), self.config.microphone_count, self.config.record_samples), np.float32)
+        bar = tqdm(total=len(poses), unit="ping", disable=not progress, desc="sonar")
+        for start in range(0, len(poses), batch):
+            chunk = poses[start : start + batch]
+            echoes = self._trace_batch(scene, chunk)
+            seeds = ping_seeds(seed, range(start, start + len(chunk)))
+            signals = recorder(echoes.buffers(), len(chunk), noise=noise, snr_db=snr_db, seeds=seeds)
+            out = former(signals)
+            images[start : start + len(chunk)] = out.numpy().reshape(len(chunk), *former.output_shape)
+            if kept is not None:
+                kept[start : start + len(chunk)] = signals.numpy()
+            bar.update(len(chunk))
+        bar.close()
+        return SonarFrames(energyscape=images, signals=kept)
+
+    def _trace_batch(self, scene: Scene, poses: np.ndarray) -> _TracedEchoes:
+        """Echoes of a batch of checked poses, left on the device."""
         n, size = len(poses), self.table_size
         ws = warp_scene(scene, self.device)
         launch = functools.partial(wp.launch, device=self.device)
         with wp.ScopedDevice(self.device):
             pose_buf = wp.array(poses.astype(np.float32), dtype=wp.mat44)
+            inverse_buf = wp.array(np.linalg.inv(poses).astype(np.float32), dtype=wp.mat44)
             errors = wp.empty(n, dtype=float)
             key = wp.zeros((n, size), dtype=wp.uint64)
             order = wp.zeros((n, size), dtype=wp.int32)
             planes = wp.zeros((n, size, kernels.MAX_ORDER), dtype=wp.int32)
             overflow = wp.zeros(1, dtype=wp.int32)
-            valid = wp.empty((n, size), dtype=wp.int32)
-            length = wp.empty((n, size), dtype=float)
-            gain = wp.empty((n, size), dtype=float)
+            amplitude = wp.empty((n, size), dtype=float)
             image = wp.empty((n, size), dtype=wp.vec3)
             arrival_dir = wp.empty((n, size), dtype=wp.vec3)
-            emit_dir = wp.empty((n, size), dtype=wp.vec3)
             last_point = wp.empty((n, size), dtype=wp.vec3)
-            capacity = self.ray_count * (self.max_bounces + 1) if self.scattering else 1
-            scatter_count = wp.zeros(n, dtype=wp.int32)
-            scatter_point = wp.empty((n, capacity), dtype=wp.vec3)
-            scatter_length = wp.empty((n, capacity), dtype=float)
-            scatter_energy = wp.empty((n, capacity), dtype=float)
-            scatter_order = wp.empty((n, capacity), dtype=wp.int32)
+            image_table = wp.zeros((n, size), dtype=wp.uint64)
+            image_rank = wp.full((n, size), 2**31 - 1, dtype=wp.int32)
+            capacity = self.ray_count * (self.max_bounces + 1) if self.scattering else 0
+            scattered = _ScatteredEchoes(
+                source=wp.empty((n, capacity), dtype=wp.vec3),
+                extra_length=wp.empty((n, capacity), dtype=float),
+                amplitude=wp.empty((n, capacity), dtype=float),
+                order=wp.empty((n, capacity), dtype=wp.int32),
+                count=wp.zeros(n, dtype=wp.int32),
+            )
         emitter = wp.vec3(*self.config.emitter_m)
         launch(lidar_kernels.pose_error, dim=n, inputs=[pose_buf], outputs=[errors])
         raise_for_pose_error(errors.numpy())
@@ -189,6 +260,7 @@ class Sonar:
                 ws.mesh.id,
                 ws.face_plane,
                 pose_buf,
+                inverse_buf,
                 emitter,
                 self._ray_dirs,
                 self.max_bounces + 1,
@@ -205,11 +277,11 @@ class Sonar:
                 order,
                 planes,
                 overflow,
-                scatter_count,
-                scatter_point,
-                scatter_length,
-                scatter_energy,
-                scatter_order,
+                scattered.count,
+                scattered.source,
+                scattered.extra_length,
+                scattered.amplitude,
+                scattered.order,
             ],
         )
         launch(
@@ -227,75 +299,110 @@ class Sonar:
                 key,
                 order,
                 planes,
+                self._directivity,
             ],
-            outputs=[valid, length, gain, image, arrival_dir, emit_dir, last_point],
+            outputs=[amplitude, image, arrival_dir, last_point],
+        )
+        launch(kernels.claim_images, dim=(n, size), inputs=[amplitude, order, image, key, image_table, image_rank])
+        launch(
+            kernels.drop_duplicate_images,
+            dim=(n, size),
+            inputs=[order, image, key, image_table, image_rank],
+            outputs=[amplitude],
         )
         if (dropped := int(overflow.numpy()[0])) > 0:
             warnings.warn(
                 f"{dropped} reflection sequences did not fit the table of {size} per ping; raise table_size",
-                stacklevel=2,
+                stacklevel=3,
             )
-        ok = valid.numpy().astype(bool)
-        # Two orders of reflection in perpendicular planes give the same image source; where both
-        # validate, the path runs into the edge between the planes and is one echo, not two.
-        pose_index, slot = np.nonzero(ok)
-        keys = np.c_[pose_index, order.numpy()[ok], np.rint(image.numpy()[ok] / 1e-4)].astype(np.int64)
-        _, first = np.unique(keys, axis=0, return_index=True)
-        ok[:] = False
-        ok[pose_index[first], slot[first]] = True
-        pose_index = np.nonzero(ok)[0]
-        length_m = length.numpy()[ok].astype(np.float64)
-        emit = emit_dir.numpy()[ok].astype(np.float64)
-        cfg = self.config
-        c = cfg.atmosphere.speed_of_sound
-        # Angle from the emitter axis (sensor +x).
-        theta = np.arccos(np.clip(emit[:, 0], -1.0, 1.0))
-        directivity = piston_directivity(theta, self._centre_hz, cfg.emitter_radius_m, c)
-        specular = Arrivals(
-            pose_index=pose_index.astype(np.int64),
-            delay_s=length_m / c,
-            direction=arrival_dir.numpy()[ok].astype(np.float64),
-            amplitude=gain.numpy()[ok].astype(np.float64) * directivity / length_m,
-            order=order.numpy()[ok].astype(np.int64),
-            kind=np.full(len(length_m), KIND_SPECULAR, dtype=np.int64),
-            source_m=image.numpy()[ok].astype(np.float64),
-            length_m=length_m,
-            point_m=last_point.numpy()[ok].astype(np.float64),
-        )
-        specular = specular.select(specular.amplitude > 0)  # e.g. fully scattering surfaces
-        if not self.scattering:
-            return specular
-        return concatenate(
-            [
-                specular,
-                self._scattered(poses, scatter_count, scatter_point, scatter_length, scatter_energy, scatter_order),
-            ]
-        )
+        with wp.ScopedDevice(self.device):
+            specular = _SpecularEchoes(
+                source=image,
+                extra_length=wp.zeros((n, size), dtype=float),
+                amplitude=amplitude,
+                count=wp.full(n, size, dtype=wp.int32),
+                order=order,
+                direction=arrival_dir,
+                point=last_point,
+            )
+        return _TracedEchoes(specular=specular, scattered=scattered)
 
-    def _scattered(self, poses, count, point, length, energy, order) -> Arrivals:
-        """Compact the per-pose scattered arrival buffers into Arrivals (sensor frame)."""
-        count = count.numpy()
-        capacity = point.shape[1]
-        if (count > capacity).any():  # cannot happen: each ray scatters at most once per order
-            raise RuntimeError("scattered arrival buffer overflow")
-        keep = np.arange(capacity)[None, :] < count[:, None]
-        pose_index = np.nonzero(keep)[0]
-        world = point.numpy()[keep].astype(np.float64)
-        rotation, origin = poses[pose_index, :3, :3], poses[pose_index, :3, 3]
-        local = np.einsum("nji,nj->ni", rotation, world - origin)
-        distance = np.linalg.norm(local, axis=1)
-        length_m = length.numpy()[keep].astype(np.float64)
-        return Arrivals(
-            pose_index=pose_index.astype(np.int64),
-            delay_s=length_m / self.config.atmosphere.speed_of_sound,
-            direction=local / distance[:, None],
-            amplitude=np.sqrt(energy.numpy()[keep].astype(np.float64)),
-            order=order.numpy()[keep].astype(np.int64),
-            kind=np.full(len(length_m), KIND_SCATTERED, dtype=np.int64),
-            source_m=local,
-            length_m=length_m,
-            point_m=local,
-        )
+
+@dataclass
+class SonarFrames:
+    """Output of `Sonar.simulate`: energyscapes (N, R, A) and, if kept, signals (N, mics, samples)."""
+
+    energyscape: np.ndarray
+    signals: np.ndarray | None = None
+
+
+@dataclass
+class _SpecularEchoes(EchoBuffer):
+    """Validated image-source paths in table slots (amplitude 0: empty or invalid)."""
+
+    order: wp.array = None
+    direction: wp.array = None
+    point: wp.array = None
+
+
+@dataclass
+class _ScatteredEchoes(EchoBuffer):
+    order: wp.array = None
+
+
+@dataclass
+class _TracedEchoes:
+    specular: _SpecularEchoes
+    scattered: _ScatteredEchoes
+
+    def buffers(self) -> list[EchoBuffer]:
+        return [self.specular, self.scattered]
+
+    def arrivals(self, speed_of_sound: float) -> Arrivals:
+        """Copy to the host as Arrivals, sorted by pose, kind, delay (a reproducible order)."""
+        spec = self.specular
+        amplitude = spec.amplitude.numpy()
+        pose_index, slot = np.nonzero(amplitude > 0)
+        source = spec.source.numpy()[pose_index, slot].astype(np.float64)
+        length = np.linalg.norm(source, axis=1)
+        parts = [
+            Arrivals(
+                pose_index=pose_index.astype(np.int64),
+                delay_s=length / speed_of_sound,
+                direction=spec.direction.numpy()[pose_index, slot].astype(np.float64),
+                amplitude=amplitude[pose_index, slot].astype(np.float64),
+                order=spec.order.numpy()[pose_index, slot].astype(np.int64),
+                kind=np.full(len(length), KIND_SPECULAR, dtype=np.int64),
+                source_m=source,
+                length_m=length,
+                point_m=spec.point.numpy()[pose_index, slot].astype(np.float64),
+            )
+        ]
+        scat = self.scattered
+        if scat.slots:
+            count = scat.count.numpy()
+            if (count > scat.slots).any():  # cannot happen: each ray scatters at most once per order
+                raise RuntimeError("scattered echo buffer overflow")
+            keep = np.arange(scat.slots)[None, :] < count[:, None]
+            pose_index = np.nonzero(keep)[0]
+            source = scat.source.numpy()[keep].astype(np.float64)
+            distance = np.linalg.norm(source, axis=1)
+            length = scat.extra_length.numpy()[keep].astype(np.float64) + distance
+            parts.append(
+                Arrivals(
+                    pose_index=pose_index.astype(np.int64),
+                    delay_s=length / speed_of_sound,
+                    direction=source / distance[:, None],
+                    amplitude=scat.amplitude.numpy()[keep].astype(np.float64),
+                    order=scat.order.numpy()[keep].astype(np.int64),
+                    kind=np.full(len(length), KIND_SCATTERED, dtype=np.int64),
+                    source_m=source,
+                    length_m=length,
+                    point_m=source,
+                )
+            )
+        found = concatenate(parts)
+        return found.select(np.lexsort((found.order, found.delay_s, found.kind, found.pose_index)))
 
 
 def concatenate(parts: list[Arrivals]) -> Arrivals:

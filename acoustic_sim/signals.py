@@ -1,8 +1,15 @@
-"""Signals and propagation in air: the emitted call, speed of sound and ISO 9613-1 absorption."""
+"""Signals and propagation in air: the call, speed of sound, ISO 9613-1 absorption, and recording echoes."""
 
 from __future__ import annotations
 
+import functools
+from dataclasses import dataclass
+
 import numpy as np
+import warp as wp
+
+from .config import NOISE_KINDS
+from .kernels import signals as kernels
 
 
 def speed_of_sound(temperature_c: float) -> float:
@@ -115,10 +122,204 @@ def instantaneous_frequency(
     return f0 * f1 * duration_s / (f1 * duration_s + (f0 - f1) * t)
 
 
-# Path lengths [m] at which frequency-dependent absorption is applied exactly. An arrival's
-# absorption at the band centre is exact; the rest is interpolated linearly between the two
-# nearest of these lengths (error < 0.05 dB in the eRTIS band).
-ABSORPTION_LENGTHS_M = np.array([0.0, 1.5, 3.0, 4.5, 6.0, 7.5, 9.0, 10.5, 12.0, 13.5])
+# Fractional-delay filter of a recorded echo: taps, and steps of the sample fraction between
+# the rows of its table.
+DELAY_TAPS = 8
+FRACTION_STEPS = 32
+
+
+def fractional_delay_table(config) -> np.ndarray:
+    """Band-limited fractional-delay filters, float32 (FRACTION_STEPS + 1, DELAY_TAPS).
+
+    Row j is the least-squares FIR (taps at offsets k - DELAY_TAPS / 2 + 1 - j / FRACTION_STEPS
+    samples from the true arrival time) with response 1 up to 8 kHz above the call's band and 0
+    from 40 kHz above it, the in-band part weighted 1000 times more. Echoes interpolate the rows
+    linearly.
+    """
+    fs = config.chirp.sample_rate_hz
+    low = min(config.chirp.start_frequency_hz, config.chirp.stop_frequency_hz)
+    high = max(config.chirp.start_frequency_hz, config.chirp.stop_frequency_hz)
+    band = np.linspace(max(low - 8e3, 0.0), high + 8e3, 200)
+    below = np.linspace(0.0, band[0], 40, endpoint=False)
+    above = np.linspace(min(high + 48e3, 0.49 * fs), 0.5 * fs, 120)
+    freqs = np.r_[below, band, above]
+    weight = np.r_[np.full(len(below), 1e-3), np.ones(len(band)), np.full(len(above), 1e-3)]
+    target = np.r_[np.ones(len(below) + len(band)), np.zeros(len(above))]
+    table = np.empty((FRACTION_STEPS + 1, DELAY_TAPS))
+    worst = 0.0
+    for j, v in enumerate(np.linspace(0.0, 1.0, FRACTION_STEPS + 1)):
+        offsets = np.arange(DELAY_TAPS) - DELAY_TAPS // 2 + 1 - v
+        response = np.exp(-2j * np.pi * freqs[:, None] * offsets[None, :] / fs)
+        system = np.r_[response.real, response.imag] * np.r_[weight, weight][:, None]
+        table[j] = np.linalg.lstsq(system, np.r_[target * weight, np.zeros(len(freqs))], rcond=None)[0]
+        in_band = (freqs >= low) & (freqs <= high)
+        worst = max(worst, float(np.abs(response[in_band] @ table[j] - 1.0).max()))
+    if worst > 5e-3:
+        raise ValueError(f"the call's band is too wide for {DELAY_TAPS}-tap delay filters (error {worst:.1e})")
+    return table.astype(np.float32)
+
+
+def ping_seeds(seed: int, pings: np.ndarray) -> np.ndarray:
+    """Noise seed of each ping (int32), from the run's seed and the ping's index alone."""
+    return np.array(
+        [np.random.SeedSequence([seed, int(i)]).generate_state(1)[0] & 0x7FFFFFFF for i in pings], dtype=np.int32
+    )
+
+
+@dataclass
+class EchoBuffer:
+    """Echoes of a batch of pings on a Warp device, (pings, slots) arrays; empty slots have amplitude 0.
+
+    Attributes:
+        source: Point the echo seems to come from, sensor frame [m] (vec3).
+        extra_length: Path travelled before reaching `source` [m] (0 for image sources).
+        amplitude: Pressure amplitude without air absorption.
+        count: Slots in use per ping, int32 (pings,).
+    """
+
+    source: wp.array
+    extra_length: wp.array
+    amplitude: wp.array
+    count: wp.array
+
+    @property
+    def slots(self) -> int:
+        return self.source.shape[1]
+
+
+def tile_block_dim(size: int) -> int:
+    """Threads per block for a tiled FFT of `size` points (sizes that compile on the H100)."""
+    return int(np.clip(size // 16, 64, 512))
+
+
+class Recorder:
+    """Microphone signals of echo batches on a Warp device (see `record`).
+
+    Air absorption: every echo is scaled by its exact absorption at the call's centre
+    frequency; the rest (how it varies over the band) is applied per frequency through absorption
+    nodes every 1,024 samples (0.78 m of path at 450 kHz), between which an echo's impulse is
+    shared linearly by its arrival time (its path length is c times that time).
+    """
+
+    def __init__(self, config, *, absorption: bool = True, device=None):
+        self.config = config
+        self.device = wp.get_device(device)
+        chirp_cfg, atm = config.chirp, config.atmosphere
+        fs, c = chirp_cfg.sample_rate_hz, atm.speed_of_sound
+        call = config.chirp.samples()
+        size = 4096
+        while size // 2 < len(call) - 1:
+            size *= 2
+        self._size = size
+        self.block = size // 4
+        self.nodes = -(-config.record_samples // self.block) + 1
+        freqs = np.abs(np.fft.fftfreq(size, 1.0 / fs))
+        centre_hz = 0.5 * (chirp_cfg.start_frequency_hz + chirp_cfg.stop_frequency_hz)
+        air = {"temperature_c": atm.temperature_c, "relative_humidity": atm.relative_humidity}
+        air["pressure_kpa"] = atm.pressure_kpa
+        centre_db = air_absorption_db_per_m(centre_hz, **air) if absorption else 0.0
+        excess_db = air_absorption_db_per_m(freqs, **air) - centre_db if absorption else np.zeros(size)
+        node_length = np.arange(self.nodes) * self.block / fs * c
+        filters = np.fft.fft(call, size)[None, :] * 10.0 ** (-excess_db[None, :] * node_length[:, None] / 20.0)
+        filters /= size * kernels.FIXED_POINT_SCALE
+        hat = np.zeros(size)
+        hat[: 2 * self.block] = 1.0 - np.abs(np.arange(2 * self.block) - self.block) / self.block
+        self._absorption_per_m = float(centre_db) * np.log(10.0) / 20.0
+        with wp.ScopedDevice(self.device):
+            self._filters = wp.array(np.stack([filters.real, filters.imag], -1).astype(np.float32), dtype=wp.vec2f)
+            self._hat = wp.array(hat[None].astype(np.float32), dtype=float)
+            self._taps = wp.array(fractional_delay_table(config), dtype=float)
+            self._mics = wp.array(np.asarray(config.microphones_m, dtype=np.float32), dtype=wp.vec3)
+        self._convolve = kernels.node_convolution(size)
+
+    def __call__(
+        self, echoes, pings: int, *, noise: str = "none", snr_db: float = 40.0, seeds: np.ndarray | None = None
+    ) -> wp.array:
+        """Signals (pings, mics, record_samples) float32 on the device."""
+        if noise not in NOISE_KINDS:
+            raise ValueError(f"noise must be one of {NOISE_KINDS}, got {noise!r}")
+        cfg = self.config
+        mics = cfg.microphone_count
+        pairs = (mics + 1) // 2
+        samples = cfg.record_samples
+        with wp.ScopedDevice(self.device):
+            # Row: one block of zeros (node 0 reaches back one block), the samples, room for
+            # the last node's FFT.
+            impulses = wp.zeros((pings * 2 * pairs, (self.nodes - 1) * self.block + self._size), dtype=wp.int64)
+            for e in echoes:
+                if e.slots == 0:
+                    continue
+                wp.launch(
+                    kernels.accumulate_echoes,
+                    dim=(pings, e.slots, mics),
+                    inputs=[
+                        e.source,
+                        e.extra_length,
+                        e.amplitude,
+                        e.count,
+                        self._mics,
+                        cfg.chirp.sample_rate_hz / cfg.atmosphere.speed_of_sound,
+                        self._absorption_per_m,
+                        self._taps,
+                        samples,
+                        self.block,
+                    ],
+                    outputs=[impulses],
+                )
+            nodes = wp.empty((pings * pairs * self.nodes, self._size), dtype=wp.vec2f)
+            wp.launch_tiled(
+                self._convolve,
+                dim=[pings * pairs, self.nodes],
+                inputs=[impulses, self._hat, self._filters],
+                outputs=[nodes],
+                block_dim=tile_block_dim(self._size),
+            )
+            del impulses
+            signals = wp.empty((pings, mics, samples), dtype=float)
+            wp.launch(
+                kernels.overlap_nodes, dim=signals.shape, inputs=[nodes, self.nodes, self.block], outputs=[signals]
+            )
+            del nodes
+            if noise != "none":
+                if seeds is None or len(seeds) != pings:
+                    raise ValueError("noise needs one seed per ping")
+                peak = wp.zeros(pings, dtype=float)
+                wp.launch(kernels.peak_magnitude, dim=signals.shape, inputs=[signals], outputs=[peak])
+                wp.launch(
+                    kernels.add_noise,
+                    dim=signals.shape,
+                    inputs=[peak, wp.array(seeds, dtype=wp.int32), 10.0 ** (-snr_db / 20.0), int(noise == "uniform")],
+                    outputs=[signals],
+                )
+        return signals
+
+
+@functools.lru_cache(maxsize=8)
+def recorder(config, absorption: bool, device: str) -> Recorder:
+    return Recorder(config, absorption=absorption, device=device)
+
+
+def echo_buffer(arrivals, pings: int, device) -> EchoBuffer:
+    """Upload `Arrivals` (numpy, any order) as an EchoBuffer with one row per ping."""
+    pose = np.asarray(arrivals.pose_index, dtype=np.int64)
+    counts = np.bincount(pose, minlength=pings).astype(np.int32)
+    slots = int(counts.max()) if len(pose) else 0
+    order = np.argsort(pose, kind="stable")
+    column = np.arange(len(pose)) - np.repeat(np.cumsum(counts) - counts, counts)
+    source = np.zeros((pings, slots, 3), np.float32)
+    extra = np.zeros((pings, slots), np.float32)
+    amplitude = np.zeros((pings, slots), np.float32)
+    rows = pose[order]
+    source[rows, column] = arrivals.source_m[order]
+    extra[rows, column] = arrivals.length_m[order] - np.linalg.norm(arrivals.source_m[order], axis=1)
+    amplitude[rows, column] = arrivals.amplitude[order]
+    with wp.ScopedDevice(device):
+        return EchoBuffer(
+            source=wp.array(source, dtype=wp.vec3),
+            extra_length=wp.array(extra, dtype=float),
+            amplitude=wp.array(amplitude, dtype=float),
+            count=wp.array(counts, dtype=wp.int32),
+        )
 
 
 def record(
@@ -130,98 +331,31 @@ def record(
     noise: str = "none",
     snr_db: float = 40.0,
     seed: int = 0,
-    half_taps: int = 8,
     device=None,
 ) -> np.ndarray:
     """Microphone signals of the pings whose echoes `arrivals` holds: float32 (N, mics, samples).
 
-    Each arrival is the emitted call, scaled by its amplitude and delayed to every microphone
-    by (path to its source point + |source - mic|) / c: exact near-field fractional delays
-    (Lanczos-windowed sinc impulses on a Warp device), then one FFT convolution with the call
-    per ping. Air absorption (ISO 9613-1) acts per frequency. Noise: "gaussian" (white) or
-    "uniform" (as in the paper) with standard deviation set so that the strongest sample of
-    the ping is `snr_db` above it.
+    Each echo is the emitted call, scaled by its amplitude and delayed to every microphone by
+    (path to its source point + |source - mic|) / c: exact near-field fractional delays through
+    band-limited filters that also carry ISO 9613-1 air absorption for that path length, summed
+    as impulse responses and convolved with the call once per microphone (block FFTs on a Warp
+    device). Noise: "gaussian" (white) or "uniform" (as in the paper) with standard deviation
+    set so that the strongest sample of the ping is `snr_db` above it; each ping's noise comes
+    from (seed, ping index).
 
     Args:
         arrivals: `Arrivals` from `Sonar.trace`.
         config: The `SonarConfig` that traced them.
         pose_count: Number of pings (default: the highest pose index + 1).
     """
-    import warp as wp
-
-    from .kernels import signals as kernels
-
-    if noise not in ("none", "gaussian", "uniform"):
-        raise ValueError(f"noise must be 'none', 'gaussian' or 'uniform', got {noise!r}")
+    if noise not in NOISE_KINDS:
+        raise ValueError(f"noise must be one of {NOISE_KINDS}, got {noise!r}")
     count = int(pose_count if pose_count is not None else (arrivals.pose_index.max() + 1 if len(arrivals) else 1))
     if len(arrivals) and arrivals.pose_index.max() >= count:
         raise ValueError(f"arrivals refer to pose {arrivals.pose_index.max()}, but pose_count is {count}")
-    chirp_cfg, atm = config.chirp, config.atmosphere
-    c, fs, samples = atm.speed_of_sound, chirp_cfg.sample_rate_hz, config.record_samples
-    mics = np.asarray(config.microphones_m, dtype=np.float64)
-    amplitude = arrivals.amplitude.astype(np.float64)
-    centre_hz = 0.5 * (chirp_cfg.start_frequency_hz + chirp_cfg.stop_frequency_hz)
-    absorb = {
-        "temperature_c": atm.temperature_c,
-        "relative_humidity": atm.relative_humidity,
-        "pressure_kpa": atm.pressure_kpa,
-    }
-    if absorption:
-        amplitude = amplitude * 10.0 ** (-air_absorption_db_per_m(centre_hz, **absorb) * arrivals.length_m / 20.0)
-        lengths = ABSORPTION_LENGTHS_M
-        position = np.interp(arrivals.length_m, lengths, np.arange(len(lengths)))
-        lower = np.minimum(np.floor(position).astype(np.int64), len(lengths) - 2)
-        weight = position - lower
-        # Each arrival is split between its two neighbouring lengths, weighted linearly.
-        pick = np.r_[np.arange(len(arrivals)), np.arange(len(arrivals))]
-        length_class = np.r_[lower, lower + 1]
-        amplitude = np.r_[amplitude * (1.0 - weight), amplitude * weight]
-        classes = len(lengths)
-    else:
-        pick = np.arange(len(arrivals))
-        length_class = np.zeros(len(arrivals), dtype=np.int64)
-        classes = 1
-    source = arrivals.source_m[pick]
-    extra = (arrivals.length_m - np.linalg.norm(arrivals.source_m, axis=1))[pick]
-    row_base = ((arrivals.pose_index[pick] * classes + length_class) * len(mics)).astype(np.int32)
-
     device = wp.get_device(device)
-    impulses = wp.zeros((count * classes * len(mics), samples), dtype=float, device=device)
-    if len(arrivals):
-        with wp.ScopedDevice(device):
-            wp.launch(
-                kernels.accumulate_impulses,
-                dim=(len(pick), len(mics)),
-                inputs=[
-                    wp.array(row_base, dtype=wp.int32),
-                    wp.array(source.astype(np.float32), dtype=wp.vec3),
-                    wp.array(extra.astype(np.float32), dtype=float),
-                    wp.array(amplitude.astype(np.float32), dtype=float),
-                    wp.array(mics.astype(np.float32), dtype=wp.vec3),
-                    fs / c,
-                    half_taps,
-                ],
-                outputs=[impulses],
-            )
-    impulses = impulses.numpy().reshape(count, classes, len(mics), samples)
-
-    call = chirp_cfg.samples()
-    nfft = 1 << int(np.ceil(np.log2(samples + len(call) - 1)))
-    freqs = np.fft.rfftfreq(nfft, 1.0 / fs)
-    transfer = np.broadcast_to(np.fft.rfft(call, nfft), (classes, len(freqs))).copy()
-    if absorption:
-        excess = air_absorption_db_per_m(freqs, **absorb) - air_absorption_db_per_m(centre_hz, **absorb)
-        transfer *= 10.0 ** (-excess[None, :] * ABSORPTION_LENGTHS_M[:, None] / 20.0)
-    signals = np.empty((count, len(mics), samples), dtype=np.float32)
-    for p in range(count):  # one ping at a time keeps the FFT buffers small
-        spectrum = np.einsum("kmf,kf->mf", np.fft.rfft(impulses[p], nfft), transfer)
-        signals[p] = np.fft.irfft(spectrum, nfft)[:, :samples]
-    if noise != "none":
-        rng = np.random.default_rng(seed)
-        peak = np.abs(signals).max(axis=(1, 2), keepdims=True)
-        std = peak * 10.0 ** (-snr_db / 20.0)
-        if noise == "gaussian":
-            signals += (std * rng.standard_normal(signals.shape)).astype(np.float32)
-        else:
-            signals += (std * np.sqrt(3.0) * rng.uniform(-1.0, 1.0, signals.shape)).astype(np.float32)
-    return signals
+    rec = recorder(config, absorption, str(device))
+    signals = rec(
+        [echo_buffer(arrivals, count, device)], count, noise=noise, snr_db=snr_db, seeds=ping_seeds(seed, range(count))
+    )
+    return signals.numpy().copy()

@@ -25,18 +25,20 @@ def scattered_hit(
     normal: wp.vec3,
     incoming: wp.vec3,
     receiver: wp.vec3,
+    inverse: wp.mat44,
     travelled: float,
     energy: float,
     order: int,
     p: int,
     capacity: int,
     scatter_count: wp.array[wp.int32],
-    point_out: wp.array2d[wp.vec3],
-    length_out: wp.array2d[float],
-    energy_out: wp.array2d[float],
+    source_out: wp.array2d[wp.vec3],
+    extra_out: wp.array2d[float],
+    amplitude_out: wp.array2d[float],
     order_out: wp.array2d[wp.int32],
 ):
-    """Diffuse rain: the Lambert-scattered share of a hit that reaches the receiver unoccluded."""
+    """Diffuse rain: the Lambert-scattered share of a hit that reaches the receiver unoccluded,
+    appended to the ping's echoes (hit point in the sensor frame, path before it, amplitude)."""
     if energy <= 0.0:
         return
     front = -normal * wp.sign(wp.dot(incoming, normal))  # normal on the side the ray came from
@@ -52,9 +54,9 @@ def scattered_hit(
         return
     slot = wp.atomic_add(scatter_count, p, 1)
     if slot < capacity:
-        point_out[p, slot] = hit
-        length_out[p, slot] = travelled + distance
-        energy_out[p, slot] = energy * cosine / (wp.pi * distance * distance)
+        source_out[p, slot] = wp.transform_point(inverse, hit)
+        extra_out[p, slot] = travelled
+        amplitude_out[p, slot] = wp.sqrt(energy * cosine / (wp.pi * distance * distance))
         order_out[p, slot] = order
 
 
@@ -77,6 +79,7 @@ def discover_sequences(
     mesh: wp.uint64,
     face_plane: wp.array[wp.int32],
     poses: wp.array[wp.mat44],
+    inverse_poses: wp.array[wp.mat44],
     emitter: wp.vec3,
     ray_dirs: wp.array[wp.vec3],
     max_order: int,
@@ -93,9 +96,9 @@ def discover_sequences(
     table_planes: wp.array3d[wp.int32],
     overflow_out: wp.array[wp.int32],
     scatter_count: wp.array[wp.int32],
-    scatter_point_out: wp.array2d[wp.vec3],
-    scatter_length_out: wp.array2d[float],
-    scatter_energy_out: wp.array2d[float],
+    scatter_source_out: wp.array2d[wp.vec3],
+    scatter_extra_out: wp.array2d[float],
+    scatter_amplitude_out: wp.array2d[float],
     scatter_order_out: wp.array2d[wp.int32],
 ):
     """One thread per (pose, ray); launch with dim=pose_count * ray_count.
@@ -123,7 +126,8 @@ def discover_sequences(
     receiver = wp.transform_point(pose, wp.vec3(0.0))
     energy = ray_energy[r]
     travelled = float(0.0)
-    capacity = scatter_point_out.shape[1]
+    capacity = scatter_source_out.shape[1]
+    inverse = inverse_poses[p]
     for k in range(max_order):
         q = wp.mesh_query_ray(mesh, origin, direction, 1.0e6)
         if not q.result:
@@ -139,15 +143,16 @@ def discover_sequences(
                 wp.normalize(q.normal),
                 direction,
                 receiver,
+                inverse,
                 travelled,
                 energy * face_reflection[q.face] * scattering,
                 k + 1,
                 p,
                 capacity,
                 scatter_count,
-                scatter_point_out,
-                scatter_length_out,
-                scatter_energy_out,
+                scatter_source_out,
+                scatter_extra_out,
+                scatter_amplitude_out,
                 scatter_order_out,
             )
         energy = energy * face_reflection[q.face] * (1.0 - scattering)
@@ -189,6 +194,15 @@ def on_plane_face(mesh: wp.uint64, point: wp.vec3, front: wp.vec3) -> bool:
     return wp.abs(q.t - EDGE_PROBE) < 0.5 * EDGE_PROBE
 
 
+@wp.func
+def lookup(table: wp.array[float], x: float) -> float:
+    """Table of a function over [0, 1] at equal steps, interpolated linearly at x (clamped)."""
+    position = wp.clamp(x, 0.0, 1.0) * float(table.shape[0] - 1)
+    i = wp.min(int(position), table.shape[0] - 2)
+    w = position - float(i)
+    return (1.0 - w) * table[i] + w * table[i + 1]
+
+
 @wp.kernel(enable_backward=False)
 def validate_sequences(
     # in
@@ -203,13 +217,11 @@ def validate_sequences(
     table_key: wp.array2d[wp.uint64],
     table_order: wp.array2d[wp.int32],
     table_planes: wp.array3d[wp.int32],
+    directivity: wp.array[float],
     # out
-    valid_out: wp.array2d[wp.int32],
-    length_out: wp.array2d[float],
-    gain_out: wp.array2d[float],
+    amplitude_out: wp.array2d[float],
     image_out: wp.array2d[wp.vec3],
     arrival_dir_out: wp.array2d[wp.vec3],
-    emit_dir_out: wp.array2d[wp.vec3],
     last_point_out: wp.array2d[wp.vec3],
 ):
     """One thread per (pose, table slot); launch with dim=(pose_count, table_size).
@@ -217,13 +229,14 @@ def validate_sequences(
     Exact image-source check of a discovered sequence: mirror the emitter in each plane, then
     walk back from the receiver (sensor origin) through the reflection points. Valid when every
     leg's first hit is at the expected reflection point (within PLANE_MATCH) and the last leg
-    reaches the emitter unoccluded, leaving it forwards. Outputs are in the sensor frame: the image source [m], the
-    direction the echo arrives from, the direction it left the emitter and the last reflection
-    point; `gain` is the
-    product of the specular pressure reflection factors sqrt(R (1 - s)) along the path.
+    reaches the emitter unoccluded, leaving it forwards. Outputs are in the sensor frame: the
+    image source [m], the direction the echo arrives from and the last reflection point. The
+    amplitude (0 where invalid) is the product of the specular pressure reflection factors
+    sqrt(R (1 - s)) along the path, times the emitter's directivity towards the path (table over
+    the cosine from its axis, 0..1), over the path length.
     """
     p, s = wp.tid()
-    valid_out[p, s] = 0
+    amplitude_out[p, s] = 0.0
     if table_key[p, s] == wp.uint64(0):
         return
     order = table_order[p, s]
@@ -299,10 +312,83 @@ def validate_sequences(
         q = wp.mesh_query_ray(mesh, x + direction * SURFACE_STEP, direction, distance - 2.0 * SURFACE_STEP)
         # The emitter is baffled in the sensor's y-z plane: nothing leaves it backwards.
         if not q.result and emit[0] >= -1.0e-6:
-            valid_out[p, s] = 1
-            length_out[p, s] = wp.length(image - receiver)
-            gain_out[p, s] = gain
+            amplitude_out[p, s] = gain * lookup(directivity, emit[0]) / wp.length(image - receiver)
             image_out[p, s] = wp.transform_point(inverse, image)
             arrival_dir_out[p, s] = wp.normalize(wp.transform_vector(inverse, arrival))
-            emit_dir_out[p, s] = emit
             last_point_out[p, s] = wp.transform_point(inverse, last_point)
+
+
+IMAGE_GRID = 1.0e-4  # [m] image sources closer than this are one echo
+
+
+@wp.func
+def image_key(order: int, image: wp.vec3) -> wp.uint64:
+    key = (HASH_SEED ^ wp.uint64(order)) * HASH_PRIME
+    for k in range(3):
+        cell = wp.int64(wp.round(image[k] / IMAGE_GRID))
+        key = (key ^ wp.uint64(cell)) * HASH_PRIME
+    return wp.max(key, wp.uint64(1))
+
+
+@wp.func
+def image_slot(image_table: wp.array2d[wp.uint64], p: int, key: wp.uint64, insert: int) -> int:
+    """Slot of `key` in ping p's image table (inserted if `insert`), -1 if absent or full."""
+    mask = image_table.shape[1] - 1
+    slot = int(key & wp.uint64(mask))
+    for _probe in range(TABLE_PROBES):
+        old = image_table[p, slot]
+        if insert != 0 and old == wp.uint64(0):
+            old = wp.atomic_cas(image_table, p, slot, wp.uint64(0), key)
+            if old == wp.uint64(0):
+                return slot
+        if old == key:
+            return slot
+        if old == wp.uint64(0):
+            return -1
+        slot = (slot + 1) & mask
+    return -1
+
+
+@wp.func
+def sequence_rank(key: wp.uint64) -> int:
+    return int(key >> wp.uint64(33))
+
+
+@wp.kernel(enable_backward=False)
+def claim_images(
+    amplitude: wp.array2d[float],
+    table_order: wp.array2d[wp.int32],
+    image: wp.array2d[wp.vec3],
+    table_key: wp.array2d[wp.uint64],
+    image_table: wp.array2d[wp.uint64],
+    image_rank: wp.array2d[wp.int32],
+):
+    """Valid paths register their image source (rounded) per ping; the lowest sequence rank wins.
+
+    Two orders of reflection in perpendicular planes give the same image source; where both
+    validate, the path runs into the edge between the planes and is one echo, not two.
+    """
+    p, s = wp.tid()
+    if amplitude[p, s] == 0.0:
+        return
+    slot = image_slot(image_table, p, image_key(table_order[p, s], image[p, s]), 1)
+    if slot >= 0:
+        wp.atomic_min(image_rank, p, slot, sequence_rank(table_key[p, s]))
+
+
+@wp.kernel(enable_backward=False)
+def drop_duplicate_images(
+    table_order: wp.array2d[wp.int32],
+    image: wp.array2d[wp.vec3],
+    table_key: wp.array2d[wp.uint64],
+    image_table: wp.array2d[wp.uint64],
+    image_rank: wp.array2d[wp.int32],
+    amplitude: wp.array2d[float],
+):
+    """Silence every path whose image source another path with a lower rank claimed."""
+    p, s = wp.tid()
+    if amplitude[p, s] == 0.0:
+        return
+    slot = image_slot(image_table, p, image_key(table_order[p, s], image[p, s]), 0)
+    if slot >= 0 and image_rank[p, slot] < sequence_rank(table_key[p, s]):
+        amplitude[p, s] = 0.0

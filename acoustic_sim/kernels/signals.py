@@ -1,44 +1,142 @@
-"""Microphone signal synthesis: band-limited fractional-delay impulses."""
+"""Microphone signal synthesis: fractional-delay impulses, then FFT convolution with the call per absorption node."""
+
+import functools
 
 import warp as wp
 
-
-@wp.func
-def lanczos(x: float, half_width: float) -> float:
-    """Windowed sinc sinc(x) sinc(x / a), zero for |x| >= a."""
-    if wp.abs(x) >= half_width:
-        return 0.0
-    if wp.abs(x) < 1.0e-6:
-        return 1.0
-    px = wp.pi * x
-    return half_width * wp.sin(px) * wp.sin(px / half_width) / (px * px)
+# Impulses are summed as 64-bit fixed point: integer atomics add in any order to the same bits,
+# so signals are reproducible on the GPU as well. 2^-32 resolution, range +-2^31.
+FIXED_POINT_SCALE = 4294967296.0
 
 
 @wp.kernel(enable_backward=False)
-def accumulate_impulses(
+def accumulate_echoes(
     # in
-    row_base: wp.array[wp.int32],
-    source: wp.array[wp.vec3],
-    extra_length: wp.array[float],
-    amplitude: wp.array[float],
+    source: wp.array2d[wp.vec3],
+    extra_length: wp.array2d[float],
+    amplitude: wp.array2d[float],
+    count: wp.array[wp.int32],
     microphones: wp.array[wp.vec3],
     samples_per_m: float,
-    half_taps: int,
+    absorption_per_m: float,
+    taps: wp.array2d[float],
+    samples: int,
+    lead: int,
     # out
-    impulses_out: wp.array2d[float],
+    impulses_out: wp.array2d[wp.int64],
 ):
-    """One thread per (arrival, microphone); launch with dim=(arrival_count, microphone_count).
+    """One thread per (ping, echo slot, microphone); launch with dim=(pings, slots, mics).
 
-    Adds the arrival's impulse, delayed by (extra_length + |source - mic|) / c, to the row
-    row_base[arrival] + mic of `impulses_out` as Lanczos-windowed sinc taps (exact fractional
-    delay for band-limited signals). `samples_per_m` is sample_rate / c.
+    The echo reaches microphone m after L = extra_length + |source - mic| metres: its impulse is
+    the band-limited fractional-delay filter `taps[fraction]` (linear between the rows of the
+    table) scaled by amplitude * exp(-absorption_per_m * L), added to row p * rows_per_ping + m
+    at column lead + sample. Samples at or after `samples` are not recorded.
     """
-    a, m = wp.tid()
-    delay = (extra_length[a] + wp.length(source[a] - microphones[m])) * samples_per_m
-    first = int(wp.floor(delay)) - half_taps + 1
-    row = row_base[a] + m
-    count = impulses_out.shape[1]
-    for j in range(2 * half_taps):
-        n = first + j
-        if n >= 0 and n < count:
-            wp.atomic_add(impulses_out, row, n, amplitude[a] * lanczos(delay - float(n), float(half_taps)))
+    p, s, m = wp.tid()
+    a = amplitude[p, s]
+    if s >= count[p] or a == 0.0:
+        return
+    length = extra_length[p, s] + wp.length(source[p, s] - microphones[m])
+    delay = length * samples_per_m
+    first = int(wp.floor(delay))
+    position = (delay - float(first)) * float(taps.shape[0] - 1)
+    i = wp.min(int(position), taps.shape[0] - 2)
+    v = position - float(i)
+    scale = a * wp.exp(-absorption_per_m * length) * FIXED_POINT_SCALE
+    row = p * (impulses_out.shape[0] // count.shape[0]) + m
+    half = taps.shape[1] // 2
+    for j in range(taps.shape[1]):
+        n = first - half + 1 + j
+        if n >= 0 and n < samples:
+            w = (1.0 - v) * taps[i, j] + v * taps[i + 1, j]
+            wp.atomic_add(impulses_out, row, lead + n, wp.int64(w * scale))
+
+
+@functools.cache
+def node_convolution(size: int):
+    """Tiled kernel: the impulses around each absorption node, convolved with that node's filter.
+
+    Node k sits at sample k B (B = size / 4) and owns the impulses within B of it, weighted by a
+    hat (so each impulse is shared linearly between its two nodes); its filter is the call with
+    the air absorption of the path length at that time. Two microphones share one complex FFT
+    (real and imaginary parts stay apart: the filters are real in time). Launch
+    `wp.launch_tiled(dim=[pings * pairs, nodes])`; the results go to `overlap_nodes`.
+    """
+
+    @wp.func
+    def hat_pair(even: wp.int64, odd: wp.int64, hat: float) -> wp.vec2f:
+        return wp.vec2f(float(even) * hat, float(odd) * hat)
+
+    @wp.func
+    def complex_product(a: wp.vec2f, b: wp.vec2f) -> wp.vec2f:
+        return wp.vec2f(a[0] * b[0] - a[1] * b[1], a[0] * b[1] + a[1] * b[0])
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def convolve(
+        impulses: wp.array2d[wp.int64],
+        hat: wp.array2d[float],
+        node_filters: wp.array2d[wp.vec2f],
+        nodes_out: wp.array2d[wp.vec2f],
+    ):
+        pair, k = wp.tid()
+        quarter = size // 4
+        even = wp.tile_load(impulses, shape=(1, size), offset=(2 * pair, k * quarter))
+        odd = wp.tile_load(impulses, shape=(1, size), offset=(2 * pair + 1, k * quarter))
+        weights = wp.tile_load(hat, shape=(1, size), offset=(0, 0))
+        x = wp.tile_map(hat_pair, even, odd, weights)
+        wp.tile_fft(x)
+        h = wp.tile_load(node_filters, shape=(1, size), offset=(k, 0))
+        y = wp.tile_map(complex_product, x, h)
+        wp.tile_ifft(y)
+        wp.tile_store(nodes_out, y, offset=(pair * node_filters.shape[0] + k, 0))
+
+    return convolve
+
+
+@wp.kernel(enable_backward=False)
+def overlap_nodes(nodes: wp.array2d[wp.vec2f], node_count: int, block: int, signals_out: wp.array3d[float]):
+    """signals[p, m, n] = sum of the node outputs covering sample n; dim = signals.shape.
+
+    Node k's output starts at sample (k - 1) * block and spans nodes.shape[1] samples; microphone
+    m is the real (even m) or imaginary (odd m) part of pair m // 2.
+    """
+    p, m, n = wp.tid()
+    pairs = (signals_out.shape[1] + 1) // 2
+    row0 = (p * pairs + m // 2) * node_count
+    j = n // block
+    total = float(0.0)
+    for k in range(wp.max(j - 3, 0), wp.min(j + 2, node_count)):
+        local = n - (k - 1) * block
+        if local >= 0 and local < nodes.shape[1]:
+            z = nodes[row0 + k, local]
+            total += z[m % 2]
+    signals_out[p, m, n] = total
+
+
+@wp.kernel(enable_backward=False)
+def peak_magnitude(signals: wp.array3d[float], peak_out: wp.array[float]):
+    """peak_out[p] = max |signals[p]| (peak_out zeroed first); dim = signals.shape."""
+    p, m, n = wp.tid()
+    wp.atomic_max(peak_out, p, wp.abs(signals[p, m, n]))
+
+
+@wp.kernel(enable_backward=False)
+def add_noise(
+    peak: wp.array[float],
+    seeds: wp.array[wp.int32],
+    relative_std: float,
+    uniform: int,
+    signals: wp.array3d[float],
+):
+    """White noise of standard deviation relative_std * peak[p], Gaussian or uniform; dim = signals.shape.
+
+    Each ping draws from its own seed, so a ping's noise does not depend on the batch it is in.
+    """
+    p, m, n = wp.tid()
+    state = wp.rand_init(seeds[p], m * signals.shape[2] + n)
+    std = relative_std * peak[p]
+    if uniform != 0:
+        value = std * wp.sqrt(3.0) * wp.randf(state, -1.0, 1.0)
+    else:
+        value = std * wp.randn(state)
+    signals[p, m, n] = signals[p, m, n] + value

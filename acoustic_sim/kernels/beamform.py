@@ -1,0 +1,175 @@
+"""Energyscape processing: complex baseband, matched filter and delay-and-sum per frequency, envelope."""
+
+import functools
+
+import warp as wp
+
+
+@wp.func
+def complex_mul(a: wp.vec2f, b: wp.vec2f) -> wp.vec2f:
+    return wp.vec2f(a[0] * b[0] - a[1] * b[1], a[0] * b[1] + a[1] * b[0])
+
+
+@wp.kernel(enable_backward=False)
+def demodulate(
+    # in
+    signals: wp.array3d[float],
+    samples: int,
+    taps: wp.array[wp.vec2f],
+    cycles_per_output: wp.float64,
+    decimation: int,
+    # out
+    baseband_out: wp.array2d[wp.vec2f],
+):
+    """One thread per (ping, microphone, baseband sample); dim = (pings, mics, baseband length).
+
+    x_bb[k] = exp(-2 pi i f0 D k / fs) sum_j taps[j] x[D k + j - J], with taps[j] = h[j]
+    exp(-2 pi i f0 (j - J) / fs) the zero-phase low-pass h shifted to f0: the analytic signal
+    around f0, moved to 0 Hz and decimated by D; zero past the recording.
+    """
+    p, m, k = wp.tid()
+    half = taps.shape[0] // 2
+    start = k * decimation - half
+    acc = wp.vec2f(0.0, 0.0)
+    if start < samples:
+        for j in range(taps.shape[0]):
+            n = start + j
+            if n >= 0 and n < samples:
+                acc = acc + taps[j] * signals[p, m, n]
+    # Phase of the carrier at sample D k, reduced to one turn in double precision.
+    turns = cycles_per_output * wp.float64(k)
+    phase = -2.0 * wp.pi * float(turns - wp.floor(turns))
+    baseband_out[p * signals.shape[1] + m, k] = complex_mul(acc, wp.vec2f(wp.cos(phase), wp.sin(phase)))
+
+
+@functools.cache
+def forward_fft(size: int):
+    """Tiled in-place FFT of the rows of a (rows, size) vec2f array; launch_tiled(dim=[rows])."""
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def fft_rows(rows: wp.array2d[wp.vec2f]):
+        i = wp.tid()
+        t = wp.tile_load(rows, shape=(1, size), offset=(i, 0))
+        wp.tile_fft(t)
+        wp.tile_store(rows, t, offset=(i, 0))
+
+    return fft_rows
+
+
+@functools.cache
+def inverse_fft_magnitude(size: int):
+    """Tiled inverse FFT of the rows of a (rows, size) vec2f array, keeping scale * |x|;
+    launch_tiled(dim=[rows])."""
+
+    @wp.func
+    def magnitude(z: wp.vec2f) -> float:
+        return wp.length(z)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def ifft_rows(rows: wp.array2d[wp.vec2f], magnitude_out: wp.array2d[float]):
+        i = wp.tid()
+        t = wp.tile_load(rows, shape=(1, size), offset=(i, 0))
+        wp.tile_ifft(t)
+        wp.tile_store(magnitude_out, wp.tile_map(magnitude, t), offset=(i, 0))
+
+    return ifft_rows
+
+
+@functools.cache
+def delay_and_sum(mics: int):
+    """Kernel for arrays of `mics` microphones: matched filter and delay-and-sum per frequency.
+
+    One thread per (look direction, band bin), dim = (looks, band bins), looping over pings so
+    that its steering weights are computed once:
+    beams[p * looks + l, bin] = conj(C(f)) / M sum_m X[p * M + m, bin] exp(-2 pi i f tau_lm),
+    with f the bin's true frequency and tau_lm = (m . u_l) / c. Bins off the band stay untouched.
+    """
+    Weights = wp.types.vector(length=mics, dtype=float)
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def beamform(
+        spectra: wp.array2d[wp.vec2f],
+        band_bin: wp.array[wp.int32],
+        band_hz: wp.array[float],
+        matched: wp.array[wp.vec2f],
+        delays: wp.array2d[float],
+        pings: int,
+        beams_out: wp.array2d[wp.vec2f],
+    ):
+        look, f = wp.tid()
+        looks = delays.shape[0]
+        frequency = band_hz[f]
+        column = band_bin[f]
+        re = Weights()
+        im = Weights()
+        for m in range(mics):
+            # Phase in turns reduced before the trigonometry: f tau reaches a few turns.
+            turns = frequency * delays[look, m]
+            phase = -2.0 * wp.pi * (turns - wp.floor(turns))
+            re[m] = wp.cos(phase)
+            im[m] = wp.sin(phase)
+        weight = matched[f]
+        for p in range(pings):
+            sum_re = float(0.0)
+            sum_im = float(0.0)
+            for m in range(mics):
+                x = spectra[p * mics + m, column]
+                sum_re += x[0] * re[m] - x[1] * im[m]
+                sum_im += x[0] * im[m] + x[1] * re[m]
+            beams_out[p * looks + look, column] = complex_mul(wp.vec2f(sum_re, sum_im), weight)
+
+    return beamform
+
+
+@wp.kernel(enable_backward=False)
+def envelope_on_grid(
+    # in
+    envelope: wp.array2d[float],
+    valid: int,
+    lowpass: wp.array[float],
+    range_m: wp.array[float],
+    samples_per_m: float,
+    elevations: int,
+    # out
+    image_out: wp.array3d[float],
+):
+    """One thread per (ping x elevation, range bin, azimuth); dim = image_out.shape.
+
+    The envelope of beam row (p * elevations + e) * azimuths + a, low-passed by the zero-phase FIR
+    `lowpass` and interpolated linearly at range r (sample r * samples_per_m); samples at or past
+    `valid` count as zero.
+    """
+    pe, r, a = wp.tid()
+    row = pe * image_out.shape[2] + a
+    x = range_m[r] * samples_per_m
+    k0 = int(wp.floor(x))
+    w = x - float(k0)
+    half = lowpass.shape[0] // 2
+    low = float(0.0)
+    high = float(0.0)
+    for j in range(lowpass.shape[0] + 1):
+        n = k0 + j - half
+        if n >= 0 and n < valid:
+            e = envelope[row, n]
+            if j < lowpass.shape[0]:
+                low += lowpass[j] * e
+            if j > 0:
+                high += lowpass[j - 1] * e
+    image_out[pe, r, a] = (1.0 - w) * low + w * high
+
+
+@wp.kernel(enable_backward=False)
+def image_peak(images: wp.array3d[float], per_ping: int, peak_out: wp.array[float]):
+    """peak_out[p] = max of images[p * per_ping .. (p + 1) * per_ping) (peak_out zeroed first)."""
+    i, r, a = wp.tid()
+    wp.atomic_max(peak_out, i // per_ping, images[i, r, a])
+
+
+@wp.kernel(enable_backward=False)
+def scale_images(peak: wp.array[float], per_ping: int, decibels: int, floor_db: float, images: wp.array3d[float]):
+    """Divide each ping's images by its peak; with `decibels`, 20 log10 of that, at least floor_db."""
+    i, r, a = wp.tid()
+    value = images[i, r, a] / wp.max(peak[i // per_ping], 1.0e-30)
+    if decibels != 0:
+        value = wp.max(20.0 * wp.log10(wp.max(value, 1.0e-30)), floor_db)
+    images[i, r, a] = value
