@@ -82,7 +82,7 @@ class Beamformer:
         # Anti-alias low-pass for the decimation, shifted to the centre frequency.
         if self.decimation > 1:
             taps_count, beta = sps.kaiserord(60.0, (rate - width) / (0.5 * fs))
-            taps = sps.firwin(taps_count | 1, 0.5 * width + 0.25 * (rate - width), window=("kaiser", beta), fs=fs)
+            taps = sps.firwin(taps_count | 1, 0.5 * rate, window=("kaiser", beta), fs=fs)
         else:
             taps = np.ones(1)
         offsets = np.arange(len(taps)) - len(taps) // 2
