@@ -108,7 +108,7 @@ class Sonar:
         *,
         max_bounces: int = 3,
         ray_count: int = 20_000,
-        table_size: int = 16384,
+        table_size: int = 32768,
         scattering: bool = True,
         edge_width_m: float | None = None,
         device=None,
