@@ -131,7 +131,8 @@ def main(argv=None) -> dict:
     ]
     for bounces, r in res["trace"].items():
         lines.append(
-            f"| trace to host Arrivals, max_bounces={bounces} | {r['pings_per_s']:,.1f} | {r['arrivals_per_ping']:,.0f} arrivals/"
+            f"| trace to host Arrivals, max_bounces={bounces} | {r['pings_per_s']:,.1f} | "
+            f"{r['arrivals_per_ping']:,.0f} arrivals/"
             f"ping; <= {r['max_ray_queries_per_s'] / 1e6:,.0f} M specular ray queries/s |"
         )
     lines += [
