@@ -175,18 +175,8 @@ class Beamformer:
         return images
 
 
-@functools.lru_cache(maxsize=8)
-def _beamformer(config, samples, grid, speed_of_sound, elevation, lowpass_hz, normalise, device) -> Beamformer:
-    return Beamformer(
-        config,
-        samples=samples,
-        grid=grid,
-        speed_of_sound=speed_of_sound,
-        elevation_deg=elevation,
-        lowpass_hz=lowpass_hz,
-        normalise=normalise,
-        device=device,
-    )
+# Beamformers of recent settings (all arguments hashable: no custom call waveform).
+_beamformer = functools.lru_cache(maxsize=8)(Beamformer)
 
 
 def energyscape(
@@ -233,22 +223,16 @@ def energyscape(
     device = wp.get_device(device)
     scalar = np.ndim(elevation_deg) == 0
     elevation = float(elevation_deg) if scalar else tuple(np.asarray(elevation_deg, dtype=float).ravel())
-    if call is None:
-        former = _beamformer(
-            config, signals.shape[2], grid, speed_of_sound, elevation, lowpass_hz, normalise, str(device)
-        )
-    else:
-        former = Beamformer(
-            config,
-            samples=signals.shape[2],
-            grid=grid,
-            speed_of_sound=speed_of_sound,
-            elevation_deg=elevation_deg,
-            lowpass_hz=lowpass_hz,
-            normalise=normalise,
-            call=call,
-            device=device,
-        )
+    options = {
+        "samples": signals.shape[2],
+        "grid": grid,
+        "speed_of_sound": speed_of_sound,
+        "elevation_deg": elevation,
+        "lowpass_hz": lowpass_hz,
+        "normalise": normalise,
+        "device": str(device),
+    }
+    former = _beamformer(config, **options) if call is None else Beamformer(config, call=call, **options)
     out = np.empty((len(signals), *former.output_shape), dtype=np.float32)
     for start in range(0, len(signals), batch):
         chunk = wp.array(np.ascontiguousarray(signals[start : start + batch], dtype=np.float32), device=device)
