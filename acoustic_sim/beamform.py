@@ -176,7 +176,28 @@ class Beamformer:
 
 
 # Beamformers of recent settings (all arguments hashable: no custom call waveform).
-_beamformer = functools.lru_cache(maxsize=8)(Beamformer)
+_cached_beamformer = functools.lru_cache(maxsize=8)(Beamformer)
+
+
+def beamformer(
+    config: SonarConfig,
+    *,
+    samples: int,
+    elevation_deg: float | Sequence[float] = 0.0,
+    call: np.ndarray | None = None,
+    device=None,
+    **options,
+) -> Beamformer:
+    """A Beamformer, reused across calls with the same options (building one evaluates the call's
+    spectrum and the steering weights); a custom `call` always builds a new one."""
+    if call is not None:
+        return Beamformer(config, samples=samples, elevation_deg=elevation_deg, call=call, device=device, **options)
+    if np.ndim(elevation_deg) == 0:
+        elevation = float(elevation_deg)
+    else:
+        elevation = tuple(np.asarray(elevation_deg, dtype=float).ravel())
+    device = str(wp.get_device(device))
+    return _cached_beamformer(config, samples=samples, elevation_deg=elevation, device=device, **options)
 
 
 def energyscape(
@@ -221,18 +242,17 @@ def energyscape(
     if not np.isfinite(signals).all():
         raise ValueError("signals contain NaN or inf")
     device = wp.get_device(device)
-    scalar = np.ndim(elevation_deg) == 0
-    elevation = float(elevation_deg) if scalar else tuple(np.asarray(elevation_deg, dtype=float).ravel())
-    options = {
-        "samples": signals.shape[2],
-        "grid": grid,
-        "speed_of_sound": speed_of_sound,
-        "elevation_deg": elevation,
-        "lowpass_hz": lowpass_hz,
-        "normalise": normalise,
-        "device": str(device),
-    }
-    former = _beamformer(config, **options) if call is None else Beamformer(config, call=call, **options)
+    former = beamformer(
+        config,
+        samples=signals.shape[2],
+        grid=grid,
+        speed_of_sound=speed_of_sound,
+        elevation_deg=elevation_deg,
+        lowpass_hz=lowpass_hz,
+        normalise=normalise,
+        call=call,
+        device=device,
+    )
     out = np.empty((len(signals), *former.output_shape), dtype=np.float32)
     for start in range(0, len(signals), batch):
         chunk = wp.array(np.ascontiguousarray(signals[start : start + batch], dtype=np.float32), device=device)

@@ -22,7 +22,7 @@ from tqdm.auto import tqdm
 from scenes import Scene
 
 from .array import piston_directivity
-from .beamform import Beamformer, energyscape
+from .beamform import beamformer, energyscape
 from .config import SonarConfig
 from .kernels import lidar as lidar_kernels
 from .kernels import paths as kernels
@@ -204,7 +204,7 @@ class Sonar:
         poses = check_poses(poses)
         batch = batch or (256 if self.device.is_cuda else 8)
         recorder = signals_recorder(self.config, absorption, str(self.device))
-        former = Beamformer(self.config, samples=self.config.record_samples, device=self.device, **processing)
+        former = beamformer(self.config, samples=self.config.record_samples, device=self.device, **processing)
         images = np.empty((len(poses), *former.output_shape), dtype=np.float32)
         kept = None
         if keep_signals:
@@ -236,6 +236,7 @@ class Sonar:
             order = wp.zeros((n, size), dtype=wp.int32)
             planes = wp.zeros((n, size, kernels.MAX_ORDER), dtype=wp.int32)
             overflow = wp.zeros(1, dtype=wp.int32)
+            ray_queries = wp.zeros(n, dtype=wp.int32)
             amplitude = wp.empty((n, size), dtype=float)
             image = wp.empty((n, size), dtype=wp.vec3)
             arrival_dir = wp.empty((n, size), dtype=wp.vec3)
@@ -282,6 +283,7 @@ class Sonar:
                 scattered.extra_length,
                 scattered.amplitude,
                 scattered.order,
+                ray_queries,
             ],
         )
         launch(
@@ -301,7 +303,7 @@ class Sonar:
                 planes,
                 self._directivity,
             ],
-            outputs=[amplitude, image, arrival_dir, last_point],
+            outputs=[amplitude, image, arrival_dir, last_point, ray_queries],
         )
         launch(kernels.claim_images, dim=(n, size), inputs=[amplitude, order, image, key, image_table, image_rank])
         launch(
@@ -325,7 +327,7 @@ class Sonar:
                 direction=arrival_dir,
                 point=last_point,
             )
-        return _TracedEchoes(specular=specular, scattered=scattered)
+        return _TracedEchoes(specular=specular, scattered=scattered, ray_queries=ray_queries)
 
 
 @dataclass
@@ -354,6 +356,7 @@ class _ScatteredEchoes(EchoBuffer):
 class _TracedEchoes:
     specular: _SpecularEchoes
     scattered: _ScatteredEchoes
+    ray_queries: wp.array  # (pings,) BVH ray queries made per ping, all stages
 
     def buffers(self) -> list[EchoBuffer]:
         return [self.specular, self.scattered]

@@ -36,28 +36,30 @@ def scattered_hit(
     extra_out: wp.array2d[float],
     amplitude_out: wp.array2d[float],
     order_out: wp.array2d[wp.int32],
-):
+) -> int:
     """Diffuse rain: the Lambert-scattered share of a hit that reaches the receiver unoccluded,
-    appended to the ping's echoes (hit point in the sensor frame, path before it, amplitude)."""
+    appended to the ping's echoes (hit point in the sensor frame, path before it, amplitude).
+    Returns the number of ray queries made (0 or 1)."""
     if energy <= 0.0:
-        return
+        return 0
     front = -normal * wp.sign(wp.dot(incoming, normal))  # normal on the side the ray came from
     to_receiver = receiver - hit
     distance = wp.length(to_receiver)
     direction = to_receiver / distance
     cosine = wp.dot(direction, front)
     if cosine <= 0.0:
-        return
+        return 0
     start = hit + front * SURFACE_STEP
     q = wp.mesh_query_ray(mesh, start, wp.normalize(receiver - start), wp.length(receiver - start))
     if q.result:
-        return
+        return 1
     slot = wp.atomic_add(scatter_count, p, 1)
     if slot < capacity:
         source_out[p, slot] = wp.transform_point(inverse, hit)
         extra_out[p, slot] = travelled
         amplitude_out[p, slot] = wp.sqrt(energy * cosine / (wp.pi * distance * distance))
         order_out[p, slot] = order
+    return 1
 
 
 @wp.func
@@ -100,6 +102,7 @@ def discover_sequences(
     scatter_extra_out: wp.array2d[float],
     scatter_amplitude_out: wp.array2d[float],
     scatter_order_out: wp.array2d[wp.int32],
+    ray_queries_out: wp.array[wp.int32],
 ):
     """One thread per (pose, ray); launch with dim=pose_count * ray_count.
 
@@ -112,6 +115,7 @@ def discover_sequences(
     the receiver (sensor origin) along an unoccluded shadow ray and appends it to the pose's
     scattered arrivals: hit point (world), path length, energy at the receiver, order. Within
     `edge_width` of a sharp edge a face scatters everything it reflects: edges and corners echo.
+    Adds the number of BVH ray queries made to `ray_queries_out[pose]` (for benchmarks).
     """
     tid = wp.tid()
     ray_count = ray_dirs.shape[0]
@@ -128,8 +132,10 @@ def discover_sequences(
     travelled = float(0.0)
     capacity = scatter_source_out.shape[1]
     inverse = inverse_poses[p]
+    queries = int(0)
     for k in range(max_order):
         q = wp.mesh_query_ray(mesh, origin, direction, 1.0e6)
+        queries += 1
         if not q.result:
             break
         travelled = travelled + q.t
@@ -137,7 +143,7 @@ def discover_sequences(
         if near_sharp_edge(face_sharp_edges[q.face], face_altitudes[q.face], q.u, q.v, edge_width):
             scattering = 1.0
         if scatter != 0:
-            scattered_hit(
+            queries += scattered_hit(
                 mesh,
                 origin + direction * q.t,
                 wp.normalize(q.normal),
@@ -182,6 +188,7 @@ def discover_sequences(
         # Step off along the normal, to the side the ray came from (along the new direction, rays
         # near an edge can slip behind the next face and escape a closed room).
         origin = hit - normal * (side * SURFACE_STEP)
+    wp.atomic_add(ray_queries_out, p, queries)
 
 
 @wp.func
@@ -223,6 +230,7 @@ def validate_sequences(
     image_out: wp.array2d[wp.vec3],
     arrival_dir_out: wp.array2d[wp.vec3],
     last_point_out: wp.array2d[wp.vec3],
+    ray_queries_out: wp.array[wp.int32],
 ):
     """One thread per (pose, table slot); launch with dim=(pose_count, table_size).
 
@@ -233,7 +241,8 @@ def validate_sequences(
     image source [m], the direction the echo arrives from and the last reflection point. The
     amplitude (0 where invalid) is the product of the specular pressure reflection factors
     sqrt(R (1 - s)) along the path, times the emitter's directivity towards the path (table over
-    the cosine from its axis, 0..1), over the path length.
+    the cosine from its axis, 0..1), over the path length. Adds its BVH ray queries to
+    `ray_queries_out[pose]`.
     """
     p, s = wp.tid()
     amplitude_out[p, s] = 0.0
@@ -256,6 +265,7 @@ def validate_sequences(
     valid = int(1)
     arrival = wp.vec3(0.0)
     last_point = wp.vec3(0.0)
+    queries = int(0)
     for back in range(order):
         j = order - 1 - back
         target = source
@@ -280,6 +290,7 @@ def validate_sequences(
         if distance < PLANE_MATCH:
             # Reflects where the previous reflection did: on the edge where two planes meet (the
             # corner reflector case), if that edge point also lies on a face of this plane.
+            queries += 1
             if not on_plane_face(mesh, point, normal * side):
                 valid = 0
                 break
@@ -287,6 +298,7 @@ def validate_sequences(
         else:
             direction = (point - x) / distance
             q = wp.mesh_query_ray(mesh, x + direction * SURFACE_STEP, direction, distance + PLANE_MATCH)
+            queries += 1
             # The first thing the leg meets must be at the reflection point, on a face of this
             # plane; where two planes meet, the face hit may belong to the other one.
             if not q.result:
@@ -295,9 +307,11 @@ def validate_sequences(
             if wp.abs(q.t + SURFACE_STEP - distance) > PLANE_MATCH:
                 valid = 0
                 break
-            if face_plane[q.face] != plane and not on_plane_face(mesh, point, normal * side):
-                valid = 0
-                break
+            if face_plane[q.face] != plane:
+                queries += 1
+                if not on_plane_face(mesh, point, normal * side):
+                    valid = 0
+                    break
             face_gain = wp.sqrt(face_reflection[q.face] * (1.0 - face_scattering[q.face]))
             gain = gain * face_gain
             if back == 0:
@@ -310,12 +324,14 @@ def validate_sequences(
         direction = leg / distance
         emit = wp.normalize(wp.transform_vector(inverse, -direction))
         q = wp.mesh_query_ray(mesh, x + direction * SURFACE_STEP, direction, distance - 2.0 * SURFACE_STEP)
+        queries += 1
         # The emitter is baffled in the sensor's y-z plane: nothing leaves it backwards.
         if not q.result and emit[0] >= -1.0e-6:
             amplitude_out[p, s] = gain * lookup(directivity, emit[0]) / wp.length(image - receiver)
             image_out[p, s] = wp.transform_point(inverse, image)
             arrival_dir_out[p, s] = wp.normalize(wp.transform_vector(inverse, arrival))
             last_point_out[p, s] = wp.transform_point(inverse, last_point)
+    wp.atomic_add(ray_queries_out, p, queries)
 
 
 IMAGE_GRID = 1.0e-4  # [m] image sources closer than this are one echo
