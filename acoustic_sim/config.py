@@ -225,6 +225,9 @@ class SonarConfig:
     emitter_m: tuple[float, float, float] = (0.0, 0.0, 0.05)
     emitter_radius_m: float = 0.005  # baffled piston model of the emitter's directivity
     record_samples: int = 16384
+    # Channel mismatch of a real array (empty: ideal): linear gain and extra delay per microphone.
+    microphone_gain: tuple[float, ...] = ()
+    microphone_delay_s: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         mics = np.asarray(self.microphones_m, dtype=np.float64)
@@ -234,6 +237,10 @@ class SonarConfig:
             raise ValueError("emitter_m must be a finite (x, y, z) position")
         if self.emitter_radius_m <= 0 or self.record_samples < self.chirp.sample_count:
             raise ValueError("emitter_radius_m must be positive and record_samples >= the call's length")
+        for name in ("microphone_gain", "microphone_delay_s"):
+            values = np.asarray(getattr(self, name), dtype=np.float64)
+            if len(values) not in (0, len(mics)) or not np.isfinite(values).all():
+                raise ValueError(f"{name} must be empty or hold one finite value per microphone ({len(mics)})")
 
     @classmethod
     def ertis(cls, **overrides) -> SonarConfig:
@@ -246,6 +253,14 @@ class SonarConfig:
     @property
     def microphone_count(self) -> int:
         return len(self.microphones_m)
+
+    def channel_gain(self) -> np.ndarray:
+        """Linear gain per microphone, float64 (mics,)."""
+        return np.asarray(self.microphone_gain or [1.0] * self.microphone_count, dtype=np.float64)
+
+    def channel_delay_s(self) -> np.ndarray:
+        """Extra delay per microphone [s], float64 (mics,)."""
+        return np.asarray(self.microphone_delay_s or [0.0] * self.microphone_count, dtype=np.float64)
 
     @property
     def record_duration_s(self) -> float:

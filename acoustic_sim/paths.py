@@ -186,6 +186,7 @@ class Sonar:
         batch: int | None = None,
         keep_signals: bool = False,
         progress: bool = False,
+        processing_config: SonarConfig | None = None,
         **processing,
     ) -> SonarFrames:
         """Trace, record and beamform every pose on the device, batch by batch (the fast path).
@@ -199,12 +200,16 @@ class Sonar:
             batch: Pings at once (default 256 on a GPU, 8 on the CPU).
             keep_signals: Also return the microphone signals (N, mics, samples).
             progress: Show a progress bar.
+            processing_config: The array geometry and call the beamformer assumes, if not the
+                simulated one (e.g. the nominal array while simulating a mismatched one).
             **processing: Options of `beamform.energyscape` (grid, lowpass_hz, normalise, ...).
         """
         poses = check_poses(poses)
         batch = batch or (256 if self.device.is_cuda else 8)
         recorder = signals_recorder(self.config, absorption, str(self.device))
-        former = beamformer(self.config, samples=self.config.record_samples, device=self.device, **processing)
+        former = beamformer(
+            processing_config or self.config, samples=self.config.record_samples, device=self.device, **processing
+        )
         images = np.empty((len(poses), *former.output_shape), dtype=np.float32)
         kept = None
         if keep_signals:

@@ -230,6 +230,8 @@ class Recorder:
             self._hat = wp.array(hat[None].astype(np.float32), dtype=float)
             self._taps = wp.array(fractional_delay_table(config), dtype=float)
             self._mics = wp.array(np.asarray(config.microphones_m, dtype=np.float32), dtype=wp.vec3)
+            self._mic_gain = wp.array(config.channel_gain().astype(np.float32), dtype=float)
+            self._mic_delay = wp.array((config.channel_delay_s() * fs).astype(np.float32), dtype=float)
         self._convolve = kernels.node_convolution(size)
 
     def __call__(
@@ -258,6 +260,8 @@ class Recorder:
                         e.amplitude,
                         e.count,
                         self._mics,
+                        self._mic_gain,
+                        self._mic_delay,
                         cfg.chirp.sample_rate_hz / cfg.atmosphere.speed_of_sound,
                         self._absorption_per_m,
                         self._taps,

@@ -55,6 +55,24 @@ def test_near_field_delays_per_microphone(device):
         assert np.abs(got[0, m] - expected).max() < 0.005
 
 
+def test_channel_gain_and_delay_mismatch(device):
+    """A mismatched array (per-microphone gain 0.5..1.5 and delay 0..20 us, fractions of a sample
+    included): microphone m records gain_m times the call delayed by |source - mic| / c + delay_m
+    (max error 1 % of the amplitude)."""
+    rng = np.random.default_rng(3)
+    gain, delay = rng.uniform(0.5, 1.5, 32), rng.uniform(0.0, 20e-6, 32)
+    config = sim.SonarConfig.ertis(microphone_gain=tuple(gain), microphone_delay_s=tuple(delay))
+    source = np.array([1.5, -0.4, 0.2])
+    got = record(single_arrival(source), config, absorption=False, device=device)
+    t = np.arange(16384) / FS
+    mics = np.asarray(config.microphones_m)
+    for m in (0, 11, 23, 31):
+        expected = 0.5 * gain[m] * call_at(t - np.linalg.norm(source - mics[m]) / C - delay[m])
+        assert np.abs(got[0, m] - expected).max() < 0.005 * gain[m]
+    with pytest.raises(ValueError, match="microphone_gain"):
+        sim.SonarConfig.ertis(microphone_gain=(1.0, 2.0))
+
+
 def test_scattered_arrivals_add_their_path_to_the_source_point(device):
     """An arrival whose path reaches its source point after 2 m more arrives 2 m / c later."""
     near = record(single_arrival([1.0, 0.0, 0.0]), CONFIG, absorption=False, device=device)

@@ -17,6 +17,8 @@ def accumulate_echoes(
     amplitude: wp.array2d[float],
     count: wp.array[wp.int32],
     microphones: wp.array[wp.vec3],
+    mic_gain: wp.array[float],
+    mic_delay: wp.array[float],
     samples_per_m: float,
     absorption_per_m: float,
     taps: wp.array2d[float],
@@ -27,22 +29,23 @@ def accumulate_echoes(
 ):
     """One thread per (ping, echo slot, microphone); launch with dim=(pings, slots, mics).
 
-    The echo reaches microphone m after L = extra_length + |source - mic| metres: its impulse is
-    the band-limited fractional-delay filter `taps[fraction]` (linear between the rows of the
-    table) scaled by amplitude * exp(-absorption_per_m * L), added to row p * rows_per_ping + m
-    at column lead + sample. Samples at or after `samples` are not recorded.
+    The echo reaches microphone m after L = extra_length + |source - mic| metres plus the
+    channel's `mic_delay` [samples]: its impulse is the band-limited fractional-delay filter
+    `taps[fraction]` (linear between the rows of the table) scaled by the channel's gain and
+    amplitude * exp(-absorption_per_m * L), added to row p * rows_per_ping + m at column
+    lead + sample. Samples at or after `samples` are not recorded.
     """
     p, s, m = wp.tid()
     a = amplitude[p, s]
     if s >= count[p] or a == 0.0:
         return
     length = extra_length[p, s] + wp.length(source[p, s] - microphones[m])
-    delay = length * samples_per_m
+    delay = length * samples_per_m + mic_delay[m]
     first = int(wp.floor(delay))
     position = (delay - float(first)) * float(taps.shape[0] - 1)
     i = wp.min(int(position), taps.shape[0] - 2)
     v = position - float(i)
-    scale = a * wp.exp(-absorption_per_m * length) * FIXED_POINT_SCALE
+    scale = a * mic_gain[m] * wp.exp(-absorption_per_m * length) * FIXED_POINT_SCALE
     row = p * (impulses_out.shape[0] // count.shape[0]) + m
     half = taps.shape[1] // 2
     for j in range(taps.shape[1]):
