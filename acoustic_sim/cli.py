@@ -88,6 +88,49 @@ def _render_sonar(args, scene, pose, lidar, grid, t0) -> int:
     return 0
 
 
+def _generate(args) -> int:
+    import dataclasses
+
+    import warp as wp
+
+    if not args.verbose:
+        wp.config.quiet = True
+        wp.config.log_level = wp.LOG_WARNING
+    from .dataset import DatasetError
+    from .generate import generate
+    from .suites import load_suite
+
+    try:
+        suite = load_suite(args.suite)
+        if args.max_bounces is not None:
+            if len({p.max_bounces for p in suite.variants.values()}) > 1:
+                raise ValueError(f"suite {suite.name!r} varies max_bounces across its variants; drop --max-bounces")
+            variants = {k: dataclasses.replace(p, max_bounces=args.max_bounces) for k, p in suite.variants.items()}
+            suite = dataclasses.replace(suite, variants=variants)
+        summary = generate(
+            suite,
+            args.out,
+            frames=args.frames,
+            shards=args.shards,
+            seed=args.seed,
+            device=args.device,
+            workers=args.workers,
+            ray_address=args.ray_address,
+            keep_signals=args.signals,
+            keep_arrivals=args.arrivals,
+            progress=not args.quiet,
+        )
+    except (ValueError, FileNotFoundError, DatasetError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(
+        f"{summary['suite']}: {summary['frames']:,} frames in {summary['shards']} shards under {summary['out']} "
+        f"({summary['shards_written']} written, {summary['shards_skipped']} already complete) in "
+        f"{summary['seconds']:.1f} s, {summary['frames_per_s']:,.1f} frames/s on {', '.join(summary['devices'])}"
+    )
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     import scenes
 
@@ -127,6 +170,33 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--out", default="scene.png", help="PNG to write")
     render.add_argument("--verbose", action="store_true", help="show Warp's compile messages")
     render.set_defaults(handler=_render)
+
+    from .suites import SUITES
+
+    gen = sub.add_parser(
+        "generate",
+        help="simulate a dataset suite into HDF5 shards (resumable)",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        description="Simulate a suite of scenarios (scenes, robot drives, LiDAR and sonar) into HDF5 shards, "
+        "with manifest.json and a dataset card (README.md, card.png) per dataset. Rerunning the same command "
+        "skips finished shards. Suites: " + "; ".join(f"{name}: {suite.description}" for name, suite in SUITES.items()),
+    )
+    gen.add_argument("--suite", required=True, help=f"one of {sorted(SUITES)}, or a .toml/.json suite file")
+    gen.add_argument("--out", required=True, help="output folder")
+    gen.add_argument("--frames", type=int, default=None, help="frames per variant (default: the suite's)")
+    gen.add_argument("--shards", type=int, default=None, help="shards per variant (default: one per 1000 frames)")
+    gen.add_argument("--max-bounces", type=int, default=None, help="override the suite's secondary bounces")
+    gen.add_argument("--device", default="auto", help="auto (all GPUs, else CPU), cpu or cuda:i")
+    gen.add_argument("--workers", type=int, default=1, help="parallel shard writers (processes)")
+    gen.add_argument("--seed", type=int, default=0, help="seeds every scene, drive and noise")
+    gen.add_argument(
+        "--ray-address", default=None, help="run the shard tasks on this Ray cluster ('auto' or host:port)"
+    )
+    gen.add_argument("--signals", action="store_true", help="also store the raw microphone signals (float16)")
+    gen.add_argument("--arrivals", action="store_true", help="also store every traced echo (slow on a GPU)")
+    gen.add_argument("--quiet", action="store_true", help="no progress bar")
+    gen.add_argument("--verbose", action="store_true", help="show Warp's compile messages")
+    gen.set_defaults(handler=_generate)
     return parser
 
 

@@ -65,6 +65,32 @@ def draw_polar_image(
         plt.colorbar(im, ax=ax, label=label, fraction=0.046)
 
 
+def draw_energyscape(
+    ax, image: np.ndarray, lidar: np.ndarray | None, grid: PolarGrid, *, title: str, dynamic_range_db: float = 40.0
+) -> None:
+    """An energyscape (R, A) in dB below its peak, with the LiDAR image's occupied cells on top."""
+    db = 20 * np.log10(np.maximum(image / max(float(image.max()), 1e-30), 10 ** (-dynamic_range_db / 20)))
+    draw_polar_image(ax, db, grid, title=title, label="dB")
+    if lidar is not None:
+        lidar_r, lidar_a = np.nonzero(lidar)
+        az_deg = grid.azimuth_min_deg + lidar_a * grid.azimuth_step_deg
+        ax.scatter(az_deg, grid.range_m[lidar_r], s=3, color="cyan", label="LiDAR", zorder=3)
+        ax.legend(loc="upper right", fontsize=8)
+
+
+def render_examples(examples: list[tuple[str, np.ndarray, np.ndarray]], grid: PolarGrid, out: str | Path) -> Path:
+    """A row of (title, energyscape (R, A), LiDAR image (R, A)) panels, e.g. for a dataset card."""
+    out = Path(out)
+    fig, axes = plt.subplots(1, len(examples), figsize=(5.5 * len(examples), 4.8), squeeze=False)
+    for ax, (title, image, lidar) in zip(axes[0], examples, strict=True):
+        draw_energyscape(ax, np.asarray(image, dtype=np.float32), lidar, grid, title=title)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=90, bbox_inches="tight")
+    plt.close(fig)
+    return out
+
+
 def render_lidar(
     scene: Scene,
     poses: np.ndarray,
@@ -134,7 +160,6 @@ def render_sonar(
     height = float(pose[2, 3] - scene.floor_z)
     cmap = plt.get_cmap("viridis")
     max_order = max(int(a.order.max()) if len(a) else 1 for _, a, _ in results)
-    lidar_r, lidar_a = np.nonzero(lidar)
     for (label, arrivals, image), (top, polar) in zip(results, axes, strict=True):
         draw_scene_top(top, scene, height=height)
         world = arrivals.point_m @ pose[:3, :3].T + pose[:3, 3]
@@ -162,11 +187,8 @@ def render_sonar(
         )
         top.set_title(f"{label}: last reflection points of {len(arrivals)} echoes")
         top.legend(loc="upper right", fontsize=7, framealpha=0.9)
-        db = 20 * np.log10(np.maximum(image / max(float(image.max()), 1e-30), 10 ** (-dynamic_range_db / 20)))
-        draw_polar_image(polar, db, grid, title=f"{label}: energyscape with the LiDAR image", label="dB")
-        az_deg = grid.azimuth_min_deg + lidar_a * grid.azimuth_step_deg
-        polar.scatter(az_deg, grid.range_m[lidar_r], s=3, color="cyan", label="LiDAR", zorder=3)
-        polar.legend(loc="upper right", fontsize=8)
+        title = f"{label}: energyscape with the LiDAR image"
+        draw_energyscape(polar, image, lidar, grid, title=title, dynamic_range_db=dynamic_range_db)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=100, bbox_inches="tight")

@@ -77,3 +77,19 @@ def test_render_sonar_writes_png(tmp_path, device):
     ]
     assert main(args) == 0
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_generate_command_and_its_errors(tmp_path, device, capsys):
+    """`generate --suite tiny --frames 3` writes one shard and says so; a rerun skips it; bad
+    suites, shard counts and a flag the suite cannot take exit with 2 and a message."""
+    args = ["generate", "--suite", "tiny", "--frames", "3", "--out", str(tmp_path), "--device", device, "--quiet"]
+    assert main(args) == 0
+    assert "3 frames in 1 shards" in capsys.readouterr().out and (tmp_path / "shard-00000.h5").exists()
+    assert main(args) == 0
+    assert "0 written, 1 already complete" in capsys.readouterr().out
+    assert main(["generate", "--suite", "nope", "--out", str(tmp_path)]) == 2
+    assert "unknown suite" in capsys.readouterr().err
+    assert main(["generate", "--suite", "tiny", "--frames", "3", "--shards", "5", "--out", str(tmp_path / "b")]) == 2
+    assert "shards must lie in 1..1" in capsys.readouterr().err
+    assert main(["generate", "--suite", "ablation", "--max-bounces", "2", "--out", str(tmp_path / "c")]) == 2
+    assert "varies max_bounces" in capsys.readouterr().err

@@ -1,0 +1,122 @@
+"""HDF5 dataset shards: the one interface between simulation and learning.
+
+A shard holds whole episodes (robot drives). It is written under a temporary name and renamed
+only when complete, so a file with the final name is always whole. Layout (all plain HDF5,
+readable with h5py or MATLAB's h5read):
+
+    shard-00000.h5   attrs: format, format_version, frame_count, plan_id, suite, variant,
+                            config (JSON), episodes (JSON), scenarios (JSON), package_version
+      energyscape     float16 (frame, range, azimuth)   beamformed echo envelope
+      lidar/ranges    float32 (frame, beam) [m], miss = inf
+      lidar/image     uint8   (frame, range, azimuth)   1 where a LiDAR return falls
+      pose            float64 (frame, 4, 4) sensor-to-world
+      time            float64 (frame,) [s] since the episode's start
+      episode         int32   (frame,) global episode index; windows never cross one
+      scenario        int16   (frame,) index into the `scenarios` attribute
+      range_m         float64 (range,) bin centres;  azimuth_rad float64 (azimuth,)
+      signals         float16 (frame, mic, sample)  optional
+      arrivals/...    optional, one row per echo with its `frame`
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+FORMAT = "sonar2lidar-dataset"
+FORMAT_VERSION = 1
+COMPRESSION = {"compression": "gzip", "compression_opts": 1, "shuffle": True}  # MATLAB reads gzip
+
+
+class DatasetError(ValueError):
+    """A dataset folder or shard that cannot be used as asked (foreign, corrupt, other version)."""
+
+
+@dataclass
+class ShardFrames:
+    """Frames of one shard, in episode order, ready to write."""
+
+    energyscape: list[np.ndarray] = field(default_factory=list)
+    lidar_ranges: list[np.ndarray] = field(default_factory=list)
+    lidar_image: list[np.ndarray] = field(default_factory=list)
+    pose: list[np.ndarray] = field(default_factory=list)
+    time: list[np.ndarray] = field(default_factory=list)
+    episode: list[np.ndarray] = field(default_factory=list)
+    scenario: list[np.ndarray] = field(default_factory=list)
+    signals: list[np.ndarray] = field(default_factory=list)
+    arrivals: list[dict] = field(default_factory=list)
+
+    @property
+    def frame_count(self) -> int:
+        return sum(len(e) for e in self.episode)
+
+
+def write_shard(path: Path, frames: ShardFrames, *, attrs: dict, range_m: np.ndarray, azimuth_rad: np.ndarray) -> None:
+    """Write a complete shard: to `<name>.tmp` first, then an atomic rename onto `path`."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    cat = np.concatenate
+    with h5py.File(tmp, "w") as f:
+        f.attrs["format"] = FORMAT
+        f.attrs["format_version"] = FORMAT_VERSION
+        f.attrs["frame_count"] = frames.frame_count
+        for key, value in attrs.items():
+            f.attrs[key] = json.dumps(value) if isinstance(value, dict | list) else value
+        chunk = (1, len(range_m), len(azimuth_rad))
+        escape = f.create_dataset(
+            "energyscape", data=cat(frames.energyscape).astype(np.float16), chunks=chunk, **COMPRESSION
+        )
+        escape.attrs["dims"] = "frame, range, azimuth"
+        escape.attrs["description"] = "beamformed echo envelope (linear, pressure re the call at 1 m)"
+        f.create_dataset("range_m", data=range_m).attrs["units"] = "m"
+        f.create_dataset("azimuth_rad", data=azimuth_rad).attrs["units"] = "rad, 0 ahead, + to the left"
+        ranges = f.create_dataset("lidar/ranges", data=cat(frames.lidar_ranges).astype(np.float32), **COMPRESSION)
+        ranges.attrs["units"] = "m, inf = no return"
+        image = f.create_dataset(
+            "lidar/image", data=cat(frames.lidar_image).astype(np.uint8), chunks=chunk, **COMPRESSION
+        )
+        image.attrs["dims"] = "frame, range, azimuth"
+        image.attrs["description"] = "1 where a LiDAR return falls in the cell (the label)"
+        f.create_dataset("pose", data=cat(frames.pose)).attrs["description"] = "4x4 sensor-to-world, z up"
+        f.create_dataset("time", data=cat(frames.time)).attrs["units"] = "s since the episode's start"
+        f.create_dataset("episode", data=cat(frames.episode).astype(np.int32))
+        f.create_dataset("scenario", data=cat(frames.scenario).astype(np.int16))
+        if frames.signals:
+            signals = cat(frames.signals).astype(np.float16)
+            f.create_dataset("signals", data=signals, chunks=(1, *signals.shape[1:]), **COMPRESSION)
+            f["signals"].attrs["dims"] = "frame, microphone, sample"
+        if frames.arrivals:
+            group = f.create_group("arrivals")
+            for key in frames.arrivals[0]:
+                group.create_dataset(key, data=cat([a[key] for a in frames.arrivals]), **COMPRESSION)
+            group.attrs["description"] = "one row per echo; `frame` indexes the shard's frames"
+    os.replace(tmp, path)
+
+
+def read_attrs(path: Path) -> dict:
+    """The root attributes of a shard (JSON ones decoded), after checking format and version."""
+    path = Path(path)
+    try:
+        f = h5py.File(path, "r")
+    except OSError as err:
+        raise DatasetError(f"{path} is not a readable HDF5 file ({err})") from None
+    with f:
+        attrs = {k: v for k, v in f.attrs.items()}
+        missing = [k for k in ("energyscape", "lidar/image", "episode") if k not in f]
+        lengths = {len(f[k]) for k in ("energyscape", "lidar/image", "episode", "pose") if k in f}
+    if attrs.get("format") != FORMAT:
+        raise DatasetError(f"{path} is not a {FORMAT} shard (format attribute {attrs.get('format')!r})")
+    version = int(attrs.get("format_version", -1))
+    if version != FORMAT_VERSION:
+        raise DatasetError(f"{path} has format_version {version}; this version of sonar2lidar reads {FORMAT_VERSION}")
+    if missing or lengths != {int(attrs.get("frame_count", -1))}:
+        raise DatasetError(f"{path} is incomplete or corrupt (missing {missing}, frame counts {sorted(lengths)})")
+    for key in ("config", "episodes", "scenarios"):
+        if key in attrs:
+            attrs[key] = json.loads(attrs[key])
+    return attrs

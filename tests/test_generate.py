@@ -1,0 +1,175 @@
+"""Dataset generation: shards readable with plain h5py, resumable after a kill, deterministic,
+clear errors for foreign or broken files; windows never cross episodes."""
+
+import dataclasses
+import json
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+import acoustic_sim.generate as gen
+from acoustic_sim.dataset import FORMAT_VERSION, DatasetError, read_attrs
+from acoustic_sim.suites import SUITES, Physics, load_suite
+from learn.data import window_starts
+
+# Three 3-frame drives (one per scenario) in two shards, few rays: a few seconds on the CPU.
+SUITE = dataclasses.replace(SUITES["tiny"], episode_frames=3, variants={"": Physics(ray_count=2000)})
+FRAMES = 9
+
+
+def generate(out, device, **kwargs):
+    return gen.generate(SUITE, out, frames=FRAMES, shards=2, seed=7, device=device, progress=False, **kwargs)
+
+
+def shard_arrays(folder: Path) -> dict:
+    out = {}
+    for path in sorted(folder.glob("shard-*.h5")):
+        with h5py.File(path, "r") as f:
+            f.visititems(
+                lambda name, obj, p=path: (
+                    out.__setitem__(f"{p.name}/{name}", obj[()]) if isinstance(obj, h5py.Dataset) else None
+                )
+            )
+    return out
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory, device):
+    out = tmp_path_factory.mktemp("reference")
+    summary = generate(out, device)
+    return out, summary
+
+
+def test_shards_open_with_plain_h5py(reference):
+    """Two shards, 9 frames, every dataset the format promises with its shape and dtype; the
+    configs and episode records are JSON; the manifest and dataset card are written."""
+    out, summary = reference
+    assert summary["frames"] == FRAMES and summary["shards_written"] == 2
+    total = 0
+    for path in sorted(out.glob("shard-*.h5")):
+        with h5py.File(path, "r") as f:
+            n = int(f.attrs["frame_count"])
+            total += n
+            assert f.attrs["format_version"] == FORMAT_VERSION
+            assert f["energyscape"].shape == (n, 240, 181) and f["energyscape"].dtype == np.float16
+            assert f["lidar/image"].shape == (n, 240, 181) and f["lidar/image"].dtype == np.uint8
+            assert f["lidar/ranges"].shape == (n, 1081) and f["pose"].shape == (n, 4, 4)
+            assert f["range_m"].shape == (240,) and f["azimuth_rad"].shape == (181,)
+            assert np.isfinite(f["energyscape"][:]).all() and f["energyscape"][:].max() > 0
+            assert f["lidar/image"][:].sum() > 0
+            episodes = json.loads(f.attrs["episodes"])
+            assert sorted({e["index"] for e in episodes}) == sorted(set(f["episode"][:]))
+            assert json.loads(f.attrs["config"])["physics"]["ray_count"] == 2000
+    assert total == FRAMES
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["frames"] == FRAMES and len(manifest["shards"]) == 2
+    assert manifest["scenarios"] == {"room": 3, "corridor": 3, "random": 3}
+    assert (out / "card.png").stat().st_size > 10_000 and "card.png" in (out / "README.md").read_text()
+
+
+def test_resume_after_a_kill_gives_the_same_dataset(reference, tmp_path, device, monkeypatch):
+    """A run killed while writing its second shard leaves only the first under a final name;
+    rerunning skips it and finishes with arrays identical to an uninterrupted run."""
+    real_write = gen.write_shard
+
+    def dying_write(path, frames, **kwargs):
+        if path.name == "shard-00001.h5":
+            path.with_name(path.name + ".tmp").write_bytes(b"half a shard")
+            raise KeyboardInterrupt
+        real_write(path, frames, **kwargs)
+
+    monkeypatch.setattr(gen, "write_shard", dying_write)
+    with pytest.raises(KeyboardInterrupt):
+        generate(tmp_path, device)
+    assert sorted(p.name for p in tmp_path.glob("shard-*")) == ["shard-00000.h5", "shard-00001.h5.tmp"]
+    first = (tmp_path / "shard-00000.h5").stat().st_mtime_ns
+    monkeypatch.setattr(gen, "write_shard", real_write)
+    summary = generate(tmp_path, device)
+    assert summary["shards_skipped"] == 1 and summary["shards_written"] == 1
+    assert (tmp_path / "shard-00000.h5").stat().st_mtime_ns == first
+    assert not list(tmp_path.glob("*.tmp"))
+    got, want = shard_arrays(tmp_path), shard_arrays(reference[0])
+    assert got.keys() == want.keys()
+    for key in want:
+        np.testing.assert_array_equal(got[key], want[key], err_msg=key)
+    again = generate(tmp_path, device)
+    assert again["shards_written"] == 0
+
+
+def test_foreign_corrupt_and_other_version_files(reference, tmp_path, device):
+    path = tmp_path / "x.h5"
+    path.write_text("not hdf5")
+    with pytest.raises(DatasetError, match="not a readable HDF5"):
+        read_attrs(path)
+    with h5py.File(path, "w") as f:
+        f.attrs["format"] = "something-else"
+    with pytest.raises(DatasetError, match="not a sonar2lidar-dataset"):
+        read_attrs(path)
+    shard = tmp_path / "shard.h5"
+    shard.write_bytes((reference[0] / "shard-00000.h5").read_bytes())
+    with h5py.File(shard, "a") as f:
+        f.attrs["format_version"] = 99
+    with pytest.raises(DatasetError, match="format_version 99"):
+        read_attrs(shard)
+    with h5py.File(shard, "a") as f:
+        f.attrs["format_version"] = FORMAT_VERSION
+        del f["lidar/image"]
+    with pytest.raises(DatasetError, match="incomplete or corrupt"):
+        read_attrs(shard)
+    # Another run's folder is never overwritten.
+    with pytest.raises(DatasetError, match="other settings"):
+        gen.generate(SUITE, reference[0], frames=FRAMES, shards=2, seed=8, device=device, progress=False)
+
+
+def test_windows_never_cross_episodes():
+    """Episodes of 4, 1 and 3 frames: K = 3 windows start only where all three frames share an
+    episode; a repeated episode id after another episode is still a boundary."""
+    episode = np.array([5, 5, 5, 5, 6, 7, 7, 7, 5, 5])
+    np.testing.assert_array_equal(window_starts(episode, 3), [0, 1, 5])
+    np.testing.assert_array_equal(window_starts(episode, 1), np.arange(10))
+    np.testing.assert_array_equal(window_starts(episode, 2), [0, 1, 2, 5, 6, 8])
+    assert len(window_starts(episode, 11)) == 0
+
+
+def test_suite_files(tmp_path):
+    """A TOML suite starts from a named one; physics overrides apply to every variant; mistakes
+    are named."""
+    path = tmp_path / "mine.toml"
+    path.write_text('base = "ablation"\nframes = 50\n[physics]\nray_count = 1000\n')
+    suite = load_suite(path)
+    assert suite.frames == 50 and set(suite.variants) == {"bounces_0", "bounces_1", "bounces_3"}
+    assert {p.ray_count for p in suite.variants.values()} == {1000}
+    assert [p.max_bounces for p in suite.variants.values()] == [0, 1, 3]
+    path.write_text('base = "paper"\nframez = 5\n')
+    with pytest.raises(ValueError, match="unknown keys"):
+        load_suite(path)
+    path.write_text('[[scenarios]]\nname = "x"\nbuilder = "castle"\n')
+    with pytest.raises(ValueError, match="unknown builder"):
+        load_suite(path)
+    with pytest.raises(ValueError, match="unknown suite"):
+        load_suite("nope")
+
+
+def test_episodes_are_dealt_by_weight_and_shared_by_variants():
+    """Ablation variants hold the same episodes (scenes, seeds); scenarios are dealt evenly."""
+    suite = SUITES["ablation"]
+    tasks = gen.plan(suite, "/nonexistent", frames=2400, shards=3, seed=1)
+    by_variant = {}
+    for t in tasks:
+        by_variant.setdefault(t.variant, []).extend(t.episodes)
+    assert by_variant["bounces_0"] == by_variant["bounces_1"] == by_variant["bounces_3"]
+    counts = np.bincount([e.scenario for e in by_variant["bounces_0"]], minlength=12)
+    assert counts.min() == counts.max() == 2
+    assert len({e.seed for e in by_variant["bounces_0"]}) == 24
+
+
+def test_parallel_workers_write_the_same_shards(reference, tmp_path, device):
+    """Two spawned worker processes, one shard each: the arrays equal the single-process run's."""
+    summary = generate(tmp_path, device, workers=2)
+    assert summary["shards_written"] == 2
+    got, want = shard_arrays(tmp_path), shard_arrays(reference[0])
+    assert got.keys() == want.keys()
+    for key in want:
+        np.testing.assert_array_equal(got[key], want[key], err_msg=key)
