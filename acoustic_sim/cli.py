@@ -184,7 +184,7 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--suite", required=True, help=f"one of {sorted(SUITES)}, or a .toml/.json suite file")
     gen.add_argument("--out", required=True, help="output folder")
     gen.add_argument("--frames", type=int, default=None, help="frames per variant (default: the suite's)")
-    gen.add_argument("--shards", type=int, default=None, help="shards per variant (default: one per 1000 frames)")
+    gen.add_argument("--shards", type=int, default=None, help="shards per variant (default: one per 250 frames)")
     gen.add_argument("--max-bounces", type=int, default=None, help="override the suite's secondary bounces")
     gen.add_argument("--device", default="auto", help="auto (all GPUs, else CPU), cpu or cuda:i")
     gen.add_argument("--workers", type=int, default=1, help="parallel shard writers (processes)")

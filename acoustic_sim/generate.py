@@ -27,7 +27,7 @@ from tqdm.auto import tqdm
 from .dataset import FORMAT, FORMAT_VERSION, DatasetError, ShardFrames, read_attrs, write_shard
 from .suites import Physics, Suite
 
-FRAMES_PER_SHARD = 1000  # default shard size: ~90 MB of float16 energyscapes
+FRAMES_PER_SHARD = 250  # default shard size: ~20 MB; enough shards to keep several workers busy
 PLAN_FILE = "plan.json"
 
 
@@ -99,12 +99,14 @@ def plan(
     keep_signals: bool = False,
     keep_arrivals: bool = False,
 ) -> list[ShardTask]:
-    """The shard tasks of a run: per variant, the episodes split into `shards` contiguous groups."""
+    """The shard tasks of a run: per variant, the episodes split into `shards` contiguous groups
+    (default: one per FRAMES_PER_SHARD frames; it does not depend on the worker count, so a run
+    can be resumed with other --workers)."""
     frames = suite.frames if frames is None else int(frames)
     if frames < 1:
         raise ValueError(f"frames must be >= 1, got {frames}")
     episodes = plan_episodes(suite, frames, seed)
-    shards = shards or math.ceil(frames / FRAMES_PER_SHARD)
+    shards = shards or min(math.ceil(frames / FRAMES_PER_SHARD), len(episodes))
     if not 1 <= shards <= len(episodes):
         raise ValueError(f"shards must lie in 1..{len(episodes)} (one episode at least per shard), got {shards}")
     suite_json = suite.to_json()
@@ -379,7 +381,13 @@ def generate(
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
     tasks = plan(
-        suite, out, frames=frames, shards=shards, seed=seed, keep_signals=keep_signals, keep_arrivals=keep_arrivals
+        suite,
+        out,
+        frames=frames,
+        shards=shards,
+        seed=seed,
+        keep_signals=keep_signals,
+        keep_arrivals=keep_arrivals,
     )
     frames = sum(t.frame_count for t in tasks) // len(suite.variants)
     meta = {"suite": suite.name, "frames": frames, "shards": len(tasks) // len(suite.variants), "seed": seed}
