@@ -27,7 +27,8 @@ demo: $(VENV)/.installed
 	$(PY) -m acoustic_sim render --scene office --seed 0 --frames 150 --frame 60 --device $(DEVICE) --out $(OUT)/office.png
 	$(PY) -m acoustic_sim render --scene corridor --seed 0 --frames 150 --frame 60 --device $(DEVICE) --out $(OUT)/corridor.png
 	$(PY) -m acoustic_sim render --scene random_world --seed 0 --frames 150 --frame 60 --device $(DEVICE) --out $(OUT)/random_world.png
-	@echo "pictures in $(OUT)/"
+	$(PY) -m acoustic_sim generate --suite paper --frames 300 --workers 2 --device $(DEVICE) --out $(OUT)/data
+	@echo "pictures in $(OUT)/, dataset and its card in $(OUT)/data/"
 
 test: $(VENV)/.installed
 	$(VENV)/bin/ruff check .
