@@ -16,3 +16,17 @@ def device(request):
     if not wp.is_device_available(wp.get_device(name)):
         pytest.fail(f"Warp device {name!r} is not available here")
     return name
+
+
+@pytest.fixture(scope="session")
+def tiny_dataset(tmp_path_factory, device):
+    """Two 8-frame drives of the `tiny` suite (room, corridor), simulated once per session."""
+    import dataclasses
+
+    from acoustic_sim.generate import generate
+    from acoustic_sim.suites import SUITES, Physics
+
+    suite = dataclasses.replace(SUITES["tiny"], variants={"": Physics(ray_count=2000)})
+    out = tmp_path_factory.mktemp("tiny_dataset")
+    generate(suite, out, frames=16, shards=2, seed=3, device=device, progress=False)
+    return out

@@ -1,0 +1,207 @@
+"""Command line: `python -m learn train|evaluate|predict|export|table2|sim2real ...`."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+
+def _configs(args):
+    from .data import DataConfig
+    from .models import ModelConfig
+    from .train import TrainConfig
+
+    train = TrainConfig(
+        epochs=args.epochs,
+        batch_size=args.batch_size,
+        lr=args.lr,
+        loss=args.loss,
+        patience=args.patience,
+        val_fraction=args.val_fraction,
+        split_by=args.split_by,
+        seed=args.seed,
+        max_train_windows=args.max_train_windows,
+        max_val_windows=args.max_val_windows,
+        amp=not args.no_amp,
+    )
+    model = ModelConfig(name=args.model, frames=args.frames, width=args.width)
+    return model, DataConfig(frames=args.frames, label=args.label), train
+
+
+def _train(args) -> int:
+    from .train import train
+
+    model, data, config = _configs(args)
+    summary = train(
+        args.data,
+        args.out,
+        model_config=model,
+        data_config=data,
+        train_config=config,
+        device=args.device,
+        resume=args.resume,
+        folds=args.folds,
+        progress=not args.quiet,
+        init_from=args.init_from,
+    )
+    if summary:
+        shown = summary["folds"] if "folds" in summary else [summary]
+        for s in shown:
+            best = s["best"]
+            print(
+                f"{s['out']}: best epoch {s['best_epoch']}/{s['epochs']}: SSIM {best['val_ssim']:.4f}, "
+                f"MSE {best['val_mse']:.5f}, range MAE {best['val_range_mae_m']:.3f} m; "
+                f"{s['samples_per_s']:,.0f} training windows/s; {s['parameters']:,} parameters"
+            )
+    return 0
+
+
+def _evaluate(args) -> int:
+    from .evaluate import evaluate
+
+    report = evaluate(args.checkpoint, args.data, args.out, device=args.device, split=args.split)
+    model = report["results"]["model"]["all"]
+    print(
+        f"{report['windows']:,} windows: SSIM {model['ssim']['mean']:.4f}, MSE {model['mse']['mean']:.5f}, "
+        f"range MAE {model['range_mae_m']['mean']:.3f} m, Chamfer {model['chamfer_m']['mean']:.3f} m, "
+        f"IoU {model['iou']['mean']:.3f}; report in {args.out}/report.md"
+    )
+    return 0
+
+
+def _predict(args) -> int:
+    from .predict import predict
+
+    out = predict(args.checkpoint, args.input, args.out, device=args.device, png=args.png)
+    print(f"wrote {out}")
+    return 0
+
+
+def _export(args) -> int:
+    from .export import export_onnx
+    from .train import load_checkpoint
+
+    model, ckpt = load_checkpoint(args.checkpoint)
+    info = export_onnx(
+        model,
+        args.out,
+        frames=ckpt["data_config"]["frames"],
+        range_count=len(ckpt["range_m"]),
+        azimuth_count=len(ckpt["azimuth_rad"]),
+    )
+    print(json.dumps(info))
+    return 0
+
+
+def _table2(args) -> int:
+    from .studies import table2
+
+    _, _, config = _configs(args)
+    table2(
+        args.train,
+        args.test,
+        args.out,
+        model=args.model,
+        train_config=config,
+        device=args.device,
+        progress=not args.quiet,
+    )
+    print(f"wrote {args.out}/table2.md")
+    return 0
+
+
+def _sim2real(args) -> int:
+    from .studies import sim2real
+
+    _, _, config = _configs(args)
+    sim2real(
+        args.ablation,
+        args.reality,
+        args.out,
+        model=args.model,
+        frames=args.frames,
+        train_config=config,
+        device=args.device,
+        progress=not args.quiet,
+    )
+    print(f"wrote {args.out}/sim2real.md")
+    return 0
+
+
+def _training_options(p) -> None:
+    p.add_argument("--model", default="polar_unet", choices=["paper", "polar_unet"])
+    p.add_argument("--frames", type=int, default=5, help="window length K")
+    p.add_argument("--width", type=int, default=16, help="base channels of polar_unet")
+    p.add_argument("--label", default="middle", choices=["middle", "last"], help="label frame of a window")
+    p.add_argument("--epochs", type=int, default=15)
+    p.add_argument("--batch-size", type=int, default=12)
+    p.add_argument("--lr", type=float, default=1e-4)
+    p.add_argument("--loss", default="mse", choices=["mse", "bce"])
+    p.add_argument("--patience", type=int, default=4, help="epochs without better validation SSIM")
+    p.add_argument("--val-fraction", type=float, default=0.1)
+    p.add_argument("--split-by", default="episode", choices=["episode", "scenario"])
+    p.add_argument("--max-train-windows", type=int, default=None, help="per epoch")
+    p.add_argument("--max-val-windows", type=int, default=2000)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--no-amp", action="store_true", help="no bfloat16 autocast on GPUs")
+    p.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    fmt = argparse.ArgumentDefaultsHelpFormatter
+    parser = argparse.ArgumentParser(prog="python -m learn", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("train", help="train a model on a dataset folder", formatter_class=fmt)
+    p.add_argument("--data", required=True, help="dataset folder (shard-*.h5)")
+    p.add_argument("--out", required=True, help="run folder (checkpoints, history, curves)")
+    p.add_argument("--folds", type=int, default=1, help="k-fold cross-validation over episodes")
+    p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    p.add_argument("--init-from", default=None, help="start from this checkpoint's weights (fine-tuning)")
+    _training_options(p)
+    p.set_defaults(handler=_train)
+    p = sub.add_parser("evaluate", help="metrics, baselines, examples and a report", formatter_class=fmt)
+    p.add_argument("--checkpoint", required=True)
+    p.add_argument("--data", required=True)
+    p.add_argument("--out", required=True)
+    p.add_argument("--split", default="auto", choices=["auto", "val", "all"])
+    p.add_argument("--device", default="cpu")
+    p.set_defaults(handler=_evaluate)
+    p = sub.add_parser("predict", help="predict LiDAR images from shards or energyscapes (.npy)", formatter_class=fmt)
+    p.add_argument("--checkpoint", required=True)
+    p.add_argument("--input", required=True, help="dataset folder, or .npy of energyscapes (N, R, A) in time order")
+    p.add_argument("--out", required=True, help=".npz to write")
+    p.add_argument("--png", default=None, help="also draw the first predictions here")
+    p.add_argument("--device", default="cpu")
+    p.set_defaults(handler=_predict)
+    p = sub.add_parser("export", help="write ONNX, checked against torch", formatter_class=fmt)
+    p.add_argument("--checkpoint", required=True)
+    p.add_argument("--out", required=True, help=".onnx to write")
+    p.set_defaults(handler=_export)
+    p = sub.add_parser("table2", help="the paper's Table 2 layout on the table2 suite", formatter_class=fmt)
+    p.add_argument("--train", required=True, help="training dataset (e.g. the paper suite)")
+    p.add_argument("--test", required=True, help="table2 suite folder (minimal/, many/, noisy/)")
+    p.add_argument("--out", required=True)
+    _training_options(p)
+    p.set_defaults(handler=_table2)
+    p = sub.add_parser("sim2real", help="train per ablation variant, score on the reality suite", formatter_class=fmt)
+    p.add_argument("--ablation", required=True, help="ablation suite folder (bounces_0/, bounces_1/, bounces_3/)")
+    p.add_argument("--reality", required=True, help="reality suite folder")
+    p.add_argument("--out", required=True)
+    _training_options(p)
+    p.set_defaults(handler=_sim2real)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.handler(args)
+    except (ValueError, FileNotFoundError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

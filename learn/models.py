@@ -1,0 +1,247 @@
+"""Networks that turn K energyscapes into a LiDAR image: energyscapes (B, 1, K, R, A) -> (B, 1, R, A).
+
+    model = build_model(ModelConfig(name="polar_unet", frames=5))
+    image = predict_image(model, x)  # (B, 1, R, A), in [0, 1] for logit models
+
+Two models:
+- `PaperNet`: the paper's Table 1 network, a 3D convolutional autoencoder over (time, range, azimuth)
+  that outputs the image directly (trained with MSE, as in the paper).
+- `PolarUNet`: ours, a small 2D UNet with the K frames as channels plus range/azimuth coordinate
+  channels; it outputs logits (trained with BCE), has ~60x fewer parameters and is far cheaper to run.
+
+Every model has a class attribute `output`: "image" (forward returns the image) or "logits"
+(the image is sigmoid(forward)). R and A are free (the paper grid is 240 x 181); K is fixed per model.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+MODEL_NAMES = ("paper", "polar_unet")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ModelConfig:
+    """Which network and its size (stored with every checkpoint).
+
+    Attributes:
+        name: "paper" (Table 1 of the paper) or "polar_unet" (ours).
+        frames: Window length K, the number of energyscapes in one input. The paper network
+            needs an odd K (its time kernels are centred); the paper uses 1, 3 and 5.
+        width: Base channel count of polar_unet (ignored by "paper").
+    """
+
+    name: str = "polar_unet"
+    frames: int = 5
+    width: int = 16
+
+    def __post_init__(self) -> None:
+        if self.name not in MODEL_NAMES:
+            raise ValueError(f"model name must be one of {MODEL_NAMES}, got {self.name!r}")
+        if self.frames < 1:
+            raise ValueError(f"frames must be >= 1, got {self.frames}")
+        if self.name == "paper" and self.frames % 2 == 0:
+            raise ValueError(f"the paper network needs an odd number of frames (1, 3, 5), got {self.frames}")
+        if self.width < 1:
+            raise ValueError(f"width must be >= 1, got {self.width}")
+
+
+# ---------------------------------------------------------------------------------------------
+# The paper's network (Table 1)
+
+
+class PaperResidual(nn.Module):
+    """Residual block: Conv3d -> BN -> ReLU -> Conv3d -> BN, plus the input, then ReLU.
+
+    The convolutions have no bias: the batch norm right after them has its own shift.
+    """
+
+    def __init__(self, channels: int, kernel_size, padding):
+        super().__init__()
+        self.conv_1 = nn.Conv3d(channels, channels, kernel_size, padding=padding, bias=False)
+        self.bn_1 = nn.BatchNorm3d(channels)
+        self.conv_2 = nn.Conv3d(channels, channels, kernel_size, padding=padding, bias=False)
+        self.bn_2 = nn.BatchNorm3d(channels)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        h = F.relu(self.bn_1(self.conv_1(x)))
+        return F.relu(x + self.bn_2(self.conv_2(h)))
+
+
+class PaperNet(nn.Module):
+    """The paper's stacked convolutional autoencoder (Table 1), exactly; 13,367,121 parameters at K = 5.
+
+    3D convolutions over (time K, range, azimuth); ReLU after every (de)convolution. conv_1 strides
+    5 in range and 2 in azimuth (240 x 181 -> 48 x 91), the middle keeps that size, transp_conv_3
+    strides back up and, with time padding K - 1, collapses time from K to 1. A 1x1x1 convolution
+    then maps its 20 filters to the one output image (ReLU: the image is >= 0).
+
+    Parameters by frame count: K = 1: 2,673,921; K = 3: 8,020,521; K = 5: 13,367,121.
+
+    Args:
+        frames: Window length K (odd).
+    """
+
+    output = "image"
+
+    def __init__(self, frames: int = 5):
+        super().__init__()
+        if frames < 1 or frames % 2 == 0:
+            raise ValueError(f"PaperNet needs an odd number of frames >= 1, got {frames}")
+        k, p = frames, (frames - 1) // 2  # time kernel depth and the padding that keeps K frames
+        self.frames = frames
+        self.conv_1 = nn.Conv3d(1, 20, (k, 13, 5), stride=(1, 5, 2), padding=(p, 6, 2))
+        self.conv_2 = nn.Conv3d(20, 40, (k, 15, 5), padding=(p, 7, 2))
+        self.conv_3 = nn.Conv3d(40, 80, (k, 15, 5), padding=(p, 7, 2))
+        self.residual_1 = PaperResidual(80, (k, 25, 5), padding=(p, 12, 2))
+        self.transp_conv_1 = nn.ConvTranspose3d(80, 80, (k, 15, 5), padding=(p, 7, 2))
+        self.transp_conv_2 = nn.ConvTranspose3d(80, 40, (k, 15, 5), padding=(p, 7, 2))
+        # time: (K - 1) * 1 - 2 (K - 1) + K = 1 output frame
+        self.transp_conv_3 = nn.ConvTranspose3d(40, 20, (k, 13, 5), stride=(1, 5, 2), padding=(k - 1, 6, 2))
+        self.head = nn.Conv3d(20, 1, 1)
+        # With PyTorch's default init the activations shrink layer by layer, so the head's output is
+        # ~its bias everywhere: a negative bias (half of all seeds) makes the final ReLU dead at every
+        # pixel, with no gradient at all. A small positive bias starts every pixel alive.
+        nn.init.constant_(self.head.bias, 0.1)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Energyscapes (B, 1, K, R, A) -> lidar image (B, 1, R, A), values >= 0."""
+        _, _, _, r, a = x.shape
+        h = F.relu(self.conv_1(x))  # (B, 20, K, R', A'), R' = ceil(R / 5), A' = ceil(A / 2)
+        h = F.relu(self.conv_2(h))
+        h = F.relu(self.conv_3(h))
+        h = self.residual_1(h)
+        h = F.relu(self.transp_conv_1(h))
+        h = F.relu(self.transp_conv_2(h))
+        # output_size picks the output padding (0..4 in range) that restores exactly R x A
+        h = F.relu(self.transp_conv_3(h, output_size=(1, r, a)))  # (B, 20, 1, R, A)
+        return F.relu(self.head(h))[:, :, 0]
+
+
+# ---------------------------------------------------------------------------------------------
+# Our network: a polar-aware 2D UNet
+
+
+def polar_pad(x: torch.Tensor, pad: int) -> torch.Tensor:
+    """Pad (B, C, R, A) by `pad` cells: zeros along range, edge copies along azimuth.
+
+    Beyond the last range bin there is nothing (zeros). The two azimuth edges of the field of view
+    are not neighbours, so there is no wrap-around; replicating the edge column avoids the false
+    "empty" border that zero padding would put at the sides.
+    """
+    x = F.pad(x, (pad, pad, 0, 0), mode="replicate")
+    return F.pad(x, (0, 0, pad, pad))
+
+
+class PolarConv(nn.Module):
+    """3x3 convolution with polar padding -> BatchNorm -> ReLU; (B, C_in, R, A) -> (B, C_out, R, A)."""
+
+    def __init__(self, in_channels: int, out_channels: int, dilation: int = 1):
+        super().__init__()
+        self.dilation = dilation
+        self.conv = nn.Conv2d(in_channels, out_channels, 3, dilation=dilation, bias=False)
+        self.bn = nn.BatchNorm2d(out_channels)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.relu(self.bn(self.conv(polar_pad(x, self.dilation))))
+
+
+def polar_block(in_channels: int, out_channels: int) -> nn.Sequential:
+    """Two PolarConv layers: one resolution level of the UNet."""
+    return nn.Sequential(PolarConv(in_channels, out_channels), PolarConv(out_channels, out_channels))
+
+
+class PolarContext(nn.Module):
+    """Dilated residual convolutions at the coarsest level, so the receptive field spans most of the image.
+
+    Walls between sparse reflectors must be interpolated from echoes far apart: at 1/4 resolution
+    dilations 2, 4, 8 add ~110 range bins and ~110 azimuth degrees to the receptive field.
+    """
+
+    def __init__(self, channels: int, dilations=(2, 4, 8)):
+        super().__init__()
+        self.layers = nn.ModuleList(PolarConv(channels, channels, dilation=d) for d in dilations)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        for layer in self.layers:
+            x = x + layer(x)
+        return x
+
+
+class PolarUNet(nn.Module):
+    """A polar-aware 2D UNet: (B, 1, K, R, A) energyscapes -> (B, 1, R, A) logits; 230,145 parameters at width 16.
+
+    The K frames are input channels (time is short and already aligned; 3D kernels would cost
+    K times more), plus two coordinate channels, range 0..1 and azimuth -1..1: echo strength,
+    beam width and the sonar's blind zones depend on where a cell is, which a plain convolution
+    cannot know. Three levels (widths w, 2w, 4w) joined by 2x2 max-pooling and bilinear upsampling
+    to the exact skip size (odd sizes such as A = 181 work), a dilated context block at the bottom,
+    and a 1x1 convolution to one channel of logits.
+
+    Args:
+        frames: Window length K.
+        width: Channel count w of the first level.
+    """
+
+    output = "logits"
+
+    def __init__(self, frames: int = 5, width: int = 16):
+        super().__init__()
+        w = width
+        self.frames = frames
+        self.enc_0 = polar_block(frames + 2, w)
+        self.enc_1 = polar_block(w, 2 * w)
+        self.enc_2 = polar_block(2 * w, 4 * w)
+        self.context = PolarContext(4 * w)
+        self.dec_1 = polar_block(4 * w + 2 * w, 2 * w)
+        self.dec_0 = polar_block(2 * w + w, w)
+        self.head = nn.Conv2d(w, 1, 1)
+        # Start at the prior: ~1 % of the cells hold a return, so the first logits are log(0.01 / 0.99)
+        # and early training is not spent pushing every cell down.
+        nn.init.constant_(self.head.bias, math.log(0.01 / 0.99))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Energyscapes (B, 1, K, R, A) -> logits of the lidar image (B, 1, R, A)."""
+        b, _, k, r, a = x.shape
+        rng = torch.linspace(0.0, 1.0, r, device=x.device, dtype=x.dtype).view(1, 1, r, 1).expand(b, 1, r, a)
+        azi = torch.linspace(-1.0, 1.0, a, device=x.device, dtype=x.dtype).view(1, 1, 1, a).expand(b, 1, r, a)
+        h0 = self.enc_0(torch.cat([x[:, 0], rng, azi], dim=1))  # (B, w, R, A)
+        h1 = self.enc_1(F.max_pool2d(h0, 2, ceil_mode=True))  # (B, 2w, ceil(R/2), ceil(A/2))
+        h2 = self.context(self.enc_2(F.max_pool2d(h1, 2, ceil_mode=True)))  # (B, 4w, R/4, A/4)
+        h = self.dec_1(torch.cat([_upsample_to(h2, h1), h1], dim=1))  # (B, 2w, R/2, A/2)
+        h = self.dec_0(torch.cat([_upsample_to(h, h0), h0], dim=1))  # (B, w, R, A)
+        return self.head(h)
+
+
+def _upsample_to(x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
+    return F.interpolate(x, size=like.shape[-2:], mode="bilinear", align_corners=False)
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+def build_model(config: ModelConfig) -> nn.Module:
+    """The network named by `config`, freshly initialised (seed torch for reproducible weights)."""
+    if config.name == "paper":
+        return PaperNet(frames=config.frames)
+    return PolarUNet(frames=config.frames, width=config.width)
+
+
+def parameter_count(model: nn.Module) -> int:
+    """Number of trainable parameters."""
+    return sum(p.numel() for p in model.parameters() if p.requires_grad)
+
+
+def predict_image(model: nn.Module, x: torch.Tensor) -> torch.Tensor:
+    """The predicted lidar image of either kind of model: (B, 1, K, R, A) -> (B, 1, R, A).
+
+    Logit models are passed through a sigmoid; image models are returned as they are.
+    """
+    out = model(x)
+    kind = getattr(model, "module", model).output  # DistributedDataParallel wraps the model
+    return torch.sigmoid(out) if kind == "logits" else out

@@ -1,0 +1,77 @@
+"""Run a checkpoint on dataset shards or on energyscapes from recorded signals.
+
+Recorded data: process the microphone signals with `acoustic_sim.beamform.energyscape` (same
+grid as training, one ping per frame at the training frame rate) and save the result as a
+.npy (N, R, A) in time order; every window of K consecutive frames gets a prediction.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from .data import DataConfig, Frames, Windows, load_frames
+from .evaluate import model_predictor
+from .train import load_checkpoint
+
+
+def _frames_from_array(path: Path, ckpt: dict) -> Frames:
+    energyscape = np.load(path)
+    shape = (len(ckpt["range_m"]), len(ckpt["azimuth_rad"]))
+    if energyscape.ndim != 3 or energyscape.shape[1:] != shape:
+        raise ValueError(f"{path}: expected energyscapes (N, {shape[0]}, {shape[1]}), got {energyscape.shape}")
+    if not np.isfinite(energyscape).all():
+        raise ValueError(f"{path}: energyscapes contain NaN or inf")
+    n = len(energyscape)
+    return Frames(
+        energyscape=energyscape.astype(np.float16),
+        label=np.zeros((n, *shape), np.uint8),
+        episode=np.zeros(n, np.int64),
+        scenario=np.zeros(n, np.int64),
+        scenarios=["recorded"],
+        range_m=np.asarray(ckpt["range_m"]),
+        azimuth_rad=np.asarray(ckpt["azimuth_rad"]),
+        info={"folder": str(path)},
+    )
+
+
+def predict(checkpoint, source, out, *, device: str = "cpu", batch_size: int = 32, png: str | None = None) -> Path:
+    """Predictions (windows, R, A) float16 with the label frame of each window, saved as .npz."""
+    model, ckpt = load_checkpoint(checkpoint, device)
+    source = Path(source)
+    frames = _frames_from_array(source, ckpt) if source.suffix == ".npy" else load_frames(source)
+    config = DataConfig(**ckpt["data_config"])
+    windows = Windows(frames, config, device)
+    run = model_predictor(model)
+    preds = []
+    with torch.no_grad():
+        for start in range(0, len(windows), batch_size):
+            x, _ = windows.batch(np.arange(start, min(start + batch_size, len(windows))))
+            preds.append(run(x).float().clamp(0, 1)[:, 0].cpu().numpy().astype(np.float16))
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(
+        out,
+        prediction=np.concatenate(preds),
+        frame=windows.starts + config.label_offset,
+        range_m=frames.range_m,
+        azimuth_rad=frames.azimuth_rad,
+    )
+    if png:
+        from .plots import plot_examples
+
+        rows = []
+        for i in range(min(3, len(windows))):
+            x, y = windows.batch([i])
+            rows.append(
+                {
+                    "title": f"frame {windows.starts[i] + config.label_offset}",
+                    "sonar": x[0, 0, config.label_offset].cpu().numpy(),
+                    "truth": y[0, 0].cpu().numpy(),
+                    "pred": np.concatenate(preds)[i].astype(np.float32),
+                }
+            )
+        plot_examples(rows, frames.range_m, frames.azimuth_rad, png)
+    return out

@@ -1,0 +1,347 @@
+"""Training: one readable loop (Adam, early stopping on validation SSIM), checkpoints with configs.
+
+    python -m learn train --data data/paper --model paper --frames 5 --out runs/paper_k5
+    torchrun --nproc_per_node 4 -m learn train --data data/paper --model polar_unet --out runs/unet
+
+Single process on CPU or one GPU, or DDP under torchrun (one process per GPU; rank 0 validates
+and writes). Mixed precision (bfloat16 autocast) on GPUs. `--folds k` trains k models, each
+validated on a fold of whole episodes it never saw, and summarises them.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm.auto import tqdm
+
+from .data import FORMAT_VERSION, DataConfig, Frames, Windows, load_frames, split_groups, validation_split
+from .evaluate import model_predictor, score
+from .models import ModelConfig, build_model, parameter_count
+
+LOSSES = ("mse", "bce")
+SPLITS = ("episode", "scenario")
+
+
+@dataclass(frozen=True, kw_only=True)
+class TrainConfig:
+    """Optimisation settings (paper defaults: Adam 1e-4, batch 12, MSE, early stopping on SSIM).
+
+    Attributes:
+        loss: "mse" on the predicted image (the paper) or "bce" (logit models; positives weighted
+            by `pos_weight`, since returns cover ~0.5 % of the cells).
+        patience: Epochs without a better validation SSIM before stopping.
+        val_fraction: Share of episodes (or scenarios, `split_by`) held out when not folding.
+        max_train_windows: Training windows per epoch at most (a random subset each epoch).
+        max_val_windows: Validation windows evaluated per epoch at most (a fixed subset).
+        amp: bfloat16 autocast on GPUs.
+    """
+
+    epochs: int = 15
+    batch_size: int = 12
+    lr: float = 1e-4
+    loss: str = "mse"
+    pos_weight: float = 10.0
+    patience: int = 4
+    val_fraction: float = 0.1
+    split_by: str = "episode"
+    seed: int = 0
+    max_train_windows: int | None = None
+    max_val_windows: int | None = 2000
+    amp: bool = True
+
+    def __post_init__(self) -> None:
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss must be one of {LOSSES}, got {self.loss!r}")
+        if self.split_by not in SPLITS:
+            raise ValueError(f"split_by must be one of {SPLITS}, got {self.split_by!r}")
+        if self.epochs < 1 or self.batch_size < 1 or not self.lr > 0 or self.patience < 1:
+            raise ValueError("epochs, batch_size, patience must be >= 1 and lr > 0")
+
+
+def loss_fn(model, x: torch.Tensor, y: torch.Tensor, config: TrainConfig) -> torch.Tensor:
+    out = model(x)
+    kind = _unwrap(model).output
+    if config.loss == "bce":
+        if kind != "logits":
+            raise ValueError("loss 'bce' needs a model that outputs logits (not the paper network)")
+        weight = torch.tensor(config.pos_weight, device=out.device)
+        return F.binary_cross_entropy_with_logits(out.float(), y, pos_weight=weight)
+    image = torch.sigmoid(out) if kind == "logits" else out
+    return F.mse_loss(image.float(), y)
+
+
+def _unwrap(model):
+    return model.module if hasattr(model, "module") else model
+
+
+@dataclass
+class _Dist:
+    rank: int = 0
+    world: int = 1
+    local: int = 0
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+
+def _init_distributed(device: str) -> tuple[_Dist, torch.device]:
+    """Under torchrun: join the process group and take this rank's GPU (or the CPU with gloo)."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world == 1:
+        return _Dist(), torch.device(device)
+    import torch.distributed as dist
+
+    local = int(os.environ.get("LOCAL_RANK", "0"))
+    cuda = device != "cpu" and torch.cuda.is_available()
+    if not dist.is_initialized():
+        dist.init_process_group("nccl" if cuda else "gloo")
+    if cuda:
+        torch.cuda.set_device(local)
+    return _Dist(dist.get_rank(), world, local), torch.device(f"cuda:{local}" if cuda else "cpu")
+
+
+def validate(model, windows: Windows, indices: np.ndarray, *, amp: bool = True) -> dict[str, float]:
+    """Mean metrics of the model on the given windows (see learn.evaluate.score)."""
+    per = score(model_predictor(_unwrap(model), amp=amp), windows, indices)
+    return {k: float(np.nanmean(v)) if np.isfinite(v).any() else float("nan") for k, v in per.items()}
+
+
+def train(
+    data: str | Path | Frames,
+    out: str | Path,
+    *,
+    model_config: ModelConfig,
+    data_config: DataConfig,
+    train_config: TrainConfig,
+    device: str = "cpu",
+    resume: bool = False,
+    folds: int = 1,
+    progress: bool = True,
+    init_from: str | Path | None = None,
+) -> dict:
+    """Train a model (or `folds` models) on a dataset folder; returns the summary of the run.
+
+    Writes into `out`: last.pt and best.pt (weights, optimizer, epoch, all configs, dataset
+    identity), history.csv and curves.png, summary.json. With folds > 1: out/fold_i/ each,
+    and folds.json/folds.md with mean and std over the folds.
+    """
+    dist_info, dev = _init_distributed(device)
+    frames = data if isinstance(data, Frames) else load_frames(data)
+    windows = Windows(frames, data_config, dev)
+    groups = windows.episode if train_config.split_by == "episode" else windows.scenario
+    out = Path(out)
+    if folds > 1:
+        fold_of = split_groups(groups, folds, seed=train_config.seed)
+        results = []
+        for k in range(folds):
+            results.append(
+                _train_one(
+                    windows,
+                    fold_of != k,
+                    fold_of == k,
+                    out / f"fold_{k}",
+                    model_config,
+                    data_config,
+                    train_config,
+                    dist_info,
+                    resume,
+                    progress,
+                    init_from,
+                    fold=k,
+                )
+            )
+        if dist_info.main:
+            _write_fold_summary(out, results)
+        return {"folds": results}
+    held = validation_split(groups, train_config.val_fraction, seed=train_config.seed)
+    return _train_one(
+        windows, ~held, held, out, model_config, data_config, train_config, dist_info, resume, progress, init_from
+    )
+
+
+def _train_one(
+    windows,
+    train_mask,
+    val_mask,
+    out,
+    model_config,
+    data_config,
+    config,
+    dist_info,
+    resume,
+    progress,
+    init_from,
+    fold=None,
+) -> dict:
+    dev = windows.device
+    torch.manual_seed(config.seed)
+    model = build_model(model_config).to(dev)
+    optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
+    train_idx, val_idx = np.flatnonzero(train_mask), np.flatnonzero(val_mask)
+    if config.max_val_windows and len(val_idx) > config.max_val_windows:
+        val_idx = np.sort(np.random.default_rng(config.seed).choice(val_idx, config.max_val_windows, replace=False))
+    out.mkdir(parents=True, exist_ok=True)
+    state = {"epoch": 0, "step": 0, "best_ssim": -math.inf, "stale": 0, "history": []}
+    last = out / "last.pt"
+    if resume and last.exists():
+        ckpt = torch.load(last, map_location=dev, weights_only=False)
+        _check_compatible(ckpt, model_config, data_config, windows)
+        model.load_state_dict(ckpt["model"])
+        optimizer.load_state_dict(ckpt["optimizer"])
+        state = ckpt["state"]
+    elif init_from is not None:  # fine-tuning: weights only
+        ckpt = torch.load(init_from, map_location=dev, weights_only=False)
+        model.load_state_dict(ckpt["model"])
+    if dist_info.world > 1:
+        from torch.nn.parallel import DistributedDataParallel
+
+        model = DistributedDataParallel(model, device_ids=[dist_info.local] if dev.type == "cuda" else None)
+    use_amp = config.amp and dev.type == "cuda"
+    identity = {
+        "folder": windows.frames.info["folder"],
+        "plan_id": windows.frames.info.get("plan_id"),
+        "format_version": FORMAT_VERSION,
+        "val_episodes": sorted(int(e) for e in np.unique(windows.episode[val_mask])),
+        "fold": fold,
+    }
+    meta = {
+        "model_config": dataclasses.asdict(model_config),
+        "data_config": dataclasses.asdict(data_config),
+        "train_config": dataclasses.asdict(config),
+        "dataset": identity,
+        "parameters": parameter_count(_unwrap(model)),
+        "scenarios": windows.frames.scenarios,
+        "range_m": windows.frames.range_m.tolist(),
+        "azimuth_rad": windows.frames.azimuth_rad.tolist(),
+    }
+    rng = np.random.default_rng(config.seed + 1000 * state["epoch"])
+    while state["epoch"] < config.epochs and state["stale"] < config.patience:
+        epoch = state["epoch"]
+        model.train()
+        order = rng.permutation(train_idx)
+        if config.max_train_windows:
+            order = order[: config.max_train_windows]
+        per_rank = len(order) // dist_info.world
+        order = order[dist_info.rank * per_rank : (dist_info.rank + 1) * per_rank]
+        steps = math.ceil(len(order) / config.batch_size)
+        bar = tqdm(total=len(order), desc=f"epoch {epoch + 1}", unit="win", disable=not (progress and dist_info.main))
+        t0, total = time.perf_counter(), 0.0
+        for s in range(steps):
+            x, y = windows.batch(order[s * config.batch_size : (s + 1) * config.batch_size])
+            with torch.autocast("cuda", dtype=torch.bfloat16, enabled=use_amp):
+                loss = loss_fn(model, x, y, config)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            total += float(loss.detach()) * len(x)
+            state["step"] += 1
+            bar.update(len(x))
+            bar.set_postfix(loss=f"{float(loss.detach()):.4g}")
+        if dev.type == "cuda":
+            torch.cuda.synchronize(dev)
+        train_s = time.perf_counter() - t0
+        bar.close()
+        stop = torch.zeros(1, device=dev)
+        if dist_info.main:
+            metrics = validate(model, windows, val_idx, amp=config.amp)
+            row = {
+                "epoch": epoch + 1,
+                "step": state["step"],
+                "train_loss": total / max(len(order), 1),
+                **{f"val_{k}": v for k, v in metrics.items()},
+                "train_seconds": train_s,
+                "samples_per_s": len(order) * dist_info.world / train_s,
+            }
+            state["history"].append(row)
+            improved = metrics["ssim"] > state["best_ssim"]
+            state["best_ssim"] = max(state["best_ssim"], metrics["ssim"])
+            state["stale"] = 0 if improved else state["stale"] + 1
+            state["epoch"] = epoch + 1
+            ckpt = {"model": _unwrap(model).state_dict(), "optimizer": optimizer.state_dict(), "state": state} | meta
+            _atomic_save(ckpt, last)
+            if improved:
+                _atomic_save(ckpt, out / "best.pt")
+            _write_history(out, state["history"])
+            stop[0] = float(state["stale"] >= config.patience)
+        else:
+            state["epoch"] = epoch + 1
+        if dist_info.world > 1:
+            import torch.distributed as dist
+
+            dist.broadcast(stop, 0)
+            if stop.item():
+                break
+    summary = {}
+    if dist_info.main:
+        best = max(state["history"], key=lambda r: r["val_ssim"])
+        summary = {
+            "out": str(out),
+            "epochs": state["epoch"],
+            "best_epoch": best["epoch"],
+            "best": {k: v for k, v in best.items() if k.startswith("val_")},
+            "samples_per_s": float(np.median([r["samples_per_s"] for r in state["history"]])),
+            "train_windows": len(train_idx),
+            "val_windows": len(val_idx),
+        } | {k: meta[k] for k in ("model_config", "data_config", "train_config", "parameters", "dataset")}
+        (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    return summary
+
+
+def _check_compatible(ckpt: dict, model_config, data_config, windows) -> None:
+    if ckpt["model_config"] != dataclasses.asdict(model_config) or ckpt["data_config"] != dataclasses.asdict(
+        data_config
+    ):
+        raise ValueError("--resume: the checkpoint was trained with another model or data config")
+    if ckpt["dataset"]["plan_id"] != windows.frames.info.get("plan_id"):
+        raise ValueError("--resume: the checkpoint was trained on another dataset")
+
+
+def _atomic_save(obj, path: Path) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(obj, tmp)
+    tmp.replace(path)
+
+
+def _write_history(out: Path, history: list[dict]) -> None:
+    with open(out / "history.csv", "w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=list(history[0]))
+        writer.writeheader()
+        writer.writerows(history)
+    from .plots import plot_curves
+
+    plot_curves(history, out / "curves.png")
+
+
+def _write_fold_summary(out: Path, results: list[dict]) -> None:
+    keys = list(results[0]["best"])
+    table = {k: [r["best"][k] for r in results] for k in keys}
+    summary = {k: {"mean": float(np.mean(v)), "std": float(np.std(v)), "folds": v} for k, v in table.items()}
+    (out / "folds.json").write_text(json.dumps(summary, indent=1))
+    lines = ["| metric | mean | std |", "|---|---|---|"]
+    lines += [f"| {k} | {s['mean']:.4g} | {s['std']:.4g} |" for k, s in summary.items()]
+    (out / "folds.md").write_text(f"# {len(results)}-fold cross-validation\n\n" + "\n".join(lines) + "\n")
+
+
+def load_checkpoint(path: str | Path, device: str = "cpu"):
+    """(model in eval mode, checkpoint dict) from a .pt file written by `train`."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint {path} does not exist")
+    ckpt = torch.load(path, map_location=device, weights_only=False)
+    if ckpt.get("dataset", {}).get("format_version") != FORMAT_VERSION:
+        raise ValueError(f"{path} was trained on dataset format {ckpt.get('dataset', {}).get('format_version')}")
+    model = build_model(ModelConfig(**ckpt["model_config"])).to(device)
+    model.load_state_dict(ckpt["model"])
+    model.eval()
+    return model, ckpt

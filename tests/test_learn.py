@@ -1,0 +1,109 @@
+"""The learner on a tiny simulated dataset: windows and folds never leak, training writes
+checkpoints that round-trip and resume, evaluation and prediction write their outputs, DDP runs."""
+
+import dataclasses
+import json
+import os
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+import torch
+
+from learn.data import DataConfig, DataError, Windows, load_frames, normalise, split_groups, validation_split
+from learn.evaluate import evaluate
+from learn.models import ModelConfig
+from learn.predict import predict
+from learn.train import TrainConfig, load_checkpoint, train
+
+MODEL = ModelConfig(name="polar_unet", frames=3, width=4)
+DATA = DataConfig(frames=3)
+QUICK = TrainConfig(epochs=2, batch_size=4, lr=1e-3, loss="bce", val_fraction=0.5, max_val_windows=8)
+
+
+def test_windows_take_the_middle_frame_label(tiny_dataset):
+    """K = 3 windows: 6 per 8-frame episode; the input is frames s..s+2 normalised to [0, 1] with
+    each frame's peak at 1; the label is the LiDAR image of frame s + 1."""
+    frames = load_frames(tiny_dataset)
+    windows = Windows(frames, DATA)
+    assert len(frames) == 16 and len(windows) == 12
+    x, y = windows.batch([0, 7])
+    assert x.shape == (2, 1, 3, 240, 181) and y.shape == (2, 1, 240, 181)
+    assert torch.allclose(x.amax(dim=(-2, -1)), torch.ones(2, 1, 3))
+    start = windows.starts[7]
+    np.testing.assert_array_equal(y[1, 0].numpy(), frames.label[start + 1])
+    expected = normalise(torch.from_numpy(frames.energyscape[start : start + 3]), 40.0)
+    torch.testing.assert_close(x[1, 0], expected)
+    assert (windows.episode == frames.episode[windows.starts]).all()
+
+
+def test_folds_and_validation_keep_episodes_apart():
+    groups = np.repeat(np.arange(10), 7)
+    fold = split_groups(groups, 4, seed=1)
+    for g in range(10):
+        assert len(set(fold[groups == g])) == 1
+    assert set(fold) == {0, 1, 2, 3}
+    held = validation_split(groups, 0.2, seed=1)
+    assert set(groups[held]).isdisjoint(groups[~held]) and len(set(groups[held])) == 2
+    with pytest.raises(ValueError):
+        split_groups(groups, 11)
+
+
+def test_bad_dataset_folders(tmp_path, tiny_dataset):
+    with pytest.raises(DataError, match="not a folder"):
+        load_frames(tmp_path / "missing")
+    with pytest.raises(DataError, match="no shard"):
+        load_frames(tmp_path)
+    copy = tmp_path / "copy"
+    copy.mkdir()
+    (copy / "shard-00000.h5").write_bytes((tiny_dataset / "shard-00000.h5").read_bytes())
+    with h5py.File(copy / "shard-00000.h5", "a") as f:
+        f.attrs["format_version"] = 2
+    with pytest.raises(DataError, match="format_version 2"):
+        load_frames(copy)
+
+
+def test_train_checkpoint_resume_and_evaluate(tiny_dataset, tmp_path):
+    """Two epochs write last/best checkpoints, history.csv and curves.png; the checkpoint restores
+    the same predictions; --resume to 3 epochs adds one epoch; evaluate writes its report."""
+    run = tmp_path / "run"
+    summary = train(tiny_dataset, run, model_config=MODEL, data_config=DATA, train_config=QUICK, progress=False)
+    assert summary["epochs"] == 2 and summary["val_windows"] > 0
+    for name in ("last.pt", "best.pt", "history.csv", "curves.png", "summary.json"):
+        assert (run / name).exists(), name
+    model, ckpt = load_checkpoint(run / "last.pt")
+    assert ckpt["model_config"] == dataclasses.asdict(MODEL) and ckpt["state"]["epoch"] == 2
+    windows = Windows(load_frames(tiny_dataset), DATA)
+    x, _ = windows.batch([0, 1])
+    with torch.no_grad():
+        again, _ = load_checkpoint(run / "last.pt")
+        torch.testing.assert_close(model(x), again(x))
+    more = dataclasses.replace(QUICK, epochs=3)
+    summary = train(
+        tiny_dataset, run, model_config=MODEL, data_config=DATA, train_config=more, resume=True, progress=False
+    )
+    assert summary["epochs"] == 3 and len(open(run / "history.csv").read().strip().splitlines()) == 4
+    report = evaluate(run / "best.pt", tiny_dataset, run / "eval", timing=False)
+    assert report["split"] == "val" and set(report["results"]) == {"model", "echo peak", "empty"}
+    assert np.isfinite(report["results"]["model"]["all"]["ssim"]["mean"])
+    assert (run / "eval" / "examples.png").exists() and "range MAE" in (run / "eval" / "report.md").read_text()
+    energy = load_frames(tiny_dataset).energyscape[:8].astype(np.float32)
+    np.save(tmp_path / "recorded.npy", energy)
+    out = predict(run / "best.pt", tmp_path / "recorded.npy", tmp_path / "pred.npz")
+    pred = np.load(out)
+    assert pred["prediction"].shape == (6, 240, 181) and list(pred["frame"]) == [1, 2, 3, 4, 5, 6]
+
+
+def test_ddp_under_torchrun_on_cpu(tiny_dataset, tmp_path):
+    """Two gloo processes under torchrun train one epoch; rank 0 writes the checkpoint."""
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", "-m", "learn"]
+    cmd += ["train", "--data", str(tiny_dataset), "--out", str(tmp_path / "ddp"), "--model", "polar_unet"]
+    cmd += ["--width", "4", "--frames", "3", "--epochs", "1", "--batch-size", "2", "--loss", "bce"]
+    cmd += ["--val-fraction", "0.5", "--quiet"]
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=300, env=env)
+    assert done.returncode == 0, done.stderr[-3000:]
+    summary = json.loads((tmp_path / "ddp" / "summary.json").read_text())
+    assert summary["epochs"] == 1
