@@ -9,6 +9,7 @@ the model's raw output (batch, 1, R, A) named "output": the image for "image" mo
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -71,7 +72,8 @@ def export_onnx(
     was_training = model.training
     model.eval()
     try:
-        with torch.no_grad():
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.filterwarnings("ignore", message=".*LeafSpec", category=FutureWarning)  # inside torch 2.13
             # The torch.export-based exporter (the default since torch 2.9; the TorchScript one is
             # deprecated) handles every layer we use: BatchNorm, ConvTranspose3d with output_size,
             # replicate padding, bilinear resize. One self-contained file, no external weights.

@@ -1,9 +1,20 @@
 """Metrics of predicted LiDAR images on the polar grid, per image: (B, R, A) tensors -> (B,).
 
-Images are (range, azimuth) with bin centres `range_m` (R,) and `azimuth_rad` (A,); labels are
-0/1 LiDAR images, predictions lie in [0, 1]. Image metrics (MSE, SSIM) follow the paper; the
-physical ones read the images as scans: per-beam range error, Chamfer distance between the scans'
-points, and occupancy IoU.
+Images are (range, azimuth) with bin centres `range_m` (R,) [m], ascending, and `azimuth_rad`
+(A,) [rad], 0 ahead and positive to the left; cell (r, a) is the sensor-frame point
+(r cos a, r sin a) (x forward, y left). Labels are 0/1 LiDAR images (1 where a return falls in
+the cell); predictions are floats in [0, 1].
+
+Image metrics: `mse`, `ssim` (equal to scikit-image's `structural_similarity`, differentiable,
+usable as a loss). Physical metrics, which read the images as scans: per-beam range error (each
+beam read at its maximum) with the shares of missed and false returns (`range_mae`), the Chamfer
+distance between the occupied cells as points (`chamfer_distance`) and the occupancy IoU
+(`occupancy_iou`). `image_metrics` computes them all; evaluation averages them per scenario
+with `nanmean`, since the physical metrics are nan where they are undefined (e.g. an empty prediction has no points).
+
+A label cell counts as a return at `LABEL_THRESHOLD` (labels are 0/1, so any value in (0, 1]
+gives the same answer); a predicted cell at the `threshold` argument (default 0.5).
+Every function works on any device and batch; results are float64.
 """
 
 from __future__ import annotations
@@ -11,126 +22,269 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-# A predicted cell or beam counts as a return at this value (labels are 0/1). Below 0.5 on
-# purpose: models trained with MSE on sparse labels rarely predict 0.5 where they are right.
-THRESHOLD = 0.3
+LABEL_THRESHOLD = 0.5
+"""A label cell >= this is a LiDAR return (labels are 0/1)."""
+
+_CDIST_CHUNK = 4096
+"""Rows of a point set per `torch.cdist` call in the Chamfer distance (bounds memory)."""
 
 
 def mse(pred: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Mean squared error per image.
+
+    Args:
+        pred: Predicted image, shape (B, R, A).
+        target: Label image, shape (B, R, A).
+
+    Returns:
+        Mean over the R * A cells of (pred - target)^2, float64, shape (B,).
+    """
+    _check_pair(pred, target)
     return ((pred.double() - target.double()) ** 2).mean(dim=(-2, -1))
 
 
 def ssim(pred: torch.Tensor, target: torch.Tensor, *, data_range: float = 1.0, win_size: int = 7) -> torch.Tensor:
-    """Structural similarity per image, as skimage.metrics.structural_similarity with its defaults
-    (uniform win_size window, sample covariance, K1 = 0.01, K2 = 0.03, borders cropped)."""
-    x, y = pred.double()[:, None], target.double()[:, None]
-    window = torch.full((1, 1, win_size, win_size), 1.0 / win_size**2, dtype=x.dtype, device=x.device)
-    n = win_size**2
+    """Structural similarity per image, equal to scikit-image's.
+
+    Same as `skimage.metrics.structural_similarity(target, pred, data_range=data_range,
+    win_size=win_size)` with its defaults: local means, variances and covariance over a uniform
+    win_size x win_size window, the sample-covariance factor N / (N - 1) with N = win_size^2,
+    K1 = 0.01, K2 = 0.03, and the mean of the SSIM map over the cells at least
+    (win_size - 1) // 2 from the border (scikit-image crops that border, so its padding mode
+    never matters and a 'valid' convolution gives the same map). Symmetric in pred and target.
+    Differentiable, in float64; use `1 - ssim(...)` as a loss.
+
+    Args:
+        pred: Predicted image, shape (B, R, A).
+        target: Label image, shape (B, R, A).
+        data_range: Value range of the images (1.0 for [0, 1]).
+        win_size: Odd window side [cells], >= 3 and <= min(R, A).
+
+    Returns:
+        Mean SSIM, float64, shape (B,); 1 for identical images.
+    """
+    _check_pair(pred, target)
+    if win_size < 3 or win_size % 2 == 0:
+        raise ValueError(f"win_size must be odd and >= 3, got {win_size}")
+    if min(pred.shape[-2:]) < win_size:
+        raise ValueError(f"images {tuple(pred.shape[-2:])} are smaller than the {win_size}-cell window")
+    x, y = pred.double(), target.double()
+    n = win_size * win_size
     cov_norm = n / (n - 1)
-
-    def filt(z):
-        return F.conv2d(z, window)
-
-    ux, uy = filt(x), filt(y)
-    vx = cov_norm * (filt(x * x) - ux * ux)
-    vy = cov_norm * (filt(y * y) - uy * uy)
-    vxy = cov_norm * (filt(x * y) - ux * uy)
-    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
-    s = ((2 * ux * uy + c1) * (2 * vxy + c2)) / ((ux**2 + uy**2 + c1) * (vx + vy + c2))
-    return s.mean(dim=(-3, -2, -1))
+    # The five local means over the window as channels, 'valid' only: (B, 5, R - w + 1, A - w + 1).
+    # avg_pool2d with stride 1 is the uniform-window convolution, and much faster than conv2d in float64.
+    stack = torch.stack([x, y, x * x, y * y, x * y], dim=1)
+    ux, uy, uxx, uyy, uxy = F.avg_pool2d(stack, win_size, stride=1).unbind(dim=1)
+    vx = cov_norm * (uxx - ux * ux)
+    vy = cov_norm * (uyy - uy * uy)
+    vxy = cov_norm * (uxy - ux * uy)
+    c1 = (0.01 * data_range) ** 2
+    c2 = (0.03 * data_range) ** 2
+    s = ((2 * ux * uy + c1) * (2 * vxy + c2)) / ((ux * ux + uy * uy + c1) * (vx + vy + c2))
+    return s.mean(dim=(-2, -1))
 
 
 def first_return_ranges(image: torch.Tensor, range_m: torch.Tensor, *, threshold: float = 0.5) -> torch.Tensor:
-    """Range [m] of the nearest cell >= threshold in each azimuth column, inf where none: (B, A)."""
-    hit = image >= threshold
-    r = torch.as_tensor(range_m, dtype=torch.float64, device=image.device)[None, :, None]
-    return torch.where(hit, r, torch.inf).amin(dim=-2)
+    """Range of the nearest return per azimuth column of a label-like image.
 
+    Args:
+        image: Image, shape (B, R, A).
+        range_m: Range bin centres [m], ascending, shape (R,).
+        threshold: A cell >= threshold is a return.
 
-def predicted_ranges(pred: torch.Tensor, range_m: torch.Tensor, *, threshold: float = THRESHOLD) -> torch.Tensor:
-    """One return per beam: the range of each column's maximum if it is >= threshold, else inf."""
-    peak, where = pred.max(dim=-2)
-    r = torch.as_tensor(range_m, dtype=torch.float64, device=pred.device)[where]
-    return torch.where(peak >= threshold, r, torch.inf)
-
-
-def range_mae(pred, target, range_m, *, threshold: float = THRESHOLD) -> dict[str, torch.Tensor]:
-    """Per-beam range error and detection shares.
-
-    Returns (B,) tensors: "mae_m", the mean absolute difference between the range of each
-    column's maximum (no threshold: every beam is read out) and the label's first return, over
-    the beams where the label has a return (nan if none has); "missed", the share of those
-    beams where the prediction's maximum stays below `threshold`; "false", the share of
-    label-empty beams where it reaches `threshold` (0 if there is no such beam).
+    Returns:
+        Range [m] of the nearest cell >= threshold in each column, inf where there is none,
+        float64, shape (B, A).
     """
-    r = torch.as_tensor(range_m, dtype=torch.float64, device=pred.device)
+    r = _axis(range_m, image, dim=-2, name="range_m")
+    hit = image >= threshold
+    return torch.where(hit, r[:, None], torch.inf).amin(dim=-2)
+
+
+def predicted_ranges(pred: torch.Tensor, range_m: torch.Tensor, *, threshold: float = 0.5) -> torch.Tensor:
+    """One return per beam: the range profile readout of a prediction.
+
+    Args:
+        pred: Predicted image, shape (B, R, A).
+        range_m: Range bin centres [m], ascending, shape (R,).
+        threshold: A column whose maximum is >= threshold has a return.
+
+    Returns:
+        Range [m] of each column's maximum (the nearest one on ties) where that maximum is
+        >= threshold, inf elsewhere, float64, shape (B, A).
+    """
+    r = _axis(range_m, pred, dim=-2, name="range_m")
     peak, where = pred.max(dim=-2)
-    t = first_return_ranges(target, range_m, threshold=0.5)
-    has_t, has_p = torch.isfinite(t), peak >= threshold
-    err = torch.where(has_t, (r[where] - t).abs(), torch.zeros_like(t)).sum(-1) / has_t.sum(-1)
-    missed = (has_t & ~has_p).sum(-1) / has_t.sum(-1).clamp_min(1)
-    false = (has_p & ~has_t).sum(-1) / (~has_t).sum(-1).clamp_min(1)
-    return {"mae_m": err, "missed": missed.double(), "false": false.double()}
+    return torch.where(peak >= threshold, r[where], torch.inf)
 
 
-def beam_points(ranges: torch.Tensor, azimuth_rad) -> list[torch.Tensor]:
-    """xy points [m] (sensor frame) of per-beam ranges (B, A), inf = no return: (n, 2) per image."""
-    a = torch.as_tensor(azimuth_rad, dtype=torch.float64, device=ranges.device)
+def range_mae(
+    pred: torch.Tensor, target: torch.Tensor, range_m: torch.Tensor, *, threshold: float = 0.5
+) -> dict[str, torch.Tensor]:
+    """Per-beam range error and the shares of missed and false returns.
+
+    The range error reads every beam: on each column where the label has a return
+    (`first_return_ranges(target)`), the prediction's range is that of its column maximum, with
+    no threshold (an all-zero column reads as the nearest bin). So a model cannot lower its error
+    by predicting nothing where it is unsure; `missed` and `false` tell how confident it is.
+
+    Args:
+        pred: Predicted image, shape (B, R, A).
+        target: Label image, shape (B, R, A).
+        range_m: Range bin centres [m], ascending, shape (R,).
+        threshold: A prediction column whose maximum is >= threshold has a return (for
+            `missed` and `false` only).
+
+    Returns:
+        float64 tensors of shape (B,):
+        "mae_m": mean |range of the column maximum - true range| [m] over the label's return
+        columns; nan where the label has no return (callers average with nanmean).
+        "missed": share of the label's return columns where the prediction's maximum is below
+        threshold; nan if the label has no return.
+        "false": share of the label's empty columns where the prediction has a return; nan if
+        the label has no empty column.
+    """
+    _check_pair(pred, target)
+    peak_range = predicted_ranges(pred, range_m, threshold=-torch.inf)
+    has_p = torch.isfinite(predicted_ranges(pred, range_m, threshold=threshold))
+    t = first_return_ranges(target, range_m, threshold=LABEL_THRESHOLD)
+    has_t = torch.isfinite(t)
+    err = torch.where(has_t, (peak_range - t).abs(), 0.0).sum(dim=-1)
+    return {
+        "mae_m": _share(err, has_t.sum(dim=-1)),
+        "missed": _share((has_t & ~has_p).sum(dim=-1), has_t.sum(dim=-1)),
+        "false": _share((has_p & ~has_t).sum(dim=-1), (~has_t).sum(dim=-1)),
+    }
+
+
+def image_points(
+    image: torch.Tensor, range_m: torch.Tensor, azimuth_rad: torch.Tensor, *, threshold: float = 0.5
+) -> list[torch.Tensor]:
+    """Sensor-frame points of the cells >= threshold.
+
+    Args:
+        image: Image, shape (B, R, A).
+        range_m: Range bin centres [m], shape (R,).
+        azimuth_rad: Azimuth bin centres [rad], 0 ahead, + to the left, shape (A,).
+        threshold: A cell >= threshold is a point.
+
+    Returns:
+        B tensors of shape (n_b, 2), float64: (x, y) = (r cos a, r sin a) [m] of each cell, in
+        (range, azimuth) row-major order.
+    """
+    r = _axis(range_m, image, dim=-2, name="range_m")
+    a = _axis(azimuth_rad, image, dim=-1, name="azimuth_rad")
     out = []
-    for r in ranges:
-        keep = torch.isfinite(r)
-        out.append(torch.stack([r[keep] * torch.cos(a[keep]), r[keep] * torch.sin(a[keep])], dim=-1))
+    for hit in image >= threshold:
+        i, j = hit.nonzero(as_tuple=True)
+        out.append(torch.stack([r[i] * torch.cos(a[j]), r[i] * torch.sin(a[j])], dim=-1))
     return out
 
 
-def chamfer_distance(pred, target, range_m, azimuth_rad, *, threshold: float = THRESHOLD) -> torch.Tensor:
-    """Symmetric Chamfer distance [m] between the scans as point sets: one point per beam, at the
-    prediction's per-beam return (`predicted_ranges`) and at the label's first return. It is the
-    mean of (mean distance of predicted points to the nearest true point) and (mean distance of
-    true points to the nearest predicted point); nan when either scan is empty."""
+def chamfer_distance(
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    range_m: torch.Tensor,
+    azimuth_rad: torch.Tensor,
+    *,
+    threshold: float = 0.5,
+) -> torch.Tensor:
+    """Symmetric Chamfer distance between the occupied cells of prediction and label.
+
+    With P the points of the cells pred >= threshold and T those of the label's return cells
+    (`image_points`): 0.5 * (mean over p in P of min over t in T |p - t|
+    + mean over t in T of min over p in P |p - t|).
+
+    Args:
+        pred: Predicted image, shape (B, R, A).
+        target: Label image, shape (B, R, A).
+        range_m: Range bin centres [m], shape (R,).
+        azimuth_rad: Azimuth bin centres [rad], shape (A,).
+        threshold: A predicted cell >= threshold is a point.
+
+    Returns:
+        Chamfer distance [m], float64, shape (B,); nan where P or T is empty.
+    """
+    _check_pair(pred, target)
     out = []
     for p, t in zip(
-        beam_points(predicted_ranges(pred, range_m, threshold=threshold), azimuth_rad),
-        beam_points(first_return_ranges(target, range_m, threshold=0.5), azimuth_rad),
+        image_points(pred, range_m, azimuth_rad, threshold=threshold),
+        image_points(target, range_m, azimuth_rad, threshold=LABEL_THRESHOLD),
         strict=True,
     ):
         if len(p) == 0 or len(t) == 0:
-            out.append(torch.tensor(float("nan"), dtype=torch.float64, device=pred.device))
-            continue
-        d = torch.cdist(p, t)
-        out.append(0.5 * (d.min(dim=1).values.mean() + d.min(dim=0).values.mean()))
+            out.append(torch.tensor(torch.nan, dtype=torch.float64, device=pred.device))
+        else:
+            out.append(0.5 * (_nearest_distance(p, t).mean() + _nearest_distance(t, p).mean()))
     return torch.stack(out)
 
 
-def occupancy_iou(pred, target, *, threshold: float = THRESHOLD, tolerance_cells: int = 0) -> torch.Tensor:
-    """Intersection over union of the occupied cells (prediction >= threshold, label >= 0.5).
+def occupancy_iou(
+    pred: torch.Tensor, target: torch.Tensor, *, threshold: float = 0.5, tolerance_cells: int = 0
+) -> torch.Tensor:
+    """Intersection over union of the occupied cells, optionally with a tolerance.
 
-    With tolerance t > 0, a predicted cell is correct when a label cell lies within t cells
-    (in range and azimuth), and a label cell is found when a predicted cell lies within t
-    cells; matched = (correct + found) / 2 and IoU = matched / (matched + wrong predicted cells
-    + missed label cells), which is the plain IoU for t = 0. 1.0 when both images are empty.
+    P = cells with pred >= threshold, T = label return cells. With tolerance t = 0 this is
+    |P & T| / |P | T|. With t > 0 a predicted cell is "correct" when a label cell lies within t
+    cells of it in both range and azimuth (a (2t + 1) x (2t + 1) square, i.e. T dilated by a
+    max-pool), and a label cell is "found" when a predicted cell lies within t cells of it. Then
+
+        matched = (correct + found) / 2
+        IoU_t = matched / (matched + (|P| - correct) + (|T| - found)),
+
+    the IoU with "intersection" the mean of the two matched counts and the unmatched cells of
+    both images in the union. It equals the plain IoU for t = 0, lies in [0, 1], is symmetric
+    in P and T, and grows with t.
+
+    Args:
+        pred: Predicted image, shape (B, R, A).
+        target: Label image, shape (B, R, A).
+        threshold: A predicted cell >= threshold is occupied.
+        tolerance_cells: t >= 0 [cells].
+
+    Returns:
+        IoU, float64, shape (B,); nan where both P and T are empty (undefined, like the
+        Chamfer distance; the "false" share of `range_mae` scores such images).
     """
-    p, t = (pred >= threshold).double(), (target >= 0.5).double()
-    if tolerance_cells > 0:
-        k = 2 * tolerance_cells + 1
-
-        def dilate(z):
-            return F.max_pool2d(z[:, None], k, stride=1, padding=tolerance_cells)[:, 0]
-
-        correct = (p * dilate(t)).sum((-2, -1))  # predicted cells near a label cell
-        found = (t * dilate(p)).sum((-2, -1))  # label cells near a predicted cell
-        wrong = p.sum((-2, -1)) - correct
-        missed = t.sum((-2, -1)) - found
-        matched = 0.5 * (correct + found)
-        union = matched + wrong + missed
+    _check_pair(pred, target)
+    if tolerance_cells < 0:
+        raise ValueError(f"tolerance_cells must be >= 0, got {tolerance_cells}")
+    p = (pred >= threshold).double()
+    t = (target >= LABEL_THRESHOLD).double()
+    if tolerance_cells == 0:
+        correct = found = (p * t).sum(dim=(-2, -1))
     else:
-        matched = (p * t).sum((-2, -1))
-        union = ((p + t) > 0).double().sum((-2, -1))
-    return torch.where(union > 0, matched / union.clamp_min(1e-12), torch.ones_like(union))
+        correct = (p * _dilate(t, tolerance_cells)).sum(dim=(-2, -1))
+        found = (t * _dilate(p, tolerance_cells)).sum(dim=(-2, -1))
+    matched = 0.5 * (correct + found)
+    union = matched + (p.sum(dim=(-2, -1)) - correct) + (t.sum(dim=(-2, -1)) - found)
+    return _share(matched, union)
 
 
-def image_metrics(pred, target, range_m, azimuth_rad, *, threshold: float = THRESHOLD) -> dict[str, torch.Tensor]:
-    """All metrics per image: mse, ssim, range_mae_m, missed, false, chamfer_m, iou (2-cell tolerance)."""
+def image_metrics(
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    range_m: torch.Tensor,
+    azimuth_rad: torch.Tensor,
+    *,
+    threshold: float = 0.5,
+    iou_tolerance_cells: int = 0,
+) -> dict[str, torch.Tensor]:
+    """All metrics per image, as evaluation reports them.
+
+    Args:
+        pred: Predicted image in [0, 1], shape (B, R, A).
+        target: Label image (0/1), shape (B, R, A).
+        range_m: Range bin centres [m], ascending, shape (R,).
+        azimuth_rad: Azimuth bin centres [rad], shape (A,).
+        threshold: A predicted cell or column maximum >= threshold is a return.
+        iou_tolerance_cells: Tolerance of the IoU [cells] (see `occupancy_iou`).
+
+    Returns:
+        float64 tensors of shape (B,): "mse", "ssim" (data_range 1, 7 x 7 window),
+        "range_mae_m" [m], "missed", "false" (see `range_mae`), "chamfer_m" [m] and "iou";
+        range_mae_m, missed, false, chamfer_m and iou may be nan (average with nanmean).
+    """
     ranges = range_mae(pred, target, range_m, threshold=threshold)
     return {
         "mse": mse(pred, target),
@@ -139,5 +293,44 @@ def image_metrics(pred, target, range_m, azimuth_rad, *, threshold: float = THRE
         "missed": ranges["missed"],
         "false": ranges["false"],
         "chamfer_m": chamfer_distance(pred, target, range_m, azimuth_rad, threshold=threshold),
-        "iou": occupancy_iou(pred, target, threshold=threshold, tolerance_cells=2),
+        "iou": occupancy_iou(pred, target, threshold=threshold, tolerance_cells=iou_tolerance_cells),
     }
+
+
+def _check_pair(pred: torch.Tensor, target: torch.Tensor) -> None:
+    if pred.ndim != 3 or pred.shape != target.shape:
+        raise ValueError(
+            f"expected two (B, R, A) images of one shape, got {tuple(pred.shape)} and {tuple(target.shape)}"
+        )
+
+
+def _axis(values, image: torch.Tensor, *, dim: int, name: str) -> torch.Tensor:
+    """Bin centres as float64 on the image's device, checked against the image's axis `dim`."""
+    if image.ndim != 3:
+        raise ValueError(f"expected a (B, R, A) image, got shape {tuple(image.shape)}")
+    v = torch.as_tensor(values, dtype=torch.float64, device=image.device)
+    if v.shape != (image.shape[dim],):
+        raise ValueError(f"{name} has shape {tuple(v.shape)}, the image axis has {image.shape[dim]} bins")
+    return v
+
+
+def _share(num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
+    """num / den in float64, nan where den == 0."""
+    num, den = num.double(), den.double()
+    defined = den > 0
+    return torch.where(defined, num / torch.where(defined, den, 1.0), torch.nan)
+
+
+def _nearest_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Distance from each point of a (n, 2) to its nearest point of b (m, 2): (n,)."""
+    return torch.cat(
+        [
+            torch.cdist(chunk, b, compute_mode="donot_use_mm_for_euclid_dist").amin(dim=1)
+            for chunk in a.split(_CDIST_CHUNK)
+        ]
+    )
+
+
+def _dilate(mask: torch.Tensor, cells: int) -> torch.Tensor:
+    """1 where mask (B, R, A) has a 1 within `cells` cells in range and azimuth (zero padding)."""
+    return F.max_pool2d(mask[:, None], 2 * cells + 1, stride=1, padding=cells)[:, 0]

@@ -79,9 +79,14 @@ class PaperNet(nn.Module):
     3D convolutions over (time K, range, azimuth); ReLU after every (de)convolution. conv_1 strides
     5 in range and 2 in azimuth (240 x 181 -> 48 x 91), the middle keeps that size, transp_conv_3
     strides back up and, with time padding K - 1, collapses time from K to 1. A 1x1x1 convolution
-    then maps its 20 filters to the one output image (ReLU: the image is >= 0).
+    then maps its 20 filters to the one output image. That head is ours (the table ends at 20
+    filters) and linear: with a ReLU after it, MSE on sparse labels drives the output below zero
+    everywhere within an epoch and the dead ReLU passes no gradient again (seen on the H100: the
+    same constant output every epoch). `predict_image` clamps the readout to [0, 1].
 
     Parameters by frame count: K = 1: 2,673,921; K = 3: 8,020,521; K = 5: 13,367,121.
+    On a CPU, train with torch.set_flush_denormal(True) (`learn.train` does): small gradients
+    become denormal floats, which makes steps many times slower.
 
     Args:
         frames: Window length K (odd).
@@ -104,13 +109,9 @@ class PaperNet(nn.Module):
         # time: (K - 1) * 1 - 2 (K - 1) + K = 1 output frame
         self.transp_conv_3 = nn.ConvTranspose3d(40, 20, (k, 13, 5), stride=(1, 5, 2), padding=(k - 1, 6, 2))
         self.head = nn.Conv3d(20, 1, 1)
-        # With PyTorch's default init the activations shrink layer by layer, so the head's output is
-        # ~its bias everywhere: a negative bias (half of all seeds) makes the final ReLU dead at every
-        # pixel, with no gradient at all. A small positive bias starts every pixel alive.
-        nn.init.constant_(self.head.bias, 0.1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """Energyscapes (B, 1, K, R, A) -> lidar image (B, 1, R, A), values >= 0."""
+        """Energyscapes (B, 1, K, R, A) -> lidar image (B, 1, R, A), unbounded (trained towards 0/1)."""
         _, _, _, r, a = x.shape
         h = F.relu(self.conv_1(x))  # (B, 20, K, R', A'), R' = ceil(R / 5), A' = ceil(A / 2)
         h = F.relu(self.conv_2(h))
@@ -120,7 +121,7 @@ class PaperNet(nn.Module):
         h = F.relu(self.transp_conv_2(h))
         # output_size picks the output padding (0..4 in range) that restores exactly R x A
         h = F.relu(self.transp_conv_3(h, output_size=(1, r, a)))  # (B, 20, 1, R, A)
-        return F.relu(self.head(h))[:, :, 0]
+        return self.head(h)[:, :, 0]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -207,7 +208,7 @@ class PolarUNet(nn.Module):
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """Energyscapes (B, 1, K, R, A) -> logits of the lidar image (B, 1, R, A)."""
-        b, _, k, r, a = x.shape
+        b, _, _, r, a = x.shape
         rng = torch.linspace(0.0, 1.0, r, device=x.device, dtype=x.dtype).view(1, 1, r, 1).expand(b, 1, r, a)
         azi = torch.linspace(-1.0, 1.0, a, device=x.device, dtype=x.dtype).view(1, 1, 1, a).expand(b, 1, r, a)
         h0 = self.enc_0(torch.cat([x[:, 0], rng, azi], dim=1))  # (B, w, R, A)
@@ -240,8 +241,8 @@ def parameter_count(model: nn.Module) -> int:
 def predict_image(model: nn.Module, x: torch.Tensor) -> torch.Tensor:
     """The predicted lidar image of either kind of model: (B, 1, K, R, A) -> (B, 1, R, A).
 
-    Logit models are passed through a sigmoid; image models are returned as they are.
+    Logit models are passed through a sigmoid; image models are clamped to [0, 1].
     """
     out = model(x)
     kind = getattr(model, "module", model).output  # DistributedDataParallel wraps the model
-    return torch.sigmoid(out) if kind == "logits" else out
+    return torch.sigmoid(out) if kind == "logits" else out.clamp(0.0, 1.0)

@@ -137,6 +137,8 @@ def train(
     and folds.json/folds.md with mean and std over the folds.
     """
     dist_info, dev = _init_distributed(device)
+    if dev.type == "cpu":
+        torch.set_flush_denormal(True)  # denormal gradients make CPU steps many times slower
     frames = data if isinstance(data, Frames) else load_frames(data)
     windows = Windows(frames, data_config, dev)
     groups = windows.episode if train_config.split_by == "episode" else windows.scenario

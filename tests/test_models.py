@@ -1,0 +1,215 @@
+"""learn.models and learn.export: the paper's Table 1 layout, shapes, one-batch overfits, ONNX parity (CPU)."""
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from learn.models import (
+    ModelConfig,
+    PaperNet,
+    PolarUNet,
+    build_model,
+    parameter_count,
+    polar_pad,
+    predict_image,
+)
+
+PAPER_PARAMETERS_K5 = 13_367_121  # Table 1 + a two-convolution residual block (bias-free before BN) + 1x1 head
+
+# Paper Table 1 (K = 5): layer -> (kernel, stride, padding, filters)
+TABLE_1 = {
+    "conv_1": ((5, 13, 5), (1, 5, 2), (2, 6, 2), 20),
+    "conv_2": ((5, 15, 5), (1, 1, 1), (2, 7, 2), 40),
+    "conv_3": ((5, 15, 5), (1, 1, 1), (2, 7, 2), 80),
+    "residual_1.conv_1": ((5, 25, 5), (1, 1, 1), (2, 12, 2), 80),
+    "residual_1.conv_2": ((5, 25, 5), (1, 1, 1), (2, 12, 2), 80),
+    "transp_conv_1": ((5, 15, 5), (1, 1, 1), (2, 7, 2), 80),
+    "transp_conv_2": ((5, 15, 5), (1, 1, 1), (2, 7, 2), 40),
+    "transp_conv_3": ((5, 13, 5), (1, 5, 2), (4, 6, 2), 20),
+}
+
+
+@pytest.fixture
+def flush_denormal():
+    """Flush denormal floats to zero: PaperNet's vanishing gradients otherwise make CPU steps ~60x slower."""
+    torch.set_flush_denormal(True)
+    yield
+    torch.set_flush_denormal(False)
+
+
+def sparse_target(batch: int, range_count: int, azimuth_count: int, generator: torch.Generator):
+    """A LiDAR-like 0/1 image: one return per azimuth column at a random range bin.
+
+    Returns:
+        Image (batch, 1, R, A) and the range bin of each column (batch, A).
+    """
+    rows = torch.randint(0, range_count, (batch, azimuth_count), generator=generator)
+    image = torch.zeros(batch, 1, range_count, azimuth_count)
+    image.scatter_(2, rows[:, None, None, :], 1.0)
+    return image, rows
+
+
+def test_paper_parameter_count():
+    """K = 5: 13,367,121 trainable parameters, the ~13.4 M the paper's layout implies."""
+    count = parameter_count(build_model(ModelConfig(name="paper", frames=5)))
+    assert count == PAPER_PARAMETERS_K5
+    assert 13.3e6 <= count <= 13.5e6
+
+
+def test_paper_layers_match_table_1():
+    """Kernel, stride, padding and filters of every named layer equal Table 1 (K = 5)."""
+    modules = dict(PaperNet(frames=5).named_modules())
+    for name, (kernel, stride, padding, filters) in TABLE_1.items():
+        layer = modules[name]
+        assert (layer.kernel_size, layer.stride, layer.padding, layer.out_channels) == (
+            kernel,
+            stride,
+            padding,
+            filters,
+        ), name
+    assert isinstance(modules["transp_conv_3"], torch.nn.ConvTranspose3d)
+    assert modules["head"].out_channels == 1 and modules["head"].kernel_size == (1, 1, 1)
+
+
+def test_paper_time_kernels_follow_frames():
+    """K = 3: time kernels of depth 3, time padding 1, and 2 in transp_conv_3 (collapses 3 frames to 1)."""
+    net = PaperNet(frames=3)
+    assert net.conv_2.kernel_size[0] == 3 and net.conv_2.padding[0] == 1
+    assert net.transp_conv_3.kernel_size[0] == 3 and net.transp_conv_3.padding[0] == 2
+
+
+@pytest.mark.parametrize("frames", [1, 3, 5])
+@pytest.mark.parametrize("name", ["paper", "polar_unet"])
+def test_shapes(name, frames):
+    """(2, 1, K, 60, 45) -> (2, 1, 60, 45); the predicted images of both kinds lie in [0, 1]."""
+    torch.manual_seed(0)
+    model = build_model(ModelConfig(name=name, frames=frames, width=8)).eval()
+    x = torch.rand(2, 1, frames, 60, 45)
+    with torch.no_grad():
+        out = model(x)
+        image = predict_image(model, x)
+    assert out.shape == image.shape == (2, 1, 60, 45)
+    assert torch.isfinite(out).all()
+    assert image.min() >= 0 and image.max() <= 1
+
+
+def test_shapes_odd_sizes():
+    """Sizes that do not divide the strides (R = 61, A = 46; tiny 7 x 3) come back exactly."""
+    for model in (PaperNet(frames=1), PolarUNet(frames=1, width=4)):
+        for size in ((61, 46), (7, 3)):
+            with torch.no_grad():
+                assert model.eval()(torch.rand(1, 1, 1, *size)).shape == (1, 1, *size)
+
+
+def test_paper_output_never_dead():
+    """The head is linear: even with every output pushed below zero, gradient reaches conv_1.
+    (A final ReLU would pass none here; it died this way in MSE training.)"""
+    torch.manual_seed(0)
+    model = PaperNet(frames=1)
+    with torch.no_grad():
+        model.head.bias.fill_(-10.0)
+    out = model(torch.rand(2, 1, 1, 20, 12))
+    assert (out < 0).all()
+    torch.nn.functional.mse_loss(out, torch.zeros_like(out)).backward()
+    assert model.conv_1.weight.grad.abs().sum() > 0
+
+
+def test_paper_full_size():
+    """The paper grid, 240 range x 181 azimuth bins, K = 5, batch 1 (~2.5 s on 2 CPU cores)."""
+    model = PaperNet(frames=5).eval()
+    with torch.no_grad():
+        assert model(torch.rand(1, 1, 5, 240, 181)).shape == (1, 1, 240, 181)
+
+
+def test_polar_pad():
+    """Range (rows) is padded with zeros, azimuth (columns) with copies of the edge columns."""
+    x = torch.arange(1.0, 7.0).view(1, 1, 2, 3)  # [[1, 2, 3], [4, 5, 6]]
+    expected = torch.tensor(
+        [[0, 0, 0, 0, 0], [1, 1, 2, 3, 3], [4, 4, 5, 6, 6], [0, 0, 0, 0, 0]], dtype=torch.float32
+    ).view(1, 1, 4, 5)
+    torch.testing.assert_close(polar_pad(x, 1), expected)
+
+
+def test_polar_unet_overfits_one_batch():
+    """150 Adam steps (BCE) on 2 fixed random inputs: loss < 10 % of its start, returns at the right range."""
+    torch.manual_seed(0)
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(2, 1, 3, 48, 40, generator=g)
+    y, rows = sparse_target(2, 48, 40, g)
+    model = PolarUNet(frames=3, width=8)
+    optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(150):
+        optimizer.zero_grad()
+        loss = F.binary_cross_entropy_with_logits(model(x), y)
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.1 * losses[0]
+    with torch.no_grad():
+        hit = predict_image(model, x)[:, 0].argmax(dim=1) == rows  # (2, A): per-column strongest range bin
+    assert hit.float().mean() >= 0.9
+
+
+def test_paper_overfits_one_batch(flush_denormal):
+    """60 Adam steps (MSE, the paper's lr 1e-4) on 2 fixed random inputs, K = 1, 30 x 16: same criteria."""
+    torch.manual_seed(0)
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(2, 1, 1, 30, 16, generator=g)
+    y, rows = sparse_target(2, 30, 16, g)
+    model = PaperNet(frames=1)
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-4)
+    losses = []
+    for _ in range(60):
+        optimizer.zero_grad()
+        loss = F.mse_loss(model(x), y)
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+    assert losses[-1] < 0.1 * losses[0]
+    with torch.no_grad():  # train mode: batch statistics, as optimised (running statistics lag behind)
+        hit = predict_image(model, x)[:, 0].argmax(dim=1) == rows
+    assert hit.float().mean() >= 0.9
+
+
+@pytest.mark.parametrize("name", ["paper", "polar_unet"])
+def test_onnx_matches_torch(name, tmp_path):
+    """ONNX export (K = 3, 40 x 30) checks itself; onnxruntime on another batch size (3) equals torch."""
+    pytest.importorskip("onnxruntime")
+    from learn.export import export_onnx
+
+    torch.manual_seed(0)
+    model = build_model(ModelConfig(name=name, frames=3, width=8))
+    with torch.no_grad():  # non-trivial batch-norm statistics, so eval mode differs from train mode
+        for module in model.modules():
+            if isinstance(module, torch.nn.modules.batchnorm._BatchNorm):
+                module.running_mean.uniform_(-0.1, 0.1)
+                module.running_var.uniform_(0.5, 2.0)
+    info = export_onnx(model, tmp_path / "model.onnx", frames=3, range_count=40, azimuth_count=30)
+    assert info["path"] == str(tmp_path / "model.onnx") and info["opset"] >= 17
+    assert info["max_abs_diff"] <= info["tolerance"]
+    assert model.training  # mode restored
+
+    import onnxruntime
+
+    x = torch.rand(3, 1, 3, 40, 30, generator=torch.Generator().manual_seed(1))
+    session = onnxruntime.InferenceSession(info["path"], providers=["CPUExecutionProvider"])
+    (got,) = session.run(None, {"energyscapes": x.numpy()})
+    with torch.no_grad():
+        expected = model.eval()(x).numpy()
+    np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [
+        {"name": "resnet"},
+        {"frames": 0},
+        {"width": 0},
+        {"name": "paper", "frames": 4},
+    ],
+)
+def test_bad_config_raises(kwargs):
+    with pytest.raises(ValueError):
+        ModelConfig(**kwargs)
