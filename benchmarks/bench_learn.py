@@ -84,6 +84,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
     args = parser.parse_args(argv)
     device = torch.device(args.device)
+    torch.backends.cudnn.benchmark = True  # as learn.train does on GPUs
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor() or "CPU"
     res = {
         "device": str(device),

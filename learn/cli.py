@@ -24,6 +24,7 @@ def _configs(args):
         max_train_windows=args.max_train_windows,
         max_val_windows=args.max_val_windows,
         amp=not args.no_amp,
+        max_minutes=args.max_minutes,
     )
     model = ModelConfig(name=args.model, frames=args.frames, width=args.width)
     return model, DataConfig(frames=args.frames, label=args.label), train
@@ -143,6 +144,7 @@ def _training_options(p) -> None:
     p.add_argument("--split-by", default="episode", choices=["episode", "scenario"])
     p.add_argument("--max-train-windows", type=int, default=None, help="per epoch")
     p.add_argument("--max-val-windows", type=int, default=2000)
+    p.add_argument("--max-minutes", type=float, default=None, help="time budget per model: no epoch starts after it")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--no-amp", action="store_true", help="no bfloat16 autocast on GPUs")
     p.add_argument("--device", default="cpu", help="cpu or cuda[:i]")

@@ -44,6 +44,8 @@ class TrainConfig:
         max_train_windows: Training windows per epoch at most (a random subset each epoch).
         max_val_windows: Validation windows evaluated per epoch at most (a fixed subset).
         amp: bfloat16 autocast on GPUs.
+        max_minutes: Time budget: no new epoch starts once this many minutes have passed since
+            the run (or its resumption) began.
     """
 
     epochs: int = 15
@@ -58,6 +60,7 @@ class TrainConfig:
     max_train_windows: int | None = None
     max_val_windows: int | None = 2000
     amp: bool = True
+    max_minutes: float | None = None
 
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
@@ -165,11 +168,18 @@ def train(
             )
         if dist_info.main:
             _write_fold_summary(out, results)
-        return {"folds": results}
-    held = validation_split(groups, train_config.val_fraction, seed=train_config.seed)
-    return _train_one(
-        windows, ~held, held, out, model_config, data_config, train_config, dist_info, resume, progress, init_from
-    )
+        result = {"folds": results}
+    else:
+        held = validation_split(groups, train_config.val_fraction, seed=train_config.seed)
+        result = _train_one(
+            windows, ~held, held, out, model_config, data_config, train_config, dist_info, resume, progress, init_from
+        )
+    if dist_info.world > 1:
+        import torch.distributed as dist
+
+        dist.barrier()  # rank 0 writes the summaries last; leaving without this aborts gloo ranks at exit
+        dist.destroy_process_group()
+    return result
 
 
 def _train_one(
@@ -210,6 +220,9 @@ def _train_one(
 
         model = DistributedDataParallel(model, device_ids=[dist_info.local] if dev.type == "cuda" else None)
     use_amp = config.amp and dev.type == "cuda"
+    if dev.type == "cuda":
+        torch.backends.cudnn.benchmark = True  # fixed input sizes: let cuDNN pick its fastest kernels
+    started = time.perf_counter()
     identity = {
         "folder": windows.frames.info["folder"],
         "plan_id": windows.frames.info.get("plan_id"),
@@ -275,15 +288,16 @@ def _train_one(
             if improved:
                 _atomic_save(ckpt, out / "best.pt")
             _write_history(out, state["history"])
-            stop[0] = float(state["stale"] >= config.patience)
+            out_of_time = config.max_minutes is not None and time.perf_counter() - started > 60 * config.max_minutes
+            stop[0] = float(state["stale"] >= config.patience or out_of_time)
         else:
             state["epoch"] = epoch + 1
         if dist_info.world > 1:
             import torch.distributed as dist
 
             dist.broadcast(stop, 0)
-            if stop.item():
-                break
+        if stop.item():
+            break
     summary = {}
     if dist_info.main:
         best = max(state["history"], key=lambda r: r["val_ssim"])
