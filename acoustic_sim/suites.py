@@ -211,11 +211,12 @@ SUITES: dict[str, Suite] = {
         Suite(
             name="table2",
             description="The paper's Table 2 test cases in a complex environment (offices and random "
-            "worlds): 'minimal' reflectors (no edge echoes), 'many' reflectors (edges and rough surfaces "
-            "echo), and 'noisy' input (many reflectors, 10-15 dB SNR, 3 cm LiDAR noise).",
+            "worlds): 'minimal' reflectors (specular echoes only: no edge or rough-surface scattering), "
+            "'many' reflectors (edges and rough surfaces echo), and 'noisy' input (many reflectors, "
+            "10-15 dB SNR, 3 cm LiDAR noise).",
             scenarios=tuple(s for s in PAPER_SCENARIOS if s.builder in ("office", "random_world")),
             variants={
-                "minimal": Physics(edge_width_m=0.0),
+                "minimal": Physics(scattering=False),
                 "many": Physics(),
                 "noisy": Physics(snr_db=(10.0, 15.0), lidar_noise_m=0.03),
             },

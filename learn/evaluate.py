@@ -118,13 +118,15 @@ def evaluate(
     *,
     device: str = "cpu",
     split: str = "auto",
+    episodes=None,
     batch_size: int = 32,
     examples: int = 4,
     timing: bool = True,
 ) -> dict:
     """Score a checkpoint on a dataset (with baselines) and write metrics.json, per_scenario.csv,
     examples.png and report.md into `out`. split: "all" windows, "val" (the episodes the
-    checkpoint held out, on its own training data), or "auto" (val on the training data, else all)."""
+    checkpoint held out, on its own training data), or "auto" (val on the training data, else all).
+    `episodes` (ids) scores those episodes only, whatever the split."""
     from .plots import plot_examples
     from .train import load_checkpoint
 
@@ -137,7 +139,12 @@ def evaluate(
     same = frames.info.get("plan_id") is not None and frames.info.get("plan_id") == ckpt["dataset"]["plan_id"]
     if split == "auto":
         split = "val" if same else "all"
-    if split == "val":
+    if episodes is not None:
+        split = "episodes"
+        indices = np.flatnonzero(np.isin(windows.episode, np.asarray(episodes)))
+        if len(indices) == 0:
+            raise ValueError(f"none of the episodes {list(episodes)[:5]}... is in {frames.info.get('folder')}")
+    elif split == "val":
         if not same:
             raise ValueError("--split val needs the dataset the checkpoint was trained on")
         indices = np.flatnonzero(np.isin(windows.episode, ckpt["dataset"]["val_episodes"]))
