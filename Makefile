@@ -6,6 +6,9 @@ PY := $(VENV)/bin/python
 TORCH_SPEC ?= torch==2.13.0
 OUT ?= out
 DEVICE ?= cpu
+# The demo's size: a small multipath dataset and a few CPU minutes of training.
+DEMO_FRAMES ?= 400
+DEMO_TRAIN ?= --epochs 4 --lr 2e-3 --loss bce --monitor range_mae_m --val-fraction 0.2
 
 .PHONY: demo test lint system-deps clean
 
@@ -25,10 +28,12 @@ system-deps:
 
 demo: $(VENV)/.installed
 	$(PY) -m acoustic_sim render --scene office --seed 0 --frames 150 --frame 60 --device $(DEVICE) --out $(OUT)/office.png
-	$(PY) -m acoustic_sim render --scene corridor --seed 0 --frames 150 --frame 60 --device $(DEVICE) --out $(OUT)/corridor.png
-	$(PY) -m acoustic_sim render --scene random_world --seed 0 --frames 150 --frame 60 --device $(DEVICE) --out $(OUT)/random_world.png
-	$(PY) -m acoustic_sim generate --suite paper --frames 300 --workers 2 --device $(DEVICE) --out $(OUT)/data
-	@echo "pictures in $(OUT)/, dataset and its card in $(OUT)/data/"
+	$(PY) -m acoustic_sim render --sonar --scene office --seed 0 --frames 40 --frame 30 --device $(DEVICE) --out $(OUT)/sonar_office.png
+	$(PY) -m acoustic_sim generate --suite paper --frames $(DEMO_FRAMES) --workers 2 --device $(DEVICE) --out $(OUT)/data
+	$(PY) -m learn train --data $(OUT)/data --out $(OUT)/run --model polar_unet $(DEMO_TRAIN) --device $(DEVICE)
+	$(PY) -m learn evaluate --checkpoint $(OUT)/run/best.pt --data $(OUT)/data --out $(OUT)/report --device $(DEVICE)
+	@echo "report: $(OUT)/report/report.md (figures beside it); training curves: $(OUT)/run/curves.png;"
+	@echo "dataset card: $(OUT)/data/README.md; scene pictures: $(OUT)/*.png"
 
 test: $(VENV)/.installed
 	$(VENV)/bin/ruff check .

@@ -18,6 +18,7 @@ def _configs(args):
         lr=args.lr,
         loss=args.loss,
         patience=args.patience,
+        monitor=args.monitor,
         val_fraction=args.val_fraction,
         split_by=args.split_by,
         seed=args.seed,
@@ -139,7 +140,10 @@ def _training_options(p) -> None:
     p.add_argument("--batch-size", type=int, default=12)
     p.add_argument("--lr", type=float, default=1e-4)
     p.add_argument("--loss", default="mse", choices=["mse", "bce"])
-    p.add_argument("--patience", type=int, default=4, help="epochs without better validation SSIM")
+    p.add_argument("--patience", type=int, default=4, help="epochs without a better --monitor")
+    p.add_argument(
+        "--monitor", default="ssim", choices=["ssim", "range_mae_m"], help="validation metric for best.pt and stopping"
+    )
     p.add_argument("--val-fraction", type=float, default=0.1)
     p.add_argument("--split-by", default="episode", choices=["episode", "scenario"])
     p.add_argument("--max-train-windows", type=int, default=None, help="per epoch")

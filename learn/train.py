@@ -30,6 +30,7 @@ from .models import ModelConfig, build_model, parameter_count
 
 LOSSES = ("mse", "bce")
 SPLITS = ("episode", "scenario")
+MONITORS = {"ssim": 1.0, "range_mae_m": -1.0}  # sign that makes larger better
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -39,7 +40,9 @@ class TrainConfig:
     Attributes:
         loss: "mse" on the predicted image (the paper) or "bce" (logit models; positives weighted
             by `pos_weight`, since returns cover ~0.5 % of the cells).
-        patience: Epochs without a better validation SSIM before stopping.
+        patience: Epochs without a better validation `monitor` before stopping.
+        monitor: The validation metric that picks best.pt and stops early: "ssim" (the paper;
+            it rewards near-empty images on sparse labels) or "range_mae_m" (lower is better).
         val_fraction: Share of episodes (or scenarios, `split_by`) held out when not folding.
         max_train_windows: Training windows per epoch at most (a random subset each epoch).
         max_val_windows: Validation windows evaluated per epoch at most (a fixed subset).
@@ -54,6 +57,7 @@ class TrainConfig:
     loss: str = "mse"
     pos_weight: float = 10.0
     patience: int = 4
+    monitor: str = "ssim"
     val_fraction: float = 0.1
     split_by: str = "episode"
     seed: int = 0
@@ -65,6 +69,8 @@ class TrainConfig:
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
             raise ValueError(f"loss must be one of {LOSSES}, got {self.loss!r}")
+        if self.monitor not in MONITORS:
+            raise ValueError(f"monitor must be one of {tuple(MONITORS)}, got {self.monitor!r}")
         if self.split_by not in SPLITS:
             raise ValueError(f"split_by must be one of {SPLITS}, got {self.split_by!r}")
         if self.epochs < 1 or self.batch_size < 1 or not self.lr > 0 or self.patience < 1:
@@ -182,6 +188,10 @@ def train(
     return result
 
 
+def _nan_low(x: float) -> float:
+    return -math.inf if math.isnan(x) else x
+
+
 def _train_one(
     windows,
     train_mask,
@@ -204,7 +214,8 @@ def _train_one(
     if config.max_val_windows and len(val_idx) > config.max_val_windows:
         val_idx = np.sort(np.random.default_rng(config.seed).choice(val_idx, config.max_val_windows, replace=False))
     out.mkdir(parents=True, exist_ok=True)
-    state = {"epoch": 0, "step": 0, "best_ssim": -math.inf, "stale": 0, "history": []}
+    state = {"epoch": 0, "step": 0, "best": -math.inf, "stale": 0, "history": []}
+    sign = MONITORS[config.monitor]
     last = out / "last.pt"
     if resume and last.exists():
         ckpt = torch.load(last, map_location=dev, weights_only=False)
@@ -212,6 +223,7 @@ def _train_one(
         model.load_state_dict(ckpt["model"])
         optimizer.load_state_dict(ckpt["optimizer"])
         state = ckpt["state"]
+        state.setdefault("best", state.pop("best_ssim", -math.inf))  # checkpoints from before `monitor`
     elif init_from is not None:  # fine-tuning: weights only
         ckpt = torch.load(init_from, map_location=dev, weights_only=False)
         model.load_state_dict(ckpt["model"])
@@ -279,8 +291,9 @@ def _train_one(
                 "samples_per_s": len(order) * dist_info.world / train_s,
             }
             state["history"].append(row)
-            improved = metrics["ssim"] > state["best_ssim"]
-            state["best_ssim"] = max(state["best_ssim"], metrics["ssim"])
+            score = sign * metrics[config.monitor]
+            improved = score > state["best"]  # False for nan
+            state["best"] = max(state["best"], score) if improved else state["best"]
             state["stale"] = 0 if improved else state["stale"] + 1
             state["epoch"] = epoch + 1
             ckpt = {"model": _unwrap(model).state_dict(), "optimizer": optimizer.state_dict(), "state": state} | meta
@@ -300,7 +313,7 @@ def _train_one(
             break
     summary = {}
     if dist_info.main:
-        best = max(state["history"], key=lambda r: r["val_ssim"])
+        best = max(state["history"], key=lambda r: _nan_low(sign * r[f"val_{config.monitor}"]))
         summary = {
             "out": str(out),
             "epochs": state["epoch"],

@@ -107,3 +107,17 @@ def test_ddp_under_torchrun_on_cpu(tiny_dataset, tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     summary = json.loads((tmp_path / "ddp" / "summary.json").read_text())
     assert summary["epochs"] == 1
+
+
+def test_monitor_picks_best_checkpoint_by_range_error(tiny_dataset, tmp_path):
+    """With monitor="range_mae_m" best.pt is the epoch of the lowest validation range error."""
+    config = dataclasses.replace(QUICK, epochs=3, monitor="range_mae_m", patience=3)
+    summary = train(
+        tiny_dataset, tmp_path / "run", model_config=MODEL, data_config=DATA, train_config=config, progress=False
+    )
+    rows = [line.split(",") for line in (tmp_path / "run" / "history.csv").read_text().strip().splitlines()]
+    mae = [float(r[rows[0].index("val_range_mae_m")]) for r in rows[1:]]
+    assert summary["best_epoch"] == 1 + int(np.argmin(mae))
+    assert torch.load(tmp_path / "run" / "best.pt", weights_only=False)["state"]["epoch"] == summary["best_epoch"]
+    with pytest.raises(ValueError, match="monitor"):
+        TrainConfig(monitor="iou")
