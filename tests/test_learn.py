@@ -89,6 +89,10 @@ def test_train_checkpoint_resume_and_evaluate(tiny_dataset, tmp_path):
     assert report["split"] == "val" and set(report["results"]) == {"model", "echo peak", "empty"}
     assert np.isfinite(report["results"]["model"]["all"]["ssim"]["mean"])
     assert (run / "eval" / "examples.png").exists() and "range MAE" in (run / "eval" / "report.md").read_text()
+    one = evaluate(run / "best.pt", tiny_dataset, run / "one", episodes=[1], timing=False, examples=1)
+    assert one["split"] == "episodes" and one["windows"] == 6  # one 8-frame episode, K = 3
+    with pytest.raises(ValueError, match="none of the episodes"):
+        evaluate(run / "best.pt", tiny_dataset, run / "none", episodes=[99], timing=False)
     energy = load_frames(tiny_dataset).energyscape[:8].astype(np.float32)
     np.save(tmp_path / "recorded.npy", energy)
     out = predict(run / "best.pt", tmp_path / "recorded.npy", tmp_path / "pred.npz")
