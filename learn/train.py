@@ -293,7 +293,8 @@ def _train_one(
             state["history"].append(row)
             score = sign * metrics[config.monitor]
             improved = score > state["best"]  # False for nan
-            state["best"] = max(state["best"], score) if improved else state["best"]
+            if improved:
+                state["best"] = score
             state["stale"] = 0 if improved else state["stale"] + 1
             state["epoch"] = epoch + 1
             ckpt = {"model": _unwrap(model).state_dict(), "optimizer": optimizer.state_dict(), "state": state} | meta

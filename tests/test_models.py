@@ -131,6 +131,19 @@ def test_polar_pad():
     torch.testing.assert_close(polar_pad(x, 1), expected)
 
 
+def fit(model, loss_fn, *, lr: float, steps: int) -> list[float]:
+    """Adam steps on loss_fn(); the loss before each step."""
+    optimizer = torch.optim.Adam(model.parameters(), lr=lr)
+    losses = []
+    for _ in range(steps):
+        optimizer.zero_grad()
+        loss = loss_fn()
+        loss.backward()
+        optimizer.step()
+        losses.append(loss.item())
+    return losses
+
+
 def test_polar_unet_overfits_one_batch():
     """150 Adam steps (BCE) on 2 fixed random inputs: loss < 10 % of its start, returns at the right range."""
     torch.manual_seed(0)
@@ -138,14 +151,7 @@ def test_polar_unet_overfits_one_batch():
     x = torch.rand(2, 1, 3, 48, 40, generator=g)
     y, rows = sparse_target(2, 48, 40, g)
     model = PolarUNet(frames=3, width=8)
-    optimizer = torch.optim.Adam(model.parameters(), lr=3e-3)
-    losses = []
-    for _ in range(150):
-        optimizer.zero_grad()
-        loss = F.binary_cross_entropy_with_logits(model(x), y)
-        loss.backward()
-        optimizer.step()
-        losses.append(loss.item())
+    losses = fit(model, lambda: F.binary_cross_entropy_with_logits(model(x), y), lr=3e-3, steps=150)
     assert losses[-1] < 0.1 * losses[0]
     with torch.no_grad():
         hit = predict_image(model, x)[:, 0].argmax(dim=1) == rows  # (2, A): per-column strongest range bin
@@ -159,14 +165,7 @@ def test_paper_overfits_one_batch(flush_denormal):
     x = torch.rand(2, 1, 1, 30, 16, generator=g)
     y, rows = sparse_target(2, 30, 16, g)
     model = PaperNet(frames=1)
-    optimizer = torch.optim.Adam(model.parameters(), lr=1e-4)
-    losses = []
-    for _ in range(60):
-        optimizer.zero_grad()
-        loss = F.mse_loss(model(x), y)
-        loss.backward()
-        optimizer.step()
-        losses.append(loss.item())
+    losses = fit(model, lambda: F.mse_loss(model(x), y), lr=1e-4, steps=60)
     assert losses[-1] < 0.1 * losses[0]
     with torch.no_grad():  # train mode: batch statistics, as optimised (running statistics lag behind)
         hit = predict_image(model, x)[:, 0].argmax(dim=1) == rows
