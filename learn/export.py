@@ -3,8 +3,8 @@
     info = export_onnx(model, "runs/unet/model.onnx", frames=5)  # {"path", "max_abs_diff", "opset", ...}
 
 The ONNX graph takes float32 energyscapes (batch, 1, K, R, A) named "energyscapes" and returns
-the model's raw output (batch, 1, R, A) named "output": the image for "image" models, logits for
-"logits" models (apply a sigmoid). The batch dimension is dynamic; K, R and A are fixed.
+the model's raw output (batch, 1, R, A) named "output": the image for "image" models (clip it
+to [0, 1]), logits for "logits" models (apply a sigmoid). The batch dimension is dynamic; K, R and A are fixed.
 """
 
 from __future__ import annotations
