@@ -1,4 +1,4 @@
-"""Command line: `python -m learn train|evaluate|predict|export|table2|sim2real ...`."""
+"""Command line: `python -m learn train|evaluate|predict|export|table2|sim2real|sim2real-summary ...`."""
 
 from __future__ import annotations
 
@@ -105,6 +105,7 @@ def _table2(args) -> int:
         args.test,
         args.out,
         model=args.model,
+        width=args.width,
         train_config=config,
         device=args.device,
         progress=not args.quiet,
@@ -122,11 +123,20 @@ def _sim2real(args) -> int:
         args.reality,
         args.out,
         model=args.model,
+        width=args.width,
         frames=args.frames,
         train_config=config,
         device=args.device,
         progress=not args.quiet,
     )
+    print(f"wrote {args.out}/sim2real.md")
+    return 0
+
+
+def _sim2real_summary(args) -> int:
+    from .studies import sim2real_summary
+
+    sim2real_summary(args.runs, args.out)
     print(f"wrote {args.out}/sim2real.md")
     return 0
 
@@ -197,6 +207,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True)
     _training_options(p)
     p.set_defaults(handler=_sim2real)
+    p = sub.add_parser("sim2real-summary", help="mean and std over repeated sim2real runs", formatter_class=fmt)
+    p.add_argument("runs", nargs="+", help="sim2real output folders (e.g. one per seed)")
+    p.add_argument("--out", required=True)
+    p.set_defaults(handler=_sim2real_summary)
     return parser
 
 

@@ -5,6 +5,7 @@
 
 Both train with `learn.train.train` and score with `learn.evaluate.evaluate`, so every number
 in their tables comes from a real run whose checkpoint and report stay in the output folder.
+(Their reports leave out inference timing: `benchmarks/bench_learn.py` measures speed.)
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from .train import TrainConfig, train
 
 TABLE2_CASES = ("minimal", "many", "noisy")
 FRAME_COUNTS = (1, 3, 5)
+SIM2REAL_KEYS = (("range_mae_m", "range MAE [m]"), ("chamfer_m", "Chamfer [m]"), ("ssim", "SSIM"), ("iou", "IoU"))
 
 
 def _variant_folder(root: Path, name: str) -> Path:
@@ -41,6 +43,7 @@ def table2(
     out: str | Path,
     *,
     model: str = "polar_unet",
+    width: int = 16,
     train_config: TrainConfig,
     device: str = "cpu",
     progress: bool = True,
@@ -57,7 +60,7 @@ def table2(
         train(
             frames,
             run,
-            model_config=ModelConfig(name=model, frames=k),
+            model_config=ModelConfig(name=model, frames=k, width=width),
             data_config=DataConfig(frames=k),
             train_config=train_config,
             device=device,
@@ -69,7 +72,7 @@ def table2(
         train(
             cases[c],
             run,
-            model_config=ModelConfig(name=model, frames=5),
+            model_config=ModelConfig(name=model, frames=5, width=width),
             data_config=DataConfig(frames=5),
             train_config=dataclasses.replace(train_config, lr=train_config.lr / 10),
             device=device,
@@ -78,16 +81,13 @@ def table2(
             init_from=out / "k5" / "best.pt",
         )
     held = {c: torch.load(run / "best.pt", weights_only=False)["dataset"]["val_episodes"] for c, run in tuned.items()}
-    rows = {}
-    for name, run in runs.items():
-        rows[name] = {
-            c: evaluate(run / "best.pt", cases[c], run / c, device=device, episodes=held[c])["results"]["model"]["all"]
-            for c in TABLE2_CASES
-        }
-    rows["K = 5 fine-tuned"] = {
-        c: evaluate(run / "best.pt", cases[c], run / "eval", device=device, episodes=held[c])["results"]["model"]["all"]
-        for c, run in tuned.items()
-    }
+
+    def scored(run: Path, case: str, folder: str) -> dict:
+        report = evaluate(run / "best.pt", cases[case], run / folder, device=device, episodes=held[case], timing=False)
+        return report["results"]["model"]["all"]
+
+    rows = {name: {c: scored(run, c, c) for c in TABLE2_CASES} for name, run in runs.items()}
+    rows["K = 5 fine-tuned"] = {c: scored(run, c, "eval") for c, run in tuned.items()}
     lines = [
         f"# Table 2 layout: {model}, trained on `{train_data}`, scored on `{test_data}`",
         "",
@@ -115,6 +115,7 @@ def sim2real(
     out: str | Path,
     *,
     model: str = "polar_unet",
+    width: int = 16,
     frames: int = 5,
     train_config: TrainConfig,
     device: str = "cpu",
@@ -133,52 +134,113 @@ def sim2real(
         train(
             _variant_folder(root, v),
             run,
-            model_config=ModelConfig(name=model, frames=frames),
+            model_config=ModelConfig(name=model, frames=frames, width=width),
             data_config=DataConfig(frames=frames),
             train_config=train_config,
             device=device,
             progress=progress,
             resume=True,
         )
-        own = evaluate(run / "best.pt", _variant_folder(root, v), run / "in_domain", device=device, split="val")
-        far = evaluate(run / "best.pt", real, run / "reality", device=device, split="all")
+        own = evaluate(
+            run / "best.pt", _variant_folder(root, v), run / "in_domain", device=device, split="val", timing=False
+        )
+        far = evaluate(run / "best.pt", real, run / "reality", device=device, split="all", timing=False)
         table[v] = {
             "in_domain": own["results"]["model"]["all"],
             "reality": far["results"]["model"]["all"],
             "reality_echo_peak": far["results"]["echo peak"]["all"],
         }
-    keys = (("range_mae_m", "range MAE [m]"), ("chamfer_m", "Chamfer [m]"), ("ssim", "SSIM"), ("iou", "IoU"))
-    lines = [
-        f"# Sim-to-real: {model} (K = {frames}) trained per multipath setting, scored on the reality suite",
-        "",
-        f"Training data `{ablation}`, held-out 'reality' data `{reality}`. Mean over windows (std in metrics.json).",
-        "",
-        "| trained on | " + " | ".join(f"{label} in-domain | {label} reality" for _, label in keys) + " |",
-        "|---" * (1 + 2 * len(keys)) + "|",
-    ]
-    for v, r in table.items():
-        cells = [f"{r['in_domain'][k]['mean']:.4f} | {r['reality'][k]['mean']:.4f}" for k, _ in keys]
-        lines.append(f"| {v} | " + " | ".join(cells) + " |")
-    base = next(iter(table.values()))["reality_echo_peak"]
-    lines.append("| echo-peak baseline | " + " | ".join(f"- | {base[k]['mean']:.4f}" for k, _ in keys) + " |")
-    (out / "sim2real.md").write_text("\n".join(lines) + "\n")
-    (out / "sim2real.json").write_text(json.dumps(table, indent=1))
-    _plot_sim2real(table, keys, out / "sim2real.png")
+    header = (
+        f"Training data `{ablation}`, held-out 'reality' data `{reality}`. Mean over windows (std in metrics.json)."
+    )
+    _write_sim2real(
+        table,
+        out,
+        f"Sim-to-real: {model} (K = {frames}) trained per multipath setting, scored on the reality suite",
+        header,
+    )
     return table
 
 
-def _plot_sim2real(table: dict, keys, path: Path) -> None:
+def sim2real_summary(runs: list[str | Path], out: str | Path) -> dict:
+    """Mean and std across repeated sim2real runs (e.g. seeds), from their sim2real.json files:
+    each cell is the spread of the runs' window means, so it shows how much a conclusion
+    depends on the draw of scenes and the training seed."""
+    tables = [json.loads((Path(r) / "sim2real.json").read_text()) for r in runs]
+    if len(tables) < 2:
+        raise ValueError("give at least two sim2real run folders to summarise")
+    variants = list(tables[0])
+    if any(list(t) != variants for t in tables):
+        raise ValueError(f"the runs trained different variants: {[list(t) for t in tables]}")
+
+    def across(v: str, where: str, key: str) -> dict:
+        values = [t[v][where][key]["mean"] for t in tables]
+        return {"mean": float(np.mean(values)), "std": float(np.std(values)), "runs": values}
+
+    wheres = ("in_domain", "reality", "reality_echo_peak")
+    summary = {v: {w: {k: across(v, w, k) for k, _ in SIM2REAL_KEYS} for w in wheres} for v in variants}
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    names = ", ".join(f"`{Path(r).name}`" for r in runs)
+    header = f"Mean and std over {len(runs)} runs ({names}); each run's value is its mean over windows."
+    _write_sim2real(summary, out, f"Sim-to-real over {len(runs)} runs", header, errorbars=True)
+    errors = {v: np.array(summary[v]["reality"]["range_mae_m"]["runs"]) for v in variants}
+    run_names = " | ".join(Path(r).name for r in runs)
+    per_run = [
+        "",
+        "Reality range MAE [m] of each run:",
+        "",
+        f"| trained on | {run_names} |",
+        "|---" * (1 + len(runs)) + "|",
+    ]
+    per_run += [f"| {v} | " + " | ".join(f"{x:.4f}" for x in errors[v]) + " |" for v in variants]
+    # Paired per run (same scenes and seed), so scene difficulty cancels out of the difference.
+    first = variants[0]
+    per_run += [
+        f"| {v} minus {first} | " + " | ".join(f"{x:+.4f}" for x in errors[v] - errors[first]) + " |"
+        for v in variants[1:]
+    ]
+    with open(out / "sim2real.md", "a") as f:
+        f.write("\n".join(per_run) + "\n")
+    return summary
+
+
+def _write_sim2real(table: dict, out: Path, title: str, header: str, errorbars: bool = False) -> None:
+    def cell(stats: dict) -> str:
+        return f"{stats['mean']:.3f} ± {stats['std']:.3f}" if errorbars else f"{stats['mean']:.4f}"
+
+    lines = [
+        f"# {title}",
+        "",
+        header,
+        "",
+        "| trained on | " + " | ".join(f"{label} in-domain | {label} reality" for _, label in SIM2REAL_KEYS) + " |",
+        "|---" * (1 + 2 * len(SIM2REAL_KEYS)) + "|",
+    ]
+    for v, r in table.items():
+        cells = [f"{cell(r['in_domain'][k])} | {cell(r['reality'][k])}" for k, _ in SIM2REAL_KEYS]
+        lines.append(f"| {v} | " + " | ".join(cells) + " |")
+    base = next(iter(table.values()))["reality_echo_peak"]
+    lines.append("| echo-peak baseline | " + " | ".join(f"- | {cell(base[k])}" for k, _ in SIM2REAL_KEYS) + " |")
+    (out / "sim2real.md").write_text("\n".join(lines) + "\n")
+    (out / "sim2real.json").write_text(json.dumps(table, indent=1))
+    _plot_sim2real(table, out / "sim2real.png", errorbars)
+
+
+def _plot_sim2real(table: dict, path: Path, errorbars: bool) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, len(keys), figsize=(4 * len(keys), 3.4))
+    fig, axes = plt.subplots(1, len(SIM2REAL_KEYS), figsize=(4 * len(SIM2REAL_KEYS), 3.4))
     names = list(table)
     x = np.arange(len(names))
-    for ax, (k, label) in zip(axes, keys, strict=True):
+    for ax, (k, label) in zip(axes, SIM2REAL_KEYS, strict=True):
         for shift, where in ((-0.2, "in_domain"), (0.2, "reality")):
-            ax.bar(x + shift, [table[n][where][k]["mean"] for n in names], 0.4, label=where.replace("_", "-"))
+            stats = [table[n][where][k] for n in names]
+            spread = [s["std"] for s in stats] if errorbars else None
+            ax.bar(x + shift, [s["mean"] for s in stats], 0.4, yerr=spread, capsize=3, label=where.replace("_", "-"))
         ax.set_xticks(x, names)
         ax.set_title(label)
         ax.grid(axis="y", alpha=0.3)

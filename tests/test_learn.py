@@ -125,3 +125,63 @@ def test_monitor_picks_best_checkpoint_by_range_error(tiny_dataset, tmp_path):
     assert torch.load(tmp_path / "run" / "best.pt", weights_only=False)["state"]["epoch"] == summary["best_epoch"]
     with pytest.raises(ValueError, match="monitor"):
         TrainConfig(monitor="iou")
+
+
+def _same(a: dict, b: dict) -> bool:
+    """Equal nested metrics, where nan (an undefined metric) equals nan."""
+    return json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
+
+
+def test_sim2real_table_matches_its_reports_and_summarises_runs(tiny_dataset, tmp_path):
+    """The study's table carries the numbers of each variant's evaluation report, and the summary
+    over runs is their mean and spread with paired per-run differences. (Plumbing only: the three
+    'variants' here are one tiny dataset.)"""
+    from learn.studies import sim2real, sim2real_summary
+
+    ablation = tmp_path / "ablation"
+    ablation.mkdir()
+    for name in ("bounces_0", "bounces_3"):
+        (ablation / name).symlink_to(tiny_dataset, target_is_directory=True)
+    config = dataclasses.replace(QUICK, epochs=1)
+    runs = [tmp_path / f"seed{s}" for s in (0, 1)]
+    for seed, run in enumerate(runs):
+        train_config = dataclasses.replace(config, seed=seed)
+        sim2real(ablation, tiny_dataset, run, width=4, frames=3, train_config=train_config, progress=False)
+    table = json.loads((runs[1] / "sim2real.json").read_text())
+    assert list(table) == ["bounces_0", "bounces_3"]
+    report = json.loads((runs[1] / "bounces_3" / "reality" / "metrics.json").read_text())
+    assert _same(table["bounces_3"]["reality"], report["results"]["model"]["all"])
+    assert (
+        f"| bounces_3 | {table['bounces_3']['in_domain']['range_mae_m']['mean']:.4f} |"
+        in (runs[1] / "sim2real.md").read_text()
+    )
+
+    summary = sim2real_summary(runs, tmp_path / "summary")
+    per_run = [json.loads((r / "sim2real.json").read_text())["bounces_3"]["reality"]["iou"]["mean"] for r in runs]
+    assert summary["bounces_3"]["reality"]["iou"]["mean"] == pytest.approx(np.mean(per_run))
+    assert summary["bounces_3"]["reality"]["iou"]["std"] == pytest.approx(np.std(per_run))
+    mae = [summary[v]["reality"]["range_mae_m"]["runs"] for v in ("bounces_0", "bounces_3")]
+    diffs = " | ".join(f"{b - a:+.4f}" for a, b in zip(*mae, strict=True))
+    text = (tmp_path / "summary" / "sim2real.md").read_text()
+    assert f"| bounces_3 minus bounces_0 | {diffs} |" in text and (tmp_path / "summary" / "sim2real.png").exists()
+    with pytest.raises(ValueError, match="at least two"):
+        sim2real_summary(runs[:1], tmp_path / "one")
+
+
+def test_table2_scores_every_row_on_the_same_held_out_episodes(tiny_dataset, tmp_path):
+    """K = 1, 3, 5 models and the fine-tuned K = 5 rows are scored on each case's held-out
+    episodes (those the fine-tuning never saw), and the table carries the reports' numbers."""
+    from learn.studies import TABLE2_CASES, table2
+
+    cases = tmp_path / "cases"
+    cases.mkdir()
+    for c in TABLE2_CASES:
+        (cases / c).symlink_to(tiny_dataset, target_is_directory=True)
+    rows = table2(tiny_dataset, cases, tmp_path / "t2", width=4, train_config=dataclasses.replace(QUICK, epochs=1))
+    assert list(rows) == ["K = 1", "K = 3", "K = 5", "K = 5 fine-tuned"]
+    held = torch.load(tmp_path / "t2" / "k5_finetuned_noisy" / "best.pt", weights_only=False)["dataset"]["val_episodes"]
+    k5 = json.loads((tmp_path / "t2" / "k5" / "noisy" / "metrics.json").read_text())
+    tuned = json.loads((tmp_path / "t2" / "k5_finetuned_noisy" / "eval" / "metrics.json").read_text())
+    assert k5["split"] == tuned["split"] == "episodes" and k5["windows"] == tuned["windows"] == 4 * len(held)
+    assert _same(rows["K = 5"]["noisy"], k5["results"]["model"]["all"])
+    assert f"{rows['K = 5 fine-tuned']['many']['mse']['mean']:.4f}" in (tmp_path / "t2" / "table2.md").read_text()
