@@ -94,7 +94,10 @@ class Sonar:
         max_bounces: Secondary reflections after the first (0 = first-order echoes only, <= 10).
         ray_count: Rays per ping used to discover reflection sequences (front hemisphere; a
             baffled emitter radiates nothing backwards).
-        table_size: Distinct reflection sequences kept per ping (power of two).
+        table_size: Slots per ping for the distinct reflection sequences the rays discover (power
+            of two). A ping that overflows it is traced again with twice the slots, up to twice
+            the most sequences its rays can find, so no echo is lost; a larger table only saves
+            those retries.
         scattering: Trace scattered (diffuse) arrivals as well as specular ones.
         edge_width_m: Band along sharp mesh edges (> 20 deg) that scatters everything it reflects,
             a simple stand-in for edge diffraction; default half a wavelength at the call's centre
@@ -167,12 +170,13 @@ class Sonar:
         """
         poses = check_poses(poses)
         parts = []
-        for start in range(0, len(poses), batch):
-            echoes = self._trace_batch(scene, poses[start : start + batch])
+        for index, keep, echoes in self._traced(scene, poses, batch):
             found = echoes.arrivals(self.config.atmosphere.speed_of_sound)
-            found.pose_index += start
+            found = found.select(keep[found.pose_index])
+            found.pose_index = index[found.pose_index]
             parts.append(found)
-        return concatenate(parts)
+        found = concatenate(parts)
+        return found.select(np.lexsort((found.order, found.delay_s, found.kind, found.pose_index)))
 
     def simulate(
         self,
@@ -215,22 +219,48 @@ class Sonar:
         if keep_signals:
             kept = np.empty((len(poses), self.config.microphone_count, self.config.record_samples), np.float32)
         bar = tqdm(total=len(poses), unit="ping", disable=not progress, desc="sonar")
-        for start in range(0, len(poses), batch):
-            chunk = poses[start : start + batch]
-            echoes = self._trace_batch(scene, chunk)
-            seeds = ping_seeds(seed, range(start, start + len(chunk)))
-            signals = recorder(echoes.buffers(), len(chunk), noise=noise, snr_db=snr_db, seeds=seeds)
+        for index, keep, echoes in self._traced(scene, poses, batch):
+            # Rows left out (to be traced again) are recorded too, at no extra launch, and dropped.
+            seeds = ping_seeds(seed, index)
+            signals = recorder(echoes.buffers(), len(index), noise=noise, snr_db=snr_db, seeds=seeds)
             out = former(signals)
-            images[start : start + len(chunk)] = out.numpy().reshape(len(chunk), *former.output_shape)
+            images[index[keep]] = out.numpy().reshape(len(index), *former.output_shape)[keep]
             if kept is not None:
-                kept[start : start + len(chunk)] = signals.numpy()
-            bar.update(len(chunk))
+                kept[index[keep]] = signals.numpy()[keep]
+            bar.update(int(keep.sum()))
         bar.close()
         return SonarFrames(energyscape=images, signals=kept)
 
-    def _trace_batch(self, scene: Scene, poses: np.ndarray) -> _TracedEchoes:
-        """Echoes of a batch of checked poses, left on the device."""
-        n, size = len(poses), self.table_size
+    def _traced(self, scene: Scene, poses: np.ndarray, batch: int):
+        """Trace checked poses in batches; yields (pose indices, rows to keep, echoes on the device).
+
+        A ping whose sequence table overflowed would miss echoes, and which ones would depend on
+        thread order: its row is left out and the ping traced again with twice the slots (in
+        groups that take no more memory than one batch), until it fits. Each ray adds at most
+        one sequence per order, so a table twice that size always fits in practice."""
+        most = self.ray_count * (self.max_bounces + 1)
+        limit = max(self.table_size, 1 << (2 * most - 1).bit_length())
+        budget = batch * self.table_size  # slots a batch may hold
+        todo = [(np.arange(s, min(s + batch, len(poses))), self.table_size) for s in range(0, len(poses), batch)]
+        while todo:
+            index, size = todo.pop(0)
+            echoes, dropped = self._trace_batch(scene, poses[index], size)
+            keep = dropped == 0
+            if not keep.all() and size < limit:
+                again, per = index[~keep], max(1, budget // (2 * size))
+                todo[:0] = [(again[i : i + per], 2 * size) for i in range(0, len(again), per)]
+            elif not keep.all():
+                warnings.warn(
+                    f"{dropped.sum()} reflection sequences did not fit the table of {size} per ping", stacklevel=3
+                )
+                keep[:] = True
+            if keep.any():
+                yield index, keep, echoes
+
+    def _trace_batch(self, scene: Scene, poses: np.ndarray, size: int) -> tuple[_TracedEchoes, np.ndarray]:
+        """Echoes of a batch of checked poses, left on the device, and per pose the count of
+        sequence insertions that found no slot in its table of `size`."""
+        n = len(poses)
         ws = warp_scene(scene, self.device)
         launch = functools.partial(wp.launch, device=self.device)
         with wp.ScopedDevice(self.device):
@@ -240,7 +270,7 @@ class Sonar:
             key = wp.zeros((n, size), dtype=wp.uint64)
             order = wp.zeros((n, size), dtype=wp.int32)
             planes = wp.zeros((n, size, kernels.MAX_ORDER), dtype=wp.int32)
-            overflow = wp.zeros(1, dtype=wp.int32)
+            overflow = wp.zeros(n, dtype=wp.int32)
             ray_queries = wp.zeros(n, dtype=wp.int32)
             amplitude = wp.empty((n, size), dtype=float)
             image = wp.empty((n, size), dtype=wp.vec3)
@@ -317,11 +347,6 @@ class Sonar:
             inputs=[order, image, key, image_table, image_rank],
             outputs=[amplitude],
         )
-        if (dropped := int(overflow.numpy()[0])) > 0:
-            warnings.warn(
-                f"{dropped} reflection sequences did not fit the table of {size} per ping; raise table_size",
-                stacklevel=3,
-            )
         with wp.ScopedDevice(self.device):
             specular = _SpecularEchoes(
                 source=image,
@@ -332,7 +357,8 @@ class Sonar:
                 direction=arrival_dir,
                 point=last_point,
             )
-        return _TracedEchoes(specular=specular, scattered=scattered, ray_queries=ray_queries)
+        traced = _TracedEchoes(specular=specular, scattered=scattered, ray_queries=ray_queries)
+        return traced, overflow.numpy()
 
 
 @dataclass
@@ -362,6 +388,10 @@ class _TracedEchoes:
     specular: _SpecularEchoes
     scattered: _ScatteredEchoes
     ray_queries: wp.array  # (pings,) BVH ray queries made per ping, all stages
+
+    @property
+    def pose_count(self) -> int:
+        return self.specular.amplitude.shape[0]
 
     def buffers(self) -> list[EchoBuffer]:
         return [self.specular, self.scattered]

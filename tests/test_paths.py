@@ -1,12 +1,14 @@
 """Specular path tracer against the analytic image sources of a shoebox room."""
 
 import itertools
+import warnings
 
 import numpy as np
 import pytest
 
 import acoustic_sim as sim
 import scenes
+from acoustic_sim.lidar import check_poses
 from acoustic_sim.paths import KIND_SCATTERED, KIND_SPECULAR, Sonar
 from scenes.scene import assemble, box_mesh
 
@@ -109,6 +111,33 @@ def test_trace_is_deterministic_and_batched(device):
     both = sonar.trace(room, np.stack([POSE, other]))
     np.testing.assert_array_equal(both.for_pose(1).length_m, sonar.trace(room, other).for_pose(0).length_m)
     np.testing.assert_array_equal(both.for_pose(0).length_m, sonar.trace(room, POSE).for_pose(0).length_m)
+
+
+def test_pings_that_overflow_the_sequence_table_are_traced_again_larger(device):
+    """Of three pings at a mirror box, one inside sees some 340 reflection sequences up to order
+    4, one outside facing the box a few, one outside facing away none. With 16 slots per ping
+    only the inside ping overflows, and it alone is traced again with larger tables: echoes and
+    energyscapes equal those of the default table, in any batching, with no warning."""
+    room = scenes.box_room(tuple(SIZE), wall="mirror", floor="mirror", ceiling="mirror")
+    poses = np.stack(
+        [scenes.pose(-1.0, 2.0, 0.0, 1.5), scenes.pose(0.5, 3.5, -0.8, 1.5), scenes.pose(-1.0, 2.0, np.pi, 1.5)]
+    )
+    small, large = (
+        Sonar(OMNI, max_bounces=3, ray_count=5_000, table_size=t, scattering=False, device=device) for t in (16, 32768)
+    )
+    _, dropped = small._trace_batch(room, check_poses(poses), 16)
+    assert dropped[0] == dropped[2] == 0 and dropped[1] > 0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        want, image = large.trace(room, poses), large.simulate(room, poses, absorption=False).energyscape
+        for batch in (2, 3):
+            got = small.trace(room, poses, batch=batch)
+            np.testing.assert_array_equal(got.pose_index, want.pose_index)
+            np.testing.assert_allclose(got.length_m, want.length_m, rtol=1e-6)
+            np.testing.assert_allclose(got.amplitude, want.amplitude, rtol=1e-5)
+            got_image = small.simulate(room, poses, batch=batch, absorption=False).energyscape
+            np.testing.assert_allclose(got_image, image, rtol=1e-4, atol=1e-6 * image.max())
+    assert len(want.for_pose(0)) > 0 and len(want.for_pose(1)) > 16 and len(want.for_pose(2)) == 0
 
 
 LOOKING_DOWN = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # sensor x -> world -z

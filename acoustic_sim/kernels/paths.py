@@ -180,7 +180,7 @@ def discover_sequences(
                 break
             slot = (slot + 1) & mask
         if stored == 0:
-            wp.atomic_add(overflow_out, 0, 1)
+            wp.atomic_add(overflow_out, p, 1)
         hit = origin + direction * q.t
         normal = wp.normalize(q.normal)
         side = wp.sign(wp.dot(direction, normal))
