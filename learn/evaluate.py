@@ -247,7 +247,7 @@ def report_markdown(report: dict) -> str:
             "",
             f"Inference on {t['device']}: {t['ms_per_frame_batch1']:.2f} ms per frame (batch 1), "
             f"{t['frames_per_s_batched']:,.0f} frames/s batched (medians of "
-            f"{' and '.join(map(str, t.get('timed_calls', ['?', '?'])))} timed calls).",
+            f"{' and '.join(map(str, t['timed_calls']))} timed calls).",
         ]
     lines += ["", "![sonar, LiDAR truth and prediction](examples.png)", ""]
     return "\n".join(lines)

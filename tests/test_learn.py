@@ -134,7 +134,7 @@ def _same(a: dict, b: dict) -> bool:
 
 def test_sim2real_table_matches_its_reports_and_summarises_runs(tiny_dataset, tmp_path):
     """The study's table carries the numbers of each variant's evaluation report, and the summary
-    over runs is their mean and spread with paired per-run differences. (Plumbing only: the three
+    over runs is their mean and spread with paired per-run differences. (Plumbing only: both
     'variants' here are one tiny dataset.)"""
     from learn.studies import sim2real, sim2real_summary
 
