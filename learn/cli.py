@@ -52,8 +52,9 @@ def _train(args) -> int:
         for s in shown:
             best = s["best"]
             print(
-                f"{s['out']}: best epoch {s['best_epoch']}/{s['epochs']}: SSIM {best['val_ssim']:.4f}, "
-                f"MSE {best['val_mse']:.5f}, range MAE {best['val_range_mae_m']:.3f} m; "
+                f"{s['out']}: kept epoch {s['best_epoch']} of {s['epochs']}: validation scan F1 "
+                f"{best['val_scan_f1']:.3f} at threshold {best['val_threshold']:.2f} (beam accuracy "
+                f"{best['val_beam_accuracy']:.3f}, missed {best['val_missed']:.2f}, false {best['val_false']:.2f}); "
                 f"{s['samples_per_s']:,.0f} training windows/s; {s['parameters']:,} parameters"
             )
     return 0
@@ -62,20 +63,24 @@ def _train(args) -> int:
 def _evaluate(args) -> int:
     from .evaluate import evaluate
 
-    report = evaluate(args.checkpoint, args.data, args.out, device=args.device, split=args.split)
-    model = report["results"]["model"]["all"]
-    print(
-        f"{report['windows']:,} windows: SSIM {model['ssim']['mean']:.4f}, MSE {model['mse']['mean']:.5f}, "
-        f"range MAE {model['range_mae_m']['mean']:.3f} m, Chamfer {model['chamfer_m']['mean']:.3f} m, "
-        f"IoU {model['iou']['mean']:.3f}; report in {args.out}/report.md"
+    report = evaluate(
+        args.checkpoint, args.data, args.out, device=args.device, split=args.split, threshold=args.threshold
     )
+    print(f"{report['windows']:,} windows ({report['split']} split) of {report['data']}:")
+    for name, r in report["results"].items():
+        m = r["all"]
+        print(
+            f"  {name:>12}: scan F1 {m['scan_f1']['mean']:.3f}, beam accuracy {m['beam_accuracy']['mean']:.3f}, "
+            f"missed {m['missed']['mean']:.2f}, false {m['false']['mean']:.2f}, Chamfer {m['chamfer_m']['mean']:.3f} m"
+        )
+    print(f"report: {args.out}/report.md")
     return 0
 
 
 def _predict(args) -> int:
     from .predict import predict
 
-    out = predict(args.checkpoint, args.input, args.out, device=args.device, png=args.png)
+    out = predict(args.checkpoint, args.input, args.out, device=args.device, png=args.png, threshold=args.threshold)
     print(f"wrote {out}")
     return 0
 
@@ -91,6 +96,7 @@ def _export(args) -> int:
         frames=ckpt["data_config"]["frames"],
         range_count=len(ckpt["range_m"]),
         azimuth_count=len(ckpt["azimuth_rad"]),
+        threshold=args.threshold if args.threshold is not None else ckpt.get("threshold"),
     )
     print(json.dumps(info))
     return 0
@@ -142,27 +148,42 @@ def _sim2real_summary(args) -> int:
 
 
 def _training_options(p) -> None:
-    p.add_argument("--model", default="polar_unet", choices=["paper", "polar_unet"])
-    p.add_argument("--frames", type=int, default=5, help="window length K")
-    p.add_argument("--width", type=int, default=16, help="base channels of polar_unet")
-    p.add_argument("--label", default="middle", choices=["middle", "last"], help="label frame of a window")
-    p.add_argument("--epochs", type=int, default=15)
-    p.add_argument("--batch-size", type=int, default=12)
-    p.add_argument("--lr", type=float, default=1e-4)
-    p.add_argument("--loss", default="mse", choices=["mse", "bce"])
-    p.add_argument("--patience", type=int, default=4, help="epochs without a better --monitor")
+    from .data import DataConfig
+    from .models import MODEL_NAMES, ModelConfig
+    from .train import LOSSES, MONITORS, SPLITS, TrainConfig
+
+    model, data, train = ModelConfig(), DataConfig(), TrainConfig()  # defaults come from the configs
+    p.add_argument("--model", default=model.name, choices=MODEL_NAMES, help="network")
+    p.add_argument("--frames", type=int, default=model.frames, help="window length K")
+    p.add_argument("--width", type=int, default=model.width, help="base channels of polar_unet")
+    p.add_argument("--label", default=data.label, choices=["middle", "last"], help="label frame of a window")
+    p.add_argument("--epochs", type=int, default=train.epochs, help="most epochs")
+    p.add_argument("--batch-size", type=int, default=train.batch_size, help="windows per step")
+    p.add_argument("--lr", type=float, default=train.lr, help="Adam learning rate")
+    p.add_argument("--loss", default=train.loss, choices=LOSSES, help="mse (the paper) or bce (logit models)")
+    p.add_argument("--patience", type=int, default=train.patience, help="epochs without a better --monitor")
     p.add_argument(
-        "--monitor", default="ssim", choices=["ssim", "range_mae_m"], help="validation metric for best.pt and stopping"
+        "--monitor",
+        default=train.monitor,
+        choices=list(MONITORS),
+        help="validation metric for best.pt and stopping (scan_f1 at 0.10 m; ssim is the paper's)",
     )
-    p.add_argument("--val-fraction", type=float, default=0.1)
-    p.add_argument("--split-by", default="episode", choices=["episode", "scenario"])
-    p.add_argument("--max-train-windows", type=int, default=None, help="per epoch")
-    p.add_argument("--max-val-windows", type=int, default=2000)
-    p.add_argument("--max-minutes", type=float, default=None, help="time budget per model: no epoch starts after it")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--val-fraction", type=float, default=train.val_fraction, help="share of episodes held out")
+    p.add_argument("--split-by", default=train.split_by, choices=SPLITS, help="what validation holds out whole")
+    p.add_argument("--max-train-windows", type=int, default=train.max_train_windows, help="per epoch (None: all)")
+    p.add_argument("--max-val-windows", type=int, default=train.max_val_windows, help="validated per epoch")
+    p.add_argument(
+        "--max-minutes", type=float, default=train.max_minutes, help="time budget per model: no epoch starts after it"
+    )
+    p.add_argument("--seed", type=int, default=train.seed, help="split, initialisation and batch order")
     p.add_argument("--no-amp", action="store_true", help="no bfloat16 autocast on GPUs")
     p.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
-    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument("--quiet", action="store_true", help="no progress bars (the per-epoch lines stay)")
+
+
+def _threshold_option(p) -> None:
+    help_ = "return threshold in (0, 1] (None: the checkpoint's calibrated one)"
+    p.add_argument("--threshold", type=float, default=None, help=help_)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -178,22 +199,30 @@ def build_parser() -> argparse.ArgumentParser:
     _training_options(p)
     p.set_defaults(handler=_train)
     p = sub.add_parser("evaluate", help="metrics, baselines, examples and a report", formatter_class=fmt)
-    p.add_argument("--checkpoint", required=True)
-    p.add_argument("--data", required=True)
-    p.add_argument("--out", required=True)
-    p.add_argument("--split", default="auto", choices=["auto", "val", "all"])
-    p.add_argument("--device", default="cpu")
+    p.add_argument(
+        "--checkpoint",
+        required=True,
+        action="append",
+        help="a .pt file; repeat (as NAME=PATH) to compare models side by side; the first draws the examples",
+    )
+    p.add_argument("--data", required=True, help="dataset folder")
+    p.add_argument("--out", required=True, help="report folder")
+    p.add_argument("--split", default="auto", choices=["auto", "val", "all"], help="auto: val on the training data")
+    p.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
+    _threshold_option(p)
     p.set_defaults(handler=_evaluate)
     p = sub.add_parser("predict", help="predict LiDAR images from shards or energyscapes (.npy)", formatter_class=fmt)
     p.add_argument("--checkpoint", required=True)
     p.add_argument("--input", required=True, help="dataset folder, or .npy of energyscapes (N, R, A) in time order")
     p.add_argument("--out", required=True, help=".npz to write")
     p.add_argument("--png", default=None, help="also draw the first predictions here")
-    p.add_argument("--device", default="cpu")
+    p.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
+    _threshold_option(p)
     p.set_defaults(handler=_predict)
     p = sub.add_parser("export", help="write ONNX, checked against torch", formatter_class=fmt)
     p.add_argument("--checkpoint", required=True)
     p.add_argument("--out", required=True, help=".onnx to write")
+    _threshold_option(p)
     p.set_defaults(handler=_export)
     p = sub.add_parser("table2", help="the paper's Table 2 layout on the table2 suite", formatter_class=fmt)
     p.add_argument("--train", required=True, help="training dataset (e.g. the paper suite)")

@@ -1,12 +1,16 @@
-"""Evaluation: image and physical metrics per scenario, baselines beside the model, a report.
+"""Evaluation: the scan metric and the other metrics per scenario, baselines beside the models, a report.
 
     python -m learn evaluate --checkpoint runs/unet/best.pt --data data/reality --out runs/unet/reality
+    python -m learn evaluate --checkpoint pretrained=learn/pretrained/polar_unet_k5.pt \\
+        --checkpoint "smoke run=out/run/best.pt" --data out/drive --out out/report
 
-Metrics per window (learn.metrics): MSE and SSIM of the image, per-beam range MAE [m] with the
-shares of missed and false returns, Chamfer distance [m] between predicted and true points, and
-occupancy IoU. Two baselines are scored the same way: "empty" (predicts no return anywhere:
-what SSIM and MSE give for free on sparse labels) and "echo peak" (the strongest echo of each
-beam of the label frame's energyscape, within 10 dB of the frame's peak).
+Metrics per window (learn.metrics), primary first: `scan_f1` at 0.10 m (the prediction read as a
+LiDAR scan at the model's calibrated return threshold), beam accuracy, return precision and
+recall, the range error of the true positives, missed and false returns, Chamfer distance and
+occupancy IoU; then the scan metrics at 0.05 and 0.25 m, MSE, SSIM and the column-peak range
+error (which ignores confidence). Two baselines are scored the same way: "empty" (no return
+anywhere: what SSIM and MSE give for free on sparse labels) and "echo peak" (the strongest echo
+of each beam of the label frame's energyscape, within 10 dB of the frame's peak).
 """
 
 from __future__ import annotations
@@ -21,24 +25,57 @@ import numpy as np
 import torch
 
 from .data import DataConfig, Frames, Windows, load_frames
-from .metrics import image_metrics
+from .metrics import CALIBRATION_THRESHOLDS, EXTRA_TOLERANCES_M, image_metrics, scan_f1_sweep, tolerance_suffix
 from .models import predict_image
 
 ECHO_PEAK_LEVEL = 0.75  # normalised input (40 dB floor): within 10 dB of the frame's peak
+BASELINE_THRESHOLD = 0.5  # baselines predict 0/1 images: any threshold in (0, 1] reads them alike
 
 
-def score(predict: Callable, windows: Windows, indices: np.ndarray, *, batch_size: int = 32) -> dict[str, np.ndarray]:
-    """Per-window metrics of a predictor x (B, 1, K, R, A) -> image (B, 1, R, A) in [0, 1]."""
-    per: dict[str, list] = {}
-    range_m = torch.as_tensor(windows.frames.range_m, device=windows.device)
-    azimuth_rad = torch.as_tensor(windows.frames.azimuth_rad, device=windows.device)
+def _predictions(predict: Callable, windows: Windows, indices: np.ndarray, batch_size: int):
+    """(prediction (B, R, A) float32 in [0, 1], label (B, R, A)) per batch of windows."""
     with torch.no_grad():
         for start in range(0, len(indices), batch_size):
             x, y = windows.batch(indices[start : start + batch_size])
-            pred = predict(x).float().clamp(0, 1)
-            for k, v in image_metrics(pred[:, 0], y[:, 0], range_m, azimuth_rad).items():
-                per.setdefault(k, []).append(v.detach().double().cpu().numpy())
+            yield predict(x).float().clamp(0, 1)[:, 0], y[:, 0]
+
+
+def _axes(windows: Windows) -> tuple[torch.Tensor, torch.Tensor]:
+    return (
+        torch.as_tensor(windows.frames.range_m, device=windows.device),
+        torch.as_tensor(windows.frames.azimuth_rad, device=windows.device),
+    )
+
+
+def score(
+    predict: Callable, windows: Windows, indices: np.ndarray, *, threshold: float, batch_size: int = 32
+) -> dict[str, np.ndarray]:
+    """Per-window metrics (`learn.metrics.image_metrics`) of a predictor x (B, 1, K, R, A) -> image
+    (B, 1, R, A) in [0, 1], whose cells >= threshold are returns."""
+    if not 0 < threshold <= 1:
+        raise ValueError(f"the return threshold must lie in (0, 1], got {threshold}")
+    range_m, azimuth_rad = _axes(windows)
+    per: dict[str, list] = {}
+    for pred, y in _predictions(predict, windows, indices, batch_size):
+        for k, v in image_metrics(pred, y, range_m, azimuth_rad, threshold=threshold).items():
+            per.setdefault(k, []).append(v.cpu().numpy())
     return {k: np.concatenate(v) for k, v in per.items()}
+
+
+def calibrate_threshold(
+    predict: Callable, windows: Windows, indices: np.ndarray, *, batch_size: int = 32, thresholds=CALIBRATION_THRESHOLDS
+) -> tuple[float, np.ndarray]:
+    """The return threshold with the highest mean `scan_f1` (0.10 m) over the given windows.
+
+    Returns:
+        (threshold, mean scan_f1 per threshold of `thresholds`); ties go to the lower threshold.
+    """
+    range_m, _ = _axes(windows)
+    total = torch.zeros(len(thresholds), dtype=torch.float64, device=windows.device)
+    for pred, y in _predictions(predict, windows, indices, batch_size):
+        total += scan_f1_sweep(pred, y, range_m, thresholds).sum(dim=1)
+    mean = (total / max(len(indices), 1)).cpu().numpy()
+    return float(thresholds[int(np.argmax(mean))]), mean
 
 
 def model_predictor(model, *, amp: bool = True) -> Callable:
@@ -68,7 +105,7 @@ def empty_predictor(x):
 
 
 def summarise(per: dict[str, np.ndarray], scenario: np.ndarray, names: list[str]) -> dict:
-    """Mean and std over all windows and per scenario (nan-aware)."""
+    """Mean and std over all windows and per scenario (nan-aware: range errors are nan without a true positive)."""
 
     def stats(mask):
         return {k: {"mean": _nanmean(v[mask]), "std": _nanstd(v[mask])} for k, v in per.items()} | {
@@ -120,8 +157,25 @@ def inference_timing(
     }
 
 
+def _named_checkpoints(checkpoint) -> dict[str, Path]:
+    """{name: path} from one path, a list of paths or "name=path" strings, or a dict."""
+    if isinstance(checkpoint, dict):
+        return {str(k): Path(v) for k, v in checkpoint.items()}
+    items = [checkpoint] if isinstance(checkpoint, str | Path) else list(checkpoint)
+    if len(items) == 1 and "=" not in str(items[0]):
+        return {"model": Path(items[0])}
+    named = {}
+    for item in items:
+        name, sep, path = str(item).partition("=")
+        name, path = (name, path) if sep else (Path(name).parent.name or Path(name).stem, name)
+        if name in named or name in ("echo peak", "empty"):
+            raise ValueError(f"checkpoint name {name!r} is used twice or names a baseline; give name=path")
+        named[name] = Path(path)
+    return named
+
+
 def evaluate(
-    checkpoint: str | Path,
+    checkpoint,
     data: str | Path | Frames,
     out: str | Path,
     *,
@@ -131,52 +185,49 @@ def evaluate(
     batch_size: int = 32,
     examples: int = 4,
     timing: bool = True,
+    threshold: float | None = None,
 ) -> dict:
-    """Score a checkpoint on a dataset (with baselines) and write metrics.json, per_scenario.csv,
-    examples.png and report.md into `out`. split: "all" windows, "val" (the episodes the
-    checkpoint held out, on its own training data), or "auto" (val on the training data, else all).
-    `episodes` (ids) scores those episodes only, whatever the split."""
+    """Score one or more checkpoints on a dataset (with baselines) and write metrics.json,
+    per_scenario.csv, examples.png and report.md into `out`.
+
+    Args:
+        checkpoint: A checkpoint path (reported as "model"), or several as a list of paths or
+            "name=path" strings, or a {name: path} dict. All must share the window settings
+            and grid; the first one picks the split and draws examples.png.
+        split: "all" windows, "val" (the episodes the first checkpoint held out, on its own
+            training data), or "auto" (val on the training data, else all).
+        episodes: Episode ids to score instead of a split.
+        threshold: Return threshold for every model instead of each checkpoint's calibrated one.
+    """
     from .plots import plot_examples
     from .train import load_checkpoint
 
-    model, ckpt = load_checkpoint(checkpoint, device)
+    named = _named_checkpoints(checkpoint)
+    models = {name: load_checkpoint(path, device) for name, path in named.items()}
+    first_name = next(iter(models))
+    ckpt = models[first_name][1]
     frames = data if isinstance(data, Frames) else load_frames(data)
-    if not (np.allclose(frames.range_m, ckpt["range_m"]) and np.allclose(frames.azimuth_rad, ckpt["azimuth_rad"])):
-        raise ValueError("the dataset's range/azimuth grid differs from the one the model was trained on")
+    for name, (_, c) in models.items():
+        if not (np.allclose(frames.range_m, c["range_m"]) and np.allclose(frames.azimuth_rad, c["azimuth_rad"])):
+            raise ValueError(f"the dataset's range/azimuth grid differs from the one {name!r} was trained on")
+        if c["data_config"] != ckpt["data_config"]:
+            raise ValueError(f"{name!r} reads other windows ({c['data_config']}) than {first_name!r}; compare alike")
     data_config = DataConfig(**ckpt["data_config"])
     windows = Windows(frames, data_config, device)
-    same = frames.info.get("plan_id") is not None and frames.info.get("plan_id") == ckpt["dataset"]["plan_id"]
-    if split == "auto":
-        split = "val" if same else "all"
-    if episodes is not None:
-        split = "episodes"
-        indices = np.flatnonzero(np.isin(windows.episode, np.asarray(episodes)))
-        if len(indices) == 0:
-            raise ValueError(f"none of the episodes {list(episodes)[:5]}... is in {frames.info.get('folder')}")
-    elif split == "val":
-        if not same:
-            raise ValueError("--split val needs the dataset the checkpoint was trained on")
-        indices = np.flatnonzero(np.isin(windows.episode, ckpt["dataset"]["val_episodes"]))
-    elif split == "all":
-        indices = np.arange(len(windows))
-    else:
-        raise ValueError(f"split must be auto, val or all, got {split!r}")
+    indices, split = _pick_windows(windows, ckpt, frames, split, episodes)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     scenario = windows.scenario[indices]
-    predictors = {
-        "model": model_predictor(model),
-        "echo peak": echo_peak_predictor(data_config.label_offset),
-        "empty": empty_predictor,
-    }
-    results = {}
-    for name, predict in predictors.items():
-        per = score(predict, windows, indices, batch_size=batch_size)
-        results[name] = summarise(per, scenario, frames.scenarios)
-        if name == "model":
-            model_per = per
+    predictors = {name: (model_predictor(m), return_threshold(c, threshold)) for name, (m, c) in models.items()}
+    predictors["echo peak"] = (echo_peak_predictor(data_config.label_offset), BASELINE_THRESHOLD)
+    predictors["empty"] = (empty_predictor, BASELINE_THRESHOLD)
+    results, per_window = {}, {}
+    for name, (predict, t) in predictors.items():
+        per_window[name] = score(predict, windows, indices, threshold=t, batch_size=batch_size)
+        results[name] = summarise(per_window[name], scenario, frames.scenarios)
     report = {
-        "checkpoint": str(checkpoint),
+        "checkpoints": {name: str(path) for name, path in named.items()},
+        "checkpoint": str(named[first_name]),
         "data": frames.info.get("folder"),
         "suite": frames.info.get("suite"),
         "variant": frames.info.get("variant"),
@@ -185,82 +236,159 @@ def evaluate(
         "model": ckpt["model_config"],
         "parameters": ckpt["parameters"],
         "data_config": ckpt["data_config"],
+        "thresholds": {name: t for name, (_, t) in predictors.items()},
+        "examples_from": first_name,
         "results": results,
     }
     if timing:
-        report["inference"] = inference_timing(model, windows)
+        report["inference"] = inference_timing(models[first_name][0], windows)
     (out / "metrics.json").write_text(json.dumps(report, indent=1))
     _write_per_scenario(out / "per_scenario.csv", results)
-    # Examples: the median-SSIM window of a few scenarios, so the picture is typical, not cherry-picked.
-    rows, predict = [], predictors["model"]
-    for i in np.unique(scenario)[:examples]:
-        local = np.flatnonzero(scenario == i)
-        pick = indices[local[np.argsort(model_per["ssim"][local])[len(local) // 2]]]
-        x, y = windows.batch([pick])
-        with torch.no_grad():
-            pred = predict(x).float().clamp(0, 1)
-        rows.append(
-            {
-                "title": frames.scenarios[i],
-                "sonar": x[0, 0, data_config.label_offset].cpu().numpy(),
-                "truth": y[0, 0].cpu().numpy(),
-                "pred": pred[0, 0].cpu().numpy(),
-            }
-        )
-    plot_examples(rows, frames.range_m, frames.azimuth_rad, out / "examples.png")
+    rows = _example_rows(predictors, first_name, per_window, windows, indices, frames, examples)
+    plot_examples(rows, frames.range_m, frames.azimuth_rad, out / "examples.png", threshold=predictors[first_name][1])
     (out / "report.md").write_text(report_markdown(report))
     return report
 
 
-METRICS = (("mse", "MSE", "{:.5f}"), ("ssim", "SSIM", "{:.4f}"), ("range_mae_m", "range MAE [m]", "{:.3f}"))
-METRICS += (("missed", "missed", "{:.2f}"), ("false", "false", "{:.2f}"), ("chamfer_m", "Chamfer [m]", "{:.3f}"))
-METRICS += (("iou", "IoU", "{:.3f}"),)
+def return_threshold(ckpt: dict, override: float | None = None) -> float:
+    """The return threshold to read a checkpoint's predictions at: `override`, else its calibrated one."""
+    if override is not None:
+        return float(override)
+    if "threshold" not in ckpt:
+        raise ValueError("the checkpoint has no calibrated return threshold (it predates calibration): set one")
+    return float(ckpt["threshold"])
+
+
+def _pick_windows(windows: Windows, ckpt: dict, frames: Frames, split: str, episodes) -> tuple[np.ndarray, str]:
+    same = frames.info.get("plan_id") is not None and frames.info.get("plan_id") == ckpt["dataset"]["plan_id"]
+    if split == "auto":
+        split = "val" if same else "all"
+    if episodes is not None:
+        indices = np.flatnonzero(np.isin(windows.episode, np.asarray(episodes)))
+        if len(indices) == 0:
+            raise ValueError(f"none of the episodes {list(episodes)[:5]}... is in {frames.info.get('folder')}")
+        return indices, "episodes"
+    if split == "val":
+        if not same:
+            raise ValueError("--split val needs the dataset the checkpoint was trained on")
+        return np.flatnonzero(np.isin(windows.episode, ckpt["dataset"]["val_episodes"])), split
+    if split == "all":
+        return np.arange(len(windows)), split
+    raise ValueError(f"split must be auto, val or all, got {split!r}")
+
+
+def _example_rows(predictors, name, per_window, windows, indices, frames, count) -> list[dict]:
+    """Windows at evenly spaced quantiles of the model's scan_f1 (poor to good, none cherry-picked)."""
+    f1 = per_window[name]["scan_f1"]
+    order = np.argsort(f1, kind="stable")
+    picks = sorted({int(order[round(q * (len(order) - 1))]) for q in np.linspace(0.1, 0.9, count)})
+    predict, _ = predictors[name]
+    offset = windows.config.label_offset
+    rows = []
+    for local in picks:
+        x, y = windows.batch([indices[local]])
+        with torch.no_grad():
+            pred = predict(x).float().clamp(0, 1)
+        rank = int(np.flatnonzero(order == local)[0])
+        peak = per_window["echo peak"]["scan_f1"][local]
+        rows.append(
+            {
+                "title": f"{frames.scenarios[windows.scenario[indices[local]]]}, window {int(indices[local])}",
+                "caption": f"{name}: scan_f1 {f1[local]:.2f}, beam accuracy "
+                f"{per_window[name]['beam_accuracy'][local]:.2f} (rank {rank + 1} of {len(f1)}); "
+                f"echo peak scan_f1 {peak:.2f}",
+                "sonar": x[0, 0, offset].cpu().numpy(),
+                "truth": y[0, 0].cpu().numpy(),
+                "pred": pred[0, 0].cpu().numpy(),
+            }
+        )
+    return rows
+
+
+# (key, column title, format): the primary metric first. Tables read their columns from here.
+METRICS = (
+    ("scan_f1", "scan F1 @0.10 m", "{:.3f}"),
+    ("beam_accuracy", "beam acc.", "{:.3f}"),
+    ("return_precision", "precision", "{:.3f}"),
+    ("return_recall", "recall", "{:.3f}"),
+    ("range_mae_tp_m", "range MAE of TP [m]", "{:.3f}"),
+    ("missed", "missed", "{:.2f}"),
+    ("false", "false", "{:.2f}"),
+    ("chamfer_m", "Chamfer [m]", "{:.3f}"),
+    ("iou", "IoU", "{:.3f}"),
+)
+OTHER_METRICS = (
+    *(
+        (f"{k}{tolerance_suffix(t)}", f"{label} @{t:.2f} m", "{:.3f}")
+        for t in EXTRA_TOLERANCES_M
+        for k, label in (("scan_f1", "scan F1"), ("beam_accuracy", "beam acc."))
+    ),
+    ("mse", "MSE", "{:.5f}"),
+    ("ssim", "SSIM", "{:.4f}"),
+    ("peak_range_mae_m", "peak range MAE [m] (ignores confidence)", "{:.3f}"),
+)
 
 
 def _cell(stat, fmt):
+    if not np.isfinite(stat["mean"]):
+        return "-"
     return fmt.format(stat["mean"]) + " ± " + fmt.format(stat["std"])
+
+
+def _table(rows: dict, columns, first: str) -> list[str]:
+    lines = [f"| {first} | " + " | ".join(label for _, label, _ in columns) + " |", "|---" * (len(columns) + 1) + "|"]
+    lines += [f"| {name} | " + " | ".join(_cell(r[k], f) for k, _, f in columns) + " |" for name, r in rows.items()]
+    return lines
 
 
 def report_markdown(report: dict) -> str:
     res = report["results"]
-    head = "| predictor | " + " | ".join(label for _, label, _ in METRICS) + " |"
-    rule = "|---" * (len(METRICS) + 1) + "|"
+    checkpoints = report.get("checkpoints", {"model": report["checkpoint"]})
+    thresholds = report.get("thresholds", {})
     lines = [
         f"# Evaluation: {report['model']['name']} (K = {report['data_config']['frames']}) on "
         f"{report['suite']}{' / ' + report['variant'] if report['variant'] else ''}",
         "",
-        f"{report['windows']:,} windows ({report['split']} split) of `{report['data']}`; checkpoint "
-        f"`{report['checkpoint']}` ({report['parameters']:,} parameters). Mean ± std over windows.",
+        f"{report['windows']:,} windows ({report['split']} split) of `{report['data']}`. Mean ± std over windows; "
+        "a prediction is read as a LiDAR scan: per beam the nearest cell at or above the return threshold.",
         "",
-        head,
-        rule,
+        "| predictor | checkpoint | return threshold |",
+        "|---|---|---|",
     ]
-    for name, r in res.items():
-        lines.append(f"| {name} | " + " | ".join(_cell(r["all"][k], f) for k, _, f in METRICS) + " |")
-    lines += ["", "Model per scenario:", "", head.replace("predictor", "scenario"), rule]
-    for scen, r in res["model"].items():
-        if scen != "all":
-            lines.append(f"| {scen} ({r['windows']}) | " + " | ".join(_cell(r[k], f) for k, _, f in METRICS) + " |")
+    for name in res:
+        source = f"`{checkpoints[name]}`" if name in checkpoints else "baseline"
+        lines.append(f"| {name} | {source} | {thresholds.get(name, float('nan')):.2f} |")
+    lines += ["", *_table({n: r["all"] for n, r in res.items()}, METRICS, "predictor")]
+    lines += ["", "Other tolerances and the image metrics (MSE and SSIM reward empty images on sparse labels):", ""]
+    lines += _table({n: r["all"] for n, r in res.items()}, OTHER_METRICS, "predictor")
+    first = report.get("examples_from", "model")
+    lines += ["", f"{first} per scenario (windows):", ""]
+    per = {f"{s} ({r['windows']})": r for s, r in res[first].items() if s != "all"}
+    lines += _table(per, METRICS, "scenario")
     if "inference" in report:
         t = report["inference"]
         lines += [
             "",
-            f"Inference on {t['device']}: {t['ms_per_frame_batch1']:.2f} ms per frame (batch 1), "
+            f"Inference of {first} on {t['device']}: {t['ms_per_frame_batch1']:.2f} ms per frame (batch 1), "
             f"{t['frames_per_s_batched']:,.0f} frames/s batched (medians of "
             f"{' and '.join(map(str, t['timed_calls']))} timed calls).",
         ]
-    lines += ["", "![sonar, LiDAR truth and prediction](examples.png)", ""]
+    lines += [
+        "",
+        f"`examples.png`: {first}'s predictions on windows at evenly spaced quantiles of its scan F1 (poor to "
+        "good), each row sonar input, LiDAR truth, prediction and the top-down scan.",
+        "",
+        "![sonar, LiDAR truth, prediction and top-down scan](examples.png)",
+        "",
+    ]
     return "\n".join(lines)
 
 
 def _write_per_scenario(path: Path, results: dict) -> None:
+    keys = [k for k, _, _ in METRICS + OTHER_METRICS]
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(
-            ["predictor", "scenario", "windows", *[f"{k}_{s}" for k, _, _ in METRICS for s in ("mean", "std")]]
-        )
+        writer.writerow(["predictor", "scenario", "windows", *[f"{k}_{s}" for k in keys for s in ("mean", "std")]])
         for name, r in results.items():
             for scen, stats in r.items():
-                row = [name, scen, stats["windows"]]
-                row += [stats[k][s] for k, _, _ in METRICS for s in ("mean", "std")]
-                writer.writerow(row)
+                writer.writerow([name, scen, stats["windows"], *[stats[k][s] for k in keys for s in ("mean", "std")]])

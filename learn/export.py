@@ -5,6 +5,9 @@
 The ONNX graph takes float32 energyscapes (batch, 1, K, R, A) named "energyscapes" and returns
 the model's raw output (batch, 1, R, A) named "output": the image for "image" models (clip it
 to [0, 1]), logits for "logits" models (apply a sigmoid). The batch dimension is dynamic; K, R and A are fixed.
+The file's metadata carries "output_kind" ("image" or "logits") and "return_threshold": a cell
+of the image at or above it is a return, and the nearest such cell of each azimuth column is the
+beam's range, as `learn predict` reads it.
 """
 
 from __future__ import annotations
@@ -41,6 +44,7 @@ def export_onnx(
     range_count: int = 240,
     azimuth_count: int = 181,
     check: bool = True,
+    threshold: float | None = None,
 ) -> dict:
     """Write `model` (in eval mode) as ONNX with a dynamic batch and, if `check`, compare with torch.
 
@@ -55,9 +59,11 @@ def export_onnx(
         range_count: Range bins R.
         azimuth_count: Azimuth bins A.
         check: Compare onnxruntime with torch.
+        threshold: The model's return threshold on the [0, 1] image (the checkpoint's calibrated
+            one), written to the metadata; None writes none.
 
     Returns:
-        {"path": str, "max_abs_diff": float or None (no check), "tolerance": float or None, "opset": int}.
+        {"path", "max_abs_diff" (None without a check), "tolerance", "opset", "return_threshold"}.
 
     Raises:
         ImportError: onnx, onnxruntime or onnxscript is not installed.
@@ -92,8 +98,16 @@ def export_onnx(
             expected = model(x.to(device)).float().cpu().numpy() if check else None
     finally:
         model.train(was_training)
+    metadata = {"output_kind": getattr(model, "output", "image")}
+    if threshold is not None:
+        if not 0 < threshold <= 1:
+            raise ValueError(f"the return threshold must lie in (0, 1], got {threshold}")
+        metadata["return_threshold"] = f"{threshold:g}"
+    proto = onnx.load(str(path))
+    onnx.helper.set_model_props(proto, metadata)
+    onnx.save(proto, str(path))
     onnx.checker.check_model(str(path))
-    info = {"path": str(path), "max_abs_diff": None, "tolerance": None, "opset": OPSET}
+    info = {"path": str(path), "max_abs_diff": None, "tolerance": None, "opset": OPSET, "return_threshold": threshold}
     if not check:
         return info
 

@@ -5,16 +5,19 @@ Images are (range, azimuth) with bin centres `range_m` (R,) [m], ascending, and 
 (r cos a, r sin a) (x forward, y left). Labels are 0/1 LiDAR images (1 where a return falls in
 the cell); predictions are floats in [0, 1].
 
-Image metrics: `mse`, `ssim` (equal to scikit-image's `structural_similarity`, differentiable,
-usable as a loss). Physical metrics, which read the images as scans: per-beam range error (each
-beam read at its maximum) with the shares of missed and false returns (`range_mae`), the Chamfer
-distance between the occupied cells as points (`chamfer_distance`) and the occupancy IoU
-(`occupancy_iou`). `image_metrics` computes them all; evaluation averages them per scenario
-with `nanmean`, since the physical metrics are nan where they are undefined (e.g. an empty prediction has no points).
+The primary metric reads a prediction as a LiDAR would (`scan_metrics`): each azimuth column is
+a beam whose return is the nearest cell >= the model's threshold (none if no cell reaches it),
+compared with the label's nearest return at a range tolerance. Its `scan_f1` at 0.10 m ranks
+predictors honestly: an empty or faint (below-threshold) image scores 0, however sparse the
+labels. Besides it: the Chamfer distance between the occupied cells as points (capped, so an
+empty side costs a defined penalty), occupancy IoU, and the image metrics MSE and SSIM (equal to
+scikit-image's; both reward empty images on sparse labels, so never read them alone).
+`peak_range_mae` (each beam read at its column maximum, ignoring confidence) is kept for
+comparison with older results. `image_metrics` computes them all.
 
 A label cell counts as a return at `LABEL_THRESHOLD` (labels are 0/1, so any value in (0, 1]
-gives the same answer); a predicted cell at the `threshold` argument (default 0.5).
-Every function works on any device and batch; results are float64.
+gives the same answer); a predicted cell at the `threshold` argument. Every function works on
+any device and batch; results are float64.
 """
 
 from __future__ import annotations
@@ -24,6 +27,15 @@ import torch.nn.functional as F
 
 LABEL_THRESHOLD = 0.5
 """A label cell >= this is a LiDAR return (labels are 0/1)."""
+
+SCAN_TOLERANCE_M = 0.10
+"""Range tolerance [m] of the primary `scan_f1`: a predicted return within it of the true one is correct."""
+
+EXTRA_TOLERANCES_M = (0.05, 0.25)
+"""Further tolerances [m] reported beside the primary one, under keys ending `_5cm` and `_25cm`."""
+
+CALIBRATION_THRESHOLDS = tuple(round(0.05 * i, 2) for i in range(1, 20))
+"""Return thresholds tried by threshold calibration: 0.05, 0.10, ..., 0.95."""
 
 _CDIST_CHUNK = 4096
 """Rows of a point set per `torch.cdist` call in the Chamfer distance (bounds memory)."""
@@ -101,60 +113,156 @@ def first_return_ranges(image: torch.Tensor, range_m: torch.Tensor, *, threshold
     return torch.where(hit, r[:, None], torch.inf).amin(dim=-2)
 
 
-def predicted_ranges(pred: torch.Tensor, range_m: torch.Tensor, *, threshold: float = 0.5) -> torch.Tensor:
-    """One return per beam: the range profile readout of a prediction.
+def first_return_sweep(image: torch.Tensor, range_m: torch.Tensor, thresholds) -> torch.Tensor:
+    """`first_return_ranges` at many thresholds at once.
+
+    The nearest cell >= t of a column is the first cell where the running maximum from the
+    sensor outwards reaches t; that running maximum is sorted, so one binary search per
+    threshold finds it.
 
     Args:
-        pred: Predicted image, shape (B, R, A).
+        image: Image, shape (B, R, A).
         range_m: Range bin centres [m], ascending, shape (R,).
-        threshold: A column whose maximum is >= threshold has a return.
+        thresholds: Thresholds, shape (n,).
 
     Returns:
-        Range [m] of each column's maximum (the nearest one on ties) where that maximum is
-        >= threshold, inf elsewhere, float64, shape (B, A).
+        Range [m] of the nearest cell >= each threshold, inf where there is none, float64,
+        shape (n, B, A); equal to `first_return_ranges(image, range_m, threshold=t)` for each t.
     """
-    r = _axis(range_m, pred, dim=-2, name="range_m")
-    peak, where = pred.max(dim=-2)
-    return torch.where(peak >= threshold, r[where], torch.inf)
+    r = _axis(range_m, image, dim=-2, name="range_m")
+    t = torch.as_tensor(thresholds, dtype=image.dtype, device=image.device).reshape(-1)
+    running = image.cummax(dim=-2).values.transpose(-2, -1).contiguous()  # (B, A, R), non-decreasing
+    b, a, n = running.shape[0], running.shape[1], t.numel()
+    index = torch.searchsorted(running, t.expand(b, a, n).contiguous())  # first cell >= t; R if none
+    ranges = torch.where(index < len(r), r[index.clamp(max=len(r) - 1)], torch.inf)
+    return ranges.permute(2, 0, 1)
 
 
-def range_mae(
-    pred: torch.Tensor, target: torch.Tensor, range_m: torch.Tensor, *, threshold: float = 0.5
+def scan_scores(pred_ranges: torch.Tensor, true_ranges: torch.Tensor, *, tolerance_m: float) -> dict[str, torch.Tensor]:
+    """Beam-by-beam comparison of two scans (one range or inf per beam), per scan.
+
+    Each beam is one of: a true positive (both return, |dr| <= tolerance_m), a correct empty
+    (neither returns), a missed return (only the label returns), a false return (only the
+    prediction returns), or a return at the wrong range (both return, |dr| > tolerance_m),
+    which counts against precision and recall alike. A ratio whose denominator is zero is 1
+    when prediction and label agree that there is nothing to find, else 0 (never nan), so an
+    empty prediction scores 0 on a scan with returns and 1 on an empty one.
+
+    Args:
+        pred_ranges: Predicted range per beam [m], inf = no return, shape (..., A).
+        true_ranges: True range per beam [m], inf = no return, shape (..., A).
+        tolerance_m: Largest |dr| [m] of a correct return (inclusive).
+
+    Returns:
+        float64 tensors of shape (...,): "scan_f1" (2 TP / (predicted + true returns)),
+        "beam_accuracy" ((TP + correct empties) / beams), "return_precision" (TP / predicted
+        returns), "return_recall" (TP / true returns), "range_mae_tp_m" (mean |dr| [m] over the
+        true positives; nan if there is none), "missed" (share of the true returns where the
+        prediction has none), "false" (share of the empty beams where the prediction returns),
+        "no_return" (share of all beams where the prediction has no return).
+    """
+    if pred_ranges.shape != true_ranges.shape:
+        raise ValueError(f"scans differ in shape: {tuple(pred_ranges.shape)} and {tuple(true_ranges.shape)}")
+    p, t = pred_ranges.double(), true_ranges.double()
+    has_p, has_t = torch.isfinite(p), torch.isfinite(t)
+    error = torch.where(has_p & has_t, (p - t).abs(), torch.inf)
+    tp = error <= tolerance_m + 1e-9  # bin centres differ by float rounding: 0.31 - 0.21 > 0.1
+    n_tp, n_p, n_t = tp.sum(-1).double(), has_p.sum(-1).double(), has_t.sum(-1).double()
+    n_empty = (~has_t).sum(-1).double()
+    beams = p.shape[-1]
+    return {
+        "scan_f1": _ratio(2 * n_tp, n_p + n_t, n_p + n_t == 0),
+        "beam_accuracy": (n_tp + (~has_p & ~has_t).sum(-1)) / beams,
+        "return_precision": _ratio(n_tp, n_p, n_t == 0),
+        "return_recall": _ratio(n_tp, n_t, n_p == 0),
+        "range_mae_tp_m": _share(torch.where(tp, error, 0.0).sum(-1), n_tp),
+        "missed": _ratio((has_t & ~has_p).sum(-1), n_t, False),  # nothing to miss: 0
+        "false": _ratio((has_p & ~has_t).sum(-1), n_empty, False),
+        "no_return": (~has_p).sum(-1).double() / beams,
+    }
+
+
+def scan_metrics(
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    range_m: torch.Tensor,
+    *,
+    threshold: float = 0.5,
+    tolerance_m: float = SCAN_TOLERANCE_M,
 ) -> dict[str, torch.Tensor]:
-    """Per-beam range error and the shares of missed and false returns.
+    """A prediction read as a LiDAR scan and compared beam by beam with the label's scan.
 
-    The range error reads every beam: on each column where the label has a return
-    (`first_return_ranges(target)`), the prediction's range is that of its column maximum, with
-    no threshold (an all-zero column reads as the nearest bin). So a model cannot lower its error
-    by predicting nothing where it is unsure; `missed` and `false` tell how confident it is.
+    Each azimuth column is a beam; its predicted return is the nearest cell >= threshold
+    (none if no cell reaches it), its true return the label's nearest return
+    (`first_return_ranges`). See `scan_scores` for the keys and how each beam counts.
 
     Args:
         pred: Predicted image, shape (B, R, A).
         target: Label image, shape (B, R, A).
         range_m: Range bin centres [m], ascending, shape (R,).
-        threshold: A prediction column whose maximum is >= threshold has a return (for
-            `missed` and `false` only).
+        threshold: A predicted cell >= threshold is a return (the model's calibrated threshold).
+        tolerance_m: Largest range error [m] of a correct return.
 
     Returns:
-        float64 tensors of shape (B,):
-        "mae_m": mean |range of the column maximum - true range| [m] over the label's return
-        columns; nan where the label has no return (callers average with nanmean).
-        "missed": share of the label's return columns where the prediction's maximum is below
-        threshold; nan if the label has no return.
-        "false": share of the label's empty columns where the prediction has a return; nan if
-        the label has no empty column.
+        float64 tensors of shape (B,), keys as `scan_scores`.
     """
     _check_pair(pred, target)
-    peak_range = predicted_ranges(pred, range_m, threshold=-torch.inf)
-    has_p = torch.isfinite(predicted_ranges(pred, range_m, threshold=threshold))
+    return scan_scores(
+        first_return_ranges(pred, range_m, threshold=threshold),
+        first_return_ranges(target, range_m, threshold=LABEL_THRESHOLD),
+        tolerance_m=tolerance_m,
+    )
+
+
+def scan_f1_sweep(
+    pred: torch.Tensor,
+    target: torch.Tensor,
+    range_m: torch.Tensor,
+    thresholds=CALIBRATION_THRESHOLDS,
+    *,
+    tolerance_m: float = SCAN_TOLERANCE_M,
+) -> torch.Tensor:
+    """`scan_f1` of each image at each threshold (for calibrating a model's return threshold).
+
+    Args:
+        pred: Predicted image, shape (B, R, A).
+        target: Label image, shape (B, R, A).
+        range_m: Range bin centres [m], ascending, shape (R,).
+        thresholds: Return thresholds, shape (n,).
+        tolerance_m: Largest range error [m] of a correct return.
+
+    Returns:
+        scan_f1, float64, shape (n, B).
+    """
+    _check_pair(pred, target)
+    truth = first_return_ranges(target, range_m, threshold=LABEL_THRESHOLD)
+    swept = first_return_sweep(pred, range_m, thresholds)
+    return scan_scores(swept, truth.expand_as(swept), tolerance_m=tolerance_m)["scan_f1"]
+
+
+def predicted_ranges(pred: torch.Tensor, range_m: torch.Tensor) -> torch.Tensor:
+    """Range [m] of each column's maximum (the nearest one on ties), whatever its value: (B, R, A) -> (B, A)."""
+    r = _axis(range_m, pred, dim=-2, name="range_m")
+    return r[pred.argmax(dim=-2)]
+
+
+def peak_range_mae(pred: torch.Tensor, target: torch.Tensor, range_m: torch.Tensor) -> torch.Tensor:
+    """Range error of the column peaks, which ignores confidence (kept to compare with older results).
+
+    On each column where the label has a return, |range of the prediction's column maximum -
+    true range|, with no threshold: a faint or empty prediction still "returns" at its peak (an
+    all-zero column reads as the nearest bin), so this rewards images that commit to nothing.
+    Read `scan_f1` instead.
+
+    Returns:
+        Mean error [m] over the label's return columns, float64, shape (B,); nan where the label
+        has no return.
+    """
+    _check_pair(pred, target)
     t = first_return_ranges(target, range_m, threshold=LABEL_THRESHOLD)
     has_t = torch.isfinite(t)
-    err = torch.where(has_t, (peak_range - t).abs(), 0.0).sum(dim=-1)
-    return {
-        "mae_m": _share(err, has_t.sum(dim=-1)),
-        "missed": _share((has_t & ~has_p).sum(dim=-1), has_t.sum(dim=-1)),
-        "false": _share((has_p & ~has_t).sum(dim=-1), (~has_t).sum(dim=-1)),
-    }
+    err = torch.where(has_t, (predicted_ranges(pred, range_m) - t).abs(), 0.0).sum(dim=-1)
+    return _share(err, has_t.sum(dim=-1))
 
 
 def image_points(
@@ -193,7 +301,9 @@ def chamfer_distance(
 
     With P the points of the cells pred >= threshold and T those of the label's return cells
     (`image_points`): 0.5 * (mean over p in P of min over t in T |p - t|
-    + mean over t in T of min over p in P |p - t|).
+    + mean over t in T of min over p in P |p - t|). When one side is empty the distance is
+    the penalty 2 x the largest range bin, more than any two cells of the grid are apart, so
+    predicting nothing never beats predicting something; both empty is 0.
 
     Args:
         pred: Predicted image, shape (B, R, A).
@@ -203,9 +313,10 @@ def chamfer_distance(
         threshold: A predicted cell >= threshold is a point.
 
     Returns:
-        Chamfer distance [m], float64, shape (B,); nan where P or T is empty.
+        Chamfer distance [m], float64, shape (B,); never nan.
     """
     _check_pair(pred, target)
+    penalty = 2.0 * _axis(range_m, pred, dim=-2, name="range_m").abs().max()
     out = []
     for p, t in zip(
         image_points(pred, range_m, azimuth_rad, threshold=threshold),
@@ -213,7 +324,7 @@ def chamfer_distance(
         strict=True,
     ):
         if len(p) == 0 or len(t) == 0:
-            out.append(torch.tensor(torch.nan, dtype=torch.float64, device=pred.device))
+            out.append(penalty * float(len(p) + len(t) > 0))
         else:
             out.append(0.5 * (_nearest_distance(p, t).mean() + _nearest_distance(t, p).mean()))
     return torch.stack(out)
@@ -243,8 +354,8 @@ def occupancy_iou(
         tolerance_cells: t >= 0 [cells].
 
     Returns:
-        IoU, float64, shape (B,); nan where both P and T are empty (undefined, like the
-        Chamfer distance; the "false" share of `range_mae` scores such images).
+        IoU, float64, shape (B,); 1 where both P and T are empty (they agree that there is
+        nothing), never nan.
     """
     _check_pair(pred, target)
     if tolerance_cells < 0:
@@ -258,7 +369,7 @@ def occupancy_iou(
         found = (t * _dilate(p, tolerance_cells)).sum(dim=(-2, -1))
     matched = 0.5 * (correct + found)
     union = matched + (p.sum(dim=(-2, -1)) - correct) + (t.sum(dim=(-2, -1)) - found)
-    return _share(matched, union)
+    return _ratio(matched, union, union == 0)
 
 
 def image_metrics(
@@ -270,31 +381,43 @@ def image_metrics(
     threshold: float = 0.5,
     iou_tolerance_cells: int = 0,
 ) -> dict[str, torch.Tensor]:
-    """All metrics per image, as evaluation reports them.
+    """All metrics per image, as evaluation reports them, the primary one first.
 
     Args:
         pred: Predicted image in [0, 1], shape (B, R, A).
         target: Label image (0/1), shape (B, R, A).
         range_m: Range bin centres [m], ascending, shape (R,).
         azimuth_rad: Azimuth bin centres [rad], shape (A,).
-        threshold: A predicted cell or column maximum >= threshold is a return.
+        threshold: A predicted cell >= threshold is a return (the model's calibrated threshold).
         iou_tolerance_cells: Tolerance of the IoU [cells] (see `occupancy_iou`).
 
     Returns:
-        float64 tensors of shape (B,): "mse", "ssim" (data_range 1, 7 x 7 window),
-        "range_mae_m" [m], "missed", "false" (see `range_mae`), "chamfer_m" [m] and "iou";
-        range_mae_m, missed, false, chamfer_m and iou may be nan (average with nanmean).
+        float64 tensors of shape (B,): the `scan_metrics` at 0.10 m ("scan_f1", "beam_accuracy",
+        "return_precision", "return_recall", "range_mae_tp_m", "missed", "false", "no_return"),
+        "chamfer_m" [m], "iou", the tolerance-dependent scan metrics again at 0.05 and 0.25 m
+        (keys ending "_5cm", "_25cm"), "mse", "ssim" (data_range 1, 7 x 7 window) and
+        "peak_range_mae_m" [m] (ignores confidence). Only the range errors may be nan (no true
+        positive, or no label return): average with nanmean.
     """
-    ranges = range_mae(pred, target, range_m, threshold=threshold)
-    return {
-        "mse": mse(pred, target),
-        "ssim": ssim(pred, target),
-        "range_mae_m": ranges["mae_m"],
-        "missed": ranges["missed"],
-        "false": ranges["false"],
-        "chamfer_m": chamfer_distance(pred, target, range_m, azimuth_rad, threshold=threshold),
-        "iou": occupancy_iou(pred, target, threshold=threshold, tolerance_cells=iou_tolerance_cells),
-    }
+    out = scan_metrics(pred, target, range_m, threshold=threshold)
+    out["chamfer_m"] = chamfer_distance(pred, target, range_m, azimuth_rad, threshold=threshold)
+    out["iou"] = occupancy_iou(pred, target, threshold=threshold, tolerance_cells=iou_tolerance_cells)
+    for tolerance_m in EXTRA_TOLERANCES_M:
+        extra = scan_metrics(pred, target, range_m, threshold=threshold, tolerance_m=tolerance_m)
+        out |= {f"{k}{tolerance_suffix(tolerance_m)}": extra[k] for k in TOLERANCE_KEYS}
+    out["mse"] = mse(pred, target)
+    out["ssim"] = ssim(pred, target)
+    out["peak_range_mae_m"] = peak_range_mae(pred, target, range_m)
+    return out
+
+
+TOLERANCE_KEYS = ("scan_f1", "beam_accuracy", "return_precision", "return_recall", "range_mae_tp_m")
+"""The scan metrics that depend on the range tolerance."""
+
+
+def tolerance_suffix(tolerance_m: float) -> str:
+    """Key suffix of a tolerance: 0.05 -> "_5cm"."""
+    return f"_{round(100 * tolerance_m)}cm"
 
 
 def _check_pair(pred: torch.Tensor, target: torch.Tensor) -> None:
@@ -319,6 +442,14 @@ def _share(num: torch.Tensor, den: torch.Tensor) -> torch.Tensor:
     num, den = num.double(), den.double()
     defined = den > 0
     return torch.where(defined, num / torch.where(defined, den, 1.0), torch.nan)
+
+
+def _ratio(num: torch.Tensor, den: torch.Tensor, agree) -> torch.Tensor:
+    """num / den in float64; where den == 0, 1 if `agree` (bool, or (B,)) else 0."""
+    num, den = num.double(), den.double()
+    defined = den > 0
+    fallback = torch.as_tensor(agree, device=den.device).double().expand_as(den)
+    return torch.where(defined, num / torch.where(defined, den, 1.0), fallback)
 
 
 def _nearest_distance(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -9,46 +9,167 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.ticker import MaxNLocator
+
+_FONT = {"font.size": 10, "axes.titlesize": 11, "axes.labelsize": 10, "legend.fontsize": 9}
+_NEAR_M = 0.10  # a predicted return this close to the true one (same column) is drawn as a hit
 
 
-def plot_curves(history: list[dict], out: str | Path) -> Path:
-    """Training loss and the validation metrics per epoch."""
+def plot_curves(
+    history: list[dict], out: str | Path, *, kept_epoch: int | None = None, monitor: str | None = None
+) -> Path:
+    """Training loss and the validation metrics per epoch; a panel whose keys are all absent is left out.
+
+    Args:
+        history: One dict per epoch: "epoch", "train_loss" and "val_*" metrics (any may be missing).
+        out: PNG path.
+        kept_epoch: Epoch of the kept checkpoint, marked by a dashed line on every panel.
+        monitor: Validation metric that picked `kept_epoch` (e.g. "scan_f1"), named in the title.
+    """
     epochs = [r["epoch"] for r in history]
-    panels = [("train_loss", "training loss"), ("val_ssim", "validation SSIM"), ("val_range_mae_m", "range MAE [m]")]
-    panels.append(("val_iou", "occupancy IoU"))
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 3.4))
-    for ax, (key, title) in zip(axes, panels, strict=True):
-        ax.plot(epochs, [r.get(key, np.nan) for r in history], "o-")
-        ax.set_title(title)
-        ax.set_xlabel("epoch")
-        ax.grid(alpha=0.3)
-    fig.tight_layout()
-    fig.savefig(out, dpi=90)
+    panels = [  # title, y label, ((key, label), ...)
+        ("loss", "loss", (("train_loss", "train"), ("val_loss", "validation"))),
+        (
+            "scan F1",
+            "share",
+            (
+                ("val_scan_f1", "validation F1"),
+                ("val_return_precision", "validation precision"),
+                ("val_return_recall", "validation recall"),
+            ),
+        ),
+        ("missed and false returns", "share", (("val_missed", "validation missed"), ("val_false", "validation false"))),
+        (
+            "range error",
+            "distance [m]",
+            (("val_range_mae_tp_m", "validation range MAE, true positives"), ("val_chamfer_m", "validation Chamfer")),
+        ),
+        ("return threshold", "threshold", (("val_threshold", "calibrated threshold"),)),
+    ]
+    # The loss panel always stays: train_loss is logged every epoch.
+    panels = [p for p in panels if p[0] == "loss" or any(key in r for key, _ in p[2] for r in history)]
+    pad = max(0.5, 0.02 * (max(epochs) - min(epochs)))  # one x range for all panels, even a panel with one point
+    with plt.rc_context(_FONT):
+        cols = min(3, len(panels))
+        rows = -(-len(panels) // cols)
+        fig, axes = plt.subplots(rows, cols, figsize=(6 * cols, 4 * rows), squeeze=False, layout="constrained")
+        for ax in axes.flat[len(panels) :]:
+            ax.set_visible(False)
+        marker = "o" if len(epochs) <= 40 else None  # markers clutter long runs
+        for ax, (title, ylabel, keys) in zip(axes.flat, panels, strict=False):
+            for key, label in keys:
+                values = np.array([r.get(key, np.nan) for r in history], dtype=float)
+                if np.isfinite(values).any():
+                    ax.plot(epochs, values, marker=marker, markersize=3, label=label)
+                if key == "train_loss":
+                    finite = values[np.isfinite(values)]
+                    # The first epochs' loss dwarfs the rest on a linear axis.
+                    if len(finite) and finite.min() > 0 and finite.max() > 20 * finite.min():
+                        ax.set_yscale("log")
+            if kept_epoch is not None:
+                ax.axvline(kept_epoch, color="0.3", linestyle="--", linewidth=1, label=f"kept epoch {kept_epoch}")
+            ax.set(title=title, xlabel="epoch", ylabel=ylabel, xlim=(min(epochs) - pad, max(epochs) + pad))
+            ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+            ax.grid(alpha=0.3)
+            ax.legend()
+        if kept_epoch is not None:
+            why = f" (best validation {monitor.removeprefix('val_')})" if monitor else ""
+            fig.suptitle(f"kept epoch {kept_epoch}{why}", fontsize=12)
+        fig.savefig(out, dpi=90)
     plt.close(fig)
     return Path(out)
 
 
-def _polar(ax, image, range_m, azimuth_rad, title, cmap, vmax=None):
-    az = np.rad2deg(azimuth_rad)
-    extent = (az[-1], az[0], range_m[0], range_m[-1])
-    ax.imshow(image[:, ::-1], origin="lower", aspect="auto", extent=extent, cmap=cmap, vmin=0, vmax=vmax)
-    ax.set_title(title, fontsize=9)
-    ax.set_xlabel("azimuth [deg]")
-    ax.set_ylabel("range [m]")
+def _first_return(image: np.ndarray, range_m: np.ndarray, threshold: float) -> np.ndarray:
+    """Range [m] of the nearest cell >= threshold per column of an (R, A) image, inf where none, shape (A,)."""
+    hit = np.asarray(image) >= threshold
+    return np.where(hit.any(axis=0), np.asarray(range_m)[hit.argmax(axis=0)], np.inf)
 
 
-def plot_examples(rows: list[dict], range_m, azimuth_rad, out: str | Path) -> Path:
-    """One row per example: sonar input (label frame, normalised), LiDAR truth, prediction.
+def _edges(centres: np.ndarray) -> tuple[float, float]:
+    """Outer cell edges of a uniform grid of bin centres."""
+    half = 0.5 * (centres[-1] - centres[0]) / max(len(centres) - 1, 1)
+    return centres[0] - half, centres[-1] + half
+
+
+def _polar(fig, ax, image, range_m, azimuth_rad, title, cmap, label):
+    """(R, A) image with +azimuth (left) on the left, as in the top-down view; returns the colour bar."""
+    az0, az1 = np.rad2deg(_edges(azimuth_rad))
+    r0, r1 = _edges(range_m)
+    im = ax.imshow(
+        image, origin="lower", aspect="auto", extent=(az0, az1, r0, r1), cmap=cmap, vmin=0, vmax=1, interpolation="none"
+    )
+    ax.set_xlim(az1, az0)
+    ax.set_xticks([t for t in (90, 45, 0, -45, -90) if az0 <= t <= az1])
+    ax.set(title=title, xlabel="azimuth [deg] (+ = left)", ylabel="range [m]")
+    return fig.colorbar(im, ax=ax, label=label, fraction=0.08, pad=0.02)
+
+
+def _top_down(ax, truth_r, pred_r, range_m, azimuth_rad):
+    """Sensor-frame map seen from above, x forward up the page, y left to the left."""
+    rmax = float(range_m[-1])
+    # Horizontal axis is y, inverted so that left (+y) is on the left; vertical is x.
+    arc = np.linspace(azimuth_rad[0], azimuth_rad[-1], 200)
+    for ring in np.arange(1.0, rmax + 1e-9, 1.0):  # 1 m rings; they cross the y axis at its 1 m ticks
+        ax.plot(ring * np.sin(arc), ring * np.cos(arc), color="0.8", linewidth=0.8, zorder=0)
+    for a in (azimuth_rad[0], azimuth_rad[-1]):
+        ax.plot([0, rmax * np.sin(a)], [0, rmax * np.cos(a)], "--", color="0.5", linewidth=1, zorder=0)
+    ax.plot([], [], "--", color="0.5", linewidth=1, label="field of view")
+    ax.plot(0, 0, marker="^", markersize=12, color="tab:blue", linestyle="none", zorder=4, label="robot, heading +x")
+
+    def xy(r):
+        keep = np.isfinite(r)
+        return r[keep] * np.sin(azimuth_rad[keep]), r[keep] * np.cos(azimuth_rad[keep])
+
+    with np.errstate(invalid="ignore"):  # inf - inf is nan: a column with no return on either side is no hit
+        near = np.abs(pred_r - truth_r) <= _NEAR_M
+    off = np.where(near, np.inf, pred_r)
+    hits = np.where(near, pred_r, np.inf)
+    ax.scatter(*xy(truth_r), s=14, color="black", label="LiDAR truth", zorder=2)
+    ax.scatter(
+        *xy(hits), s=9, color="tab:green", label=f"predicted scan, within {_NEAR_M:.2f} m ({near.sum()})", zorder=3
+    )
+    off_count = np.isfinite(off).sum()
+    ax.scatter(*xy(off), s=9, color="tab:red", label=f"predicted scan, off / false ({off_count})", zorder=3)
+    side = rmax * max(np.sin(np.abs(azimuth_rad)).max(), 0.2) * 1.05
+    ax.set_xlim(side, -side)
+    ax.set_ylim(min(rmax * np.cos(np.abs(azimuth_rad)).min(), 0) - 0.3, rmax * 1.05)
+    ax.set_aspect("equal")
+    ax.set_xticks(np.arange(-np.floor(side), np.floor(side) + 1))
+    ax.set(title="top view (robot heading up)", xlabel="y [m] (left +)", ylabel="x [m] (forward)")
+    # Outside, to the right: the half disc fills the axes and a legend inside would hide returns.
+    ax.legend(loc="center left", bbox_to_anchor=(1.02, 0.5), fontsize=9)
+
+
+def plot_examples(rows: list[dict], range_m, azimuth_rad, out: str | Path, *, threshold: float = 0.5) -> Path:
+    """One row per example: sonar input, LiDAR truth, prediction (polar images) and a top view of both scans.
 
     Args:
-        rows: dicts with "title", "sonar" (R, A) in [0, 1], "truth" (R, A), "pred" (R, A).
+        rows: Dicts with "title", "sonar" (R, A) normalised echo level in [0, 1] of the label frame,
+            "truth" (R, A) 0/1 LiDAR image, "pred" (R, A) return probability, optional "caption" (metrics text).
+        range_m: Range bin centres [m], ascending, shape (R,).
+        azimuth_rad: Azimuth bin centres [rad], ascending, positive left, shape (A,).
+        out: PNG path.
+        threshold: Probability at which a predicted cell counts as a return.
     """
-    fig, axes = plt.subplots(len(rows), 3, figsize=(11, 3.2 * len(rows)), squeeze=False)
-    for (a, b, c), row in zip(axes, rows, strict=True):
-        _polar(a, row["sonar"], range_m, azimuth_rad, f"sonar: {row['title']}", "magma", 1.0)
-        _polar(b, row["truth"], range_m, azimuth_rad, "LiDAR (truth)", "gray_r", 1.0)
-        _polar(c, row["pred"], range_m, azimuth_rad, "prediction", "gray_r", 1.0)
-    fig.tight_layout()
-    fig.savefig(out, dpi=80)
+    range_m, azimuth_rad = np.asarray(range_m, dtype=float), np.asarray(azimuth_rad, dtype=float)
+    with plt.rc_context(_FONT):
+        fig = plt.figure(figsize=(18, 4.2 * len(rows)), layout="constrained")
+        subfigs = np.atleast_1d(fig.subfigures(len(rows), 1))
+        for sub, row in zip(subfigs, rows, strict=True):
+            caption = f"  |  {row['caption']}" if row.get("caption") else ""
+            sub.suptitle(f"{row['title']}{caption}", fontsize=12, fontweight="bold")
+            axes = sub.subplots(1, 4, width_ratios=(1, 1, 1, 2.1))
+            echo = "echo level (0 = -40 dB, 1 = peak)"
+            _polar(sub, axes[0], row["sonar"], range_m, azimuth_rad, "sonar input", "magma", echo)
+            cbar = _polar(sub, axes[1], row["truth"], range_m, azimuth_rad, "LiDAR truth", "gray_r", "LiDAR return")
+            cbar.set_ticks([0, 1])
+            label = f"return probability (red: threshold {threshold:.2f})"
+            cbar = _polar(sub, axes[2], row["pred"], range_m, azimuth_rad, "prediction", "gray_r", label)
+            cbar.ax.axhline(threshold, color="tab:red", linewidth=2)
+            truth_r = _first_return(row["truth"], range_m, 0.5)
+            pred_r = _first_return(row["pred"], range_m, threshold)
+            _top_down(axes[3], truth_r, pred_r, range_m, azimuth_rad)
+        fig.savefig(out, dpi=90)
     plt.close(fig)
     return Path(out)

@@ -1,5 +1,9 @@
 """Run a checkpoint on dataset shards or on energyscapes from recorded signals.
 
+The .npz holds the predicted images and the scans read from them as a LiDAR would: per beam
+(azimuth column) the range of the nearest cell at or above the checkpoint's calibrated return
+threshold, inf where there is none.
+
 Recorded data: process the microphone signals with `acoustic_sim.beamform.energyscape` (same
 grid as training, one ping per frame at the training frame rate) and save the result as a
 .npy (N, R, A) in time order; every window of K consecutive frames gets a prediction.
@@ -13,7 +17,8 @@ import numpy as np
 import torch
 
 from .data import DataConfig, Frames, Windows, load_frames
-from .evaluate import model_predictor
+from .evaluate import model_predictor, return_threshold
+from .metrics import first_return_ranges
 from .train import load_checkpoint
 
 
@@ -37,24 +42,42 @@ def _frames_from_array(path: Path, ckpt: dict) -> Frames:
     )
 
 
-def predict(checkpoint, source, out, *, device: str = "cpu", batch_size: int = 32, png: str | None = None) -> Path:
-    """Predictions (windows, R, A) float16 with the label frame of each window, saved as .npz."""
+def predict(
+    checkpoint,
+    source,
+    out,
+    *,
+    device: str = "cpu",
+    batch_size: int = 32,
+    png: str | None = None,
+    threshold: float | None = None,
+) -> Path:
+    """Predictions of every window, saved as .npz: "prediction" (windows, R, A) float16 images,
+    "ranges" (windows, A) float32 scans [m] (inf = no return), "threshold", "frame" (the label
+    frame of each window), "range_m", "azimuth_rad". `threshold` overrides the checkpoint's."""
     model, ckpt = load_checkpoint(checkpoint, device)
+    threshold = return_threshold(ckpt, threshold)
+    if not 0 < threshold <= 1:
+        raise ValueError(f"the return threshold must lie in (0, 1], got {threshold}")
     source = Path(source)
     frames = _frames_from_array(source, ckpt) if source.suffix == ".npy" else load_frames(source)
     config = DataConfig(**ckpt["data_config"])
     windows = Windows(frames, config, device)
     run = model_predictor(model)
-    preds = []
+    preds, ranges = [], []
     with torch.no_grad():
         for start in range(0, len(windows), batch_size):
             x, _ = windows.batch(np.arange(start, min(start + batch_size, len(windows))))
-            preds.append(run(x).float().clamp(0, 1)[:, 0].cpu().numpy().astype(np.float16))
+            image = run(x).float().clamp(0, 1)[:, 0]
+            ranges.append(first_return_ranges(image, frames.range_m, threshold=threshold).float().cpu().numpy())
+            preds.append(image.cpu().numpy().astype(np.float16))
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(
         out,
         prediction=np.concatenate(preds),
+        ranges=np.concatenate(ranges),
+        threshold=threshold,
         frame=windows.starts + config.label_offset,
         range_m=frames.range_m,
         azimuth_rad=frames.azimuth_rad,
@@ -62,16 +85,16 @@ def predict(checkpoint, source, out, *, device: str = "cpu", batch_size: int = 3
     if png:
         from .plots import plot_examples
 
-        rows = []
-        for i in range(min(3, len(windows))):
+        images, rows = np.concatenate(preds), []
+        for i in np.unique(np.linspace(0, len(windows) - 1, 4).round().astype(int)):  # spread over the drive
             x, y = windows.batch([i])
             rows.append(
                 {
                     "title": f"frame {windows.starts[i] + config.label_offset}",
                     "sonar": x[0, 0, config.label_offset].cpu().numpy(),
                     "truth": y[0, 0].cpu().numpy(),
-                    "pred": np.concatenate(preds)[i].astype(np.float32),
+                    "pred": images[i].astype(np.float32),
                 }
             )
-        plot_examples(rows, frames.range_m, frames.azimuth_rad, png)
+        plot_examples(rows, frames.range_m, frames.azimuth_rad, png, threshold=threshold)
     return out

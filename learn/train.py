@@ -1,4 +1,4 @@
-"""Training: one readable loop (Adam, early stopping on validation SSIM), checkpoints with configs.
+"""Training: one readable loop (Adam, early stopping on validation scan F1), checkpoints with configs.
 
     python -m learn train --data data/paper --model paper --frames 5 --out runs/paper_k5
     torchrun --nproc_per_node 4 -m learn train --data data/paper --model polar_unet --out runs/unet
@@ -6,6 +6,10 @@
 Single process on CPU or one GPU, or DDP under torchrun (one process per GPU; rank 0 validates
 and writes). Mixed precision (bfloat16 autocast) on GPUs. `--folds k` trains k models, each
 validated on a fold of whole episodes it never saw, and summarises them.
+
+Every epoch the model's return threshold is calibrated on the validation windows (the one of
+`learn.metrics.CALIBRATION_THRESHOLDS` with the best mean scan F1 at 0.10 m); the metrics of
+that epoch are read at it, and the checkpoint stores it for evaluate, predict and export.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ import json
 import math
 import os
 import time
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -25,24 +30,27 @@ import torch.nn.functional as F
 from tqdm.auto import tqdm
 
 from .data import FORMAT_VERSION, DataConfig, Frames, Windows, load_frames, split_groups, validation_split
-from .evaluate import model_predictor, score
+from .evaluate import calibrate_threshold, model_predictor, score
 from .models import ModelConfig, build_model, parameter_count
 
 LOSSES = ("mse", "bce")
 SPLITS = ("episode", "scenario")
-MONITORS = {"ssim": 1.0, "range_mae_m": -1.0}  # sign that makes larger better
+MONITORS = {"scan_f1": 1.0, "beam_accuracy": 1.0, "chamfer_m": -1.0, "ssim": 1.0}  # sign: larger is better
+NO_RETURN_ALARM = 0.9
+"""Warn when the kept model predicts no return on at least this share of the validation beams."""
 
 
 @dataclass(frozen=True, kw_only=True)
 class TrainConfig:
-    """Optimisation settings (paper defaults: Adam 1e-4, batch 12, MSE, early stopping on SSIM).
+    """Optimisation settings (the paper's Adam 1e-4, batch 12 and MSE; early stopping on scan F1).
 
     Attributes:
         loss: "mse" on the predicted image (the paper) or "bce" (logit models; positives weighted
             by `pos_weight`, since returns cover ~0.5 % of the cells).
         patience: Epochs without a better validation `monitor` before stopping.
-        monitor: The validation metric that picks best.pt and stops early: "ssim" (the paper;
-            it rewards near-empty images on sparse labels) or "range_mae_m" (lower is better).
+        monitor: The validation metric that picks best.pt and stops early: "scan_f1" (at 0.10 m,
+            the default), "beam_accuracy", "chamfer_m" (lower is better) or "ssim" (the paper's;
+            it rewards near-empty images on sparse labels).
         val_fraction: Share of episodes (or scenarios, `split_by`) held out when not folding.
         max_train_windows: Training windows per epoch at most (a random subset each epoch).
         max_val_windows: Validation windows evaluated per epoch at most (a fixed subset).
@@ -57,7 +65,7 @@ class TrainConfig:
     loss: str = "mse"
     pos_weight: float = 10.0
     patience: int = 4
-    monitor: str = "ssim"
+    monitor: str = "scan_f1"
     val_fraction: float = 0.1
     split_by: str = "episode"
     seed: int = 0
@@ -121,9 +129,13 @@ def _init_distributed(device: str) -> tuple[_Dist, torch.device]:
 
 
 def validate(model, windows: Windows, indices: np.ndarray, *, amp: bool = True) -> dict[str, float]:
-    """Mean metrics of the model on the given windows (see learn.evaluate.score)."""
-    per = score(model_predictor(_unwrap(model), amp=amp), windows, indices)
-    return {k: float(np.nanmean(v)) if np.isfinite(v).any() else float("nan") for k, v in per.items()}
+    """Mean metrics of the model on the given windows (see learn.evaluate.score), read at the
+    return threshold calibrated on them ("threshold")."""
+    predict = model_predictor(_unwrap(model), amp=amp)
+    threshold, _ = calibrate_threshold(predict, windows, indices)
+    per = score(predict, windows, indices, threshold=threshold)
+    means = {k: float(np.nanmean(v)) if np.isfinite(v).any() else float("nan") for k, v in per.items()}
+    return means | {"threshold": threshold}
 
 
 def train(
@@ -218,14 +230,14 @@ def _train_one(
     sign = MONITORS[config.monitor]
     last = out / "last.pt"
     if resume and last.exists():
-        ckpt = torch.load(last, map_location=dev, weights_only=False)
+        ckpt = torch.load(last, map_location=dev, weights_only=True)
         _check_compatible(ckpt, model_config, data_config, windows)
         model.load_state_dict(ckpt["model"])
         optimizer.load_state_dict(ckpt["optimizer"])
         state = ckpt["state"]
         state.setdefault("best", state.pop("best_ssim", -math.inf))  # checkpoints from before `monitor`
     elif init_from is not None:  # fine-tuning: weights only
-        ckpt = torch.load(init_from, map_location=dev, weights_only=False)
+        ckpt = torch.load(init_from, map_location=dev, weights_only=True)
         model.load_state_dict(ckpt["model"])
     if dist_info.world > 1:
         from torch.nn.parallel import DistributedDataParallel
@@ -291,17 +303,24 @@ def _train_one(
                 "samples_per_s": len(order) * dist_info.world / train_s,
             }
             state["history"].append(row)
-            score = sign * metrics[config.monitor]
-            improved = score > state["best"]  # False for nan
+            value = sign * metrics[config.monitor]
+            improved = value > state["best"]  # False for nan
             if improved:
-                state["best"] = score
+                state["best"] = value
+                state["best_epoch"] = epoch + 1
             state["stale"] = 0 if improved else state["stale"] + 1
             state["epoch"] = epoch + 1
-            ckpt = {"model": _unwrap(model).state_dict(), "optimizer": optimizer.state_dict(), "state": state} | meta
+            tqdm.write(_epoch_line(row, config, state, improved))  # also with --quiet: logs need it
+            ckpt = {
+                "model": _unwrap(model).state_dict(),
+                "optimizer": optimizer.state_dict(),
+                "state": state,
+                "threshold": metrics["threshold"],
+            } | meta
             _atomic_save(ckpt, last)
             if improved:
                 _atomic_save(ckpt, out / "best.pt")
-            _write_history(out, state["history"])
+            _write_history(out, state["history"], state.get("best_epoch"), config.monitor)
             out_of_time = config.max_minutes is not None and time.perf_counter() - started > 60 * config.max_minutes
             stop[0] = float(state["stale"] >= config.patience or out_of_time)
         else:
@@ -324,8 +343,36 @@ def _train_one(
             "train_windows": len(train_idx),
             "val_windows": len(val_idx),
         } | {k: meta[k] for k in ("model_config", "data_config", "train_config", "parameters", "dataset")}
+        summary["threshold"] = best["val_threshold"]
         (out / "summary.json").write_text(json.dumps(summary, indent=1))
+        _warn_if_silent(best, out)
     return summary
+
+
+def _epoch_line(row: dict, config: TrainConfig, state: dict, improved: bool) -> str:
+    """One line per epoch: what the validation windows say, and whether this epoch is kept."""
+    kept = "kept" if improved else f"not better for {state['stale']} (best: epoch {state.get('best_epoch', '-')})"
+    line = (
+        f"epoch {row['epoch']}/{config.epochs}: train loss {row['train_loss']:.4g} | val scan F1 "
+        f"{row['val_scan_f1']:.3f} (precision {row['val_return_precision']:.2f}, "
+        f"recall {row['val_return_recall']:.2f}, missed {row['val_missed']:.2f}, false {row['val_false']:.2f}) "
+        f"at threshold {row['val_threshold']:.2f}"
+    )
+    if config.monitor != "scan_f1":
+        line += f", {config.monitor} {row[f'val_{config.monitor}']:.4g}"
+    return f"{line} | {kept}"
+
+
+def _warn_if_silent(best: dict, out: Path) -> None:
+    """A model that predicts no return almost anywhere looks fine on MSE and SSIM: say so loudly."""
+    share = best["val_no_return"]
+    if share >= NO_RETURN_ALARM:
+        warnings.warn(
+            f"{out}: the kept model (epoch {best['epoch']}) predicts no return on {share:.0%} of the validation "
+            f"beams even at its best threshold {best['val_threshold']:.2f} (scan F1 {best['val_scan_f1']:.3f}): it "
+            "has not learnt to place walls. Train longer, on more data, or with --loss bce.",
+            stacklevel=3,
+        )
 
 
 def _check_compatible(ckpt: dict, model_config, data_config, windows) -> None:
@@ -343,14 +390,14 @@ def _atomic_save(obj, path: Path) -> None:
     tmp.replace(path)
 
 
-def _write_history(out: Path, history: list[dict]) -> None:
+def _write_history(out: Path, history: list[dict], kept_epoch: int | None, monitor: str) -> None:
     with open(out / "history.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(history[0]))
         writer.writeheader()
         writer.writerows(history)
     from .plots import plot_curves
 
-    plot_curves(history, out / "curves.png")
+    plot_curves(history, out / "curves.png", kept_epoch=kept_epoch, monitor=monitor)
 
 
 def _write_fold_summary(out: Path, results: list[dict]) -> None:
@@ -368,10 +415,26 @@ def load_checkpoint(path: str | Path, device: str = "cpu"):
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {path} does not exist")
-    ckpt = torch.load(path, map_location=device, weights_only=False)
-    if ckpt.get("dataset", {}).get("format_version") != FORMAT_VERSION:
-        raise ValueError(f"{path} was trained on dataset format {ckpt.get('dataset', {}).get('format_version')}")
+    try:
+        ckpt = torch.load(path, map_location=device, weights_only=True)  # a checkpoint is untrusted: no pickled code
+    except Exception as err:
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise ValueError(f"{path} is not a checkpoint this learner can read safely: {first}") from None
+    if not isinstance(ckpt, dict) or ckpt.get("dataset", {}).get("format_version") != FORMAT_VERSION:
+        version = ckpt.get("dataset", {}).get("format_version") if isinstance(ckpt, dict) else None
+        raise ValueError(f"{path} is not a learn checkpoint for dataset format {FORMAT_VERSION} (found {version})")
     model = build_model(ModelConfig(**ckpt["model_config"])).to(device)
     model.load_state_dict(ckpt["model"])
     model.eval()
     return model, ckpt
+
+
+def strip_checkpoint(src: str | Path, dst: str | Path) -> Path:
+    """Copy a checkpoint without its optimizer state (a third of the size): for shipping a model
+    that is used, not trained further."""
+    ckpt = torch.load(src, map_location="cpu", weights_only=True)
+    ckpt.pop("optimizer", None)
+    dst = Path(dst)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    _atomic_save(ckpt, dst)
+    return dst

@@ -88,7 +88,7 @@ def test_train_checkpoint_resume_and_evaluate(tiny_dataset, tmp_path):
     report = evaluate(run / "best.pt", tiny_dataset, run / "eval", timing=False)
     assert report["split"] == "val" and set(report["results"]) == {"model", "echo peak", "empty"}
     assert np.isfinite(report["results"]["model"]["all"]["ssim"]["mean"])
-    assert (run / "eval" / "examples.png").exists() and "range MAE" in (run / "eval" / "report.md").read_text()
+    assert (run / "eval" / "examples.png").exists() and "scan F1 @0.10 m" in (run / "eval" / "report.md").read_text()
     one = evaluate(run / "best.pt", tiny_dataset, run / "one", episodes=[1], timing=False, examples=1)
     assert one["split"] == "episodes" and one["windows"] == 6  # one 8-frame episode, K = 3
     with pytest.raises(ValueError, match="none of the episodes"):
@@ -113,16 +113,19 @@ def test_ddp_under_torchrun_on_cpu(tiny_dataset, tmp_path):
     assert summary["epochs"] == 1
 
 
-def test_monitor_picks_best_checkpoint_by_range_error(tiny_dataset, tmp_path):
-    """With monitor="range_mae_m" best.pt is the epoch of the lowest validation range error."""
-    config = dataclasses.replace(QUICK, epochs=3, monitor="range_mae_m", patience=3)
+def test_monitor_picks_best_checkpoint_by_chamfer(tiny_dataset, tmp_path):
+    """With monitor="chamfer_m" best.pt is the epoch of the lowest validation Chamfer distance,
+    and it stores that epoch's calibrated threshold."""
+    config = dataclasses.replace(QUICK, epochs=3, monitor="chamfer_m", patience=3)
     summary = train(
         tiny_dataset, tmp_path / "run", model_config=MODEL, data_config=DATA, train_config=config, progress=False
     )
     rows = [line.split(",") for line in (tmp_path / "run" / "history.csv").read_text().strip().splitlines()]
-    mae = [float(r[rows[0].index("val_range_mae_m")]) for r in rows[1:]]
-    assert summary["best_epoch"] == 1 + int(np.argmin(mae))
-    assert torch.load(tmp_path / "run" / "best.pt", weights_only=False)["state"]["epoch"] == summary["best_epoch"]
+    chamfer = [float(r[rows[0].index("val_chamfer_m")]) for r in rows[1:]]
+    assert summary["best_epoch"] == 1 + int(np.argmin(chamfer))
+    best = torch.load(tmp_path / "run" / "best.pt", weights_only=True)
+    assert best["state"]["epoch"] == summary["best_epoch"]
+    assert best["threshold"] == float(rows[summary["best_epoch"]][rows[0].index("val_threshold")])
     with pytest.raises(ValueError, match="monitor"):
         TrainConfig(monitor="iou")
 
@@ -152,7 +155,7 @@ def test_sim2real_table_matches_its_reports_and_summarises_runs(tiny_dataset, tm
     report = json.loads((runs[1] / "bounces_3" / "reality" / "metrics.json").read_text())
     assert _same(table["bounces_3"]["reality"], report["results"]["model"]["all"])
     assert (
-        f"| bounces_3 | {table['bounces_3']['in_domain']['range_mae_m']['mean']:.4f} |"
+        f"| bounces_3 | {table['bounces_3']['in_domain']['scan_f1']['mean']:.4f} |"
         in (runs[1] / "sim2real.md").read_text()
     )
 
@@ -160,8 +163,8 @@ def test_sim2real_table_matches_its_reports_and_summarises_runs(tiny_dataset, tm
     per_run = [json.loads((r / "sim2real.json").read_text())["bounces_3"]["reality"]["iou"]["mean"] for r in runs]
     assert summary["bounces_3"]["reality"]["iou"]["mean"] == pytest.approx(np.mean(per_run))
     assert summary["bounces_3"]["reality"]["iou"]["std"] == pytest.approx(np.std(per_run))
-    mae = [summary[v]["reality"]["range_mae_m"]["runs"] for v in ("bounces_0", "bounces_3")]
-    diffs = " | ".join(f"{b - a:+.4f}" for a, b in zip(*mae, strict=True))
+    f1 = [summary[v]["reality"]["scan_f1"]["runs"] for v in ("bounces_0", "bounces_3")]
+    diffs = " | ".join(f"{b - a:+.4f}" for a, b in zip(*f1, strict=True))
     text = (tmp_path / "summary" / "sim2real.md").read_text()
     assert f"| bounces_3 minus bounces_0 | {diffs} |" in text and (tmp_path / "summary" / "sim2real.png").exists()
     with pytest.raises(ValueError, match="at least two"):
@@ -179,9 +182,11 @@ def test_table2_scores_every_row_on_the_same_held_out_episodes(tiny_dataset, tmp
         (cases / c).symlink_to(tiny_dataset, target_is_directory=True)
     rows = table2(tiny_dataset, cases, tmp_path / "t2", width=4, train_config=dataclasses.replace(QUICK, epochs=1))
     assert list(rows) == ["K = 1", "K = 3", "K = 5", "K = 5 fine-tuned"]
-    held = torch.load(tmp_path / "t2" / "k5_finetuned_noisy" / "best.pt", weights_only=False)["dataset"]["val_episodes"]
+    held = torch.load(tmp_path / "t2" / "k5_finetuned_noisy" / "best.pt", weights_only=True)["dataset"]["val_episodes"]
     k5 = json.loads((tmp_path / "t2" / "k5" / "noisy" / "metrics.json").read_text())
     tuned = json.loads((tmp_path / "t2" / "k5_finetuned_noisy" / "eval" / "metrics.json").read_text())
     assert k5["split"] == tuned["split"] == "episodes" and k5["windows"] == tuned["windows"] == 4 * len(held)
     assert _same(rows["K = 5"]["noisy"], k5["results"]["model"]["all"])
-    assert f"{rows['K = 5 fine-tuned']['many']['mse']['mean']:.4f}" in (tmp_path / "t2" / "table2.md").read_text()
+    text = (tmp_path / "t2" / "table2.md").read_text()
+    assert f"{rows['K = 5 fine-tuned']['many']['mse']['mean']:.4f}" in text
+    assert text.index("scan F1") < text.index("MSE") and f"{rows['K = 1']['minimal']['scan_f1']['mean']:.4f}" in text

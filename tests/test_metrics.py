@@ -13,14 +13,19 @@ from skimage.metrics import structural_similarity
 
 from learn import metrics
 from learn.metrics import (
+    CALIBRATION_THRESHOLDS,
     chamfer_distance,
     first_return_ranges,
+    first_return_sweep,
     image_metrics,
     image_points,
     mse,
     occupancy_iou,
+    peak_range_mae,
     predicted_ranges,
-    range_mae,
+    scan_f1_sweep,
+    scan_metrics,
+    scan_scores,
     ssim,
 )
 
@@ -127,7 +132,8 @@ def test_first_return_ranges_by_hand(dev):
 
 def test_predicted_ranges_by_hand(dev):
     """Column 0 peaks (0.9) at row 2 -> 2.0 m although row 1 (0.6) is nearer; column 1's maximum
-    0.45 at row 4 is below 0.5 -> inf, but 3.0 m with threshold 0.4; column 2 is 0.5 at row 4 -> 3.0 m."""
+    0.45 at row 4 -> 3.0 m (no threshold: the peak counts whatever its value); column 2 is 0.5 at
+    row 4 -> 3.0 m. The nearest cell >= 0.5 instead: 1.5 m, none, 3.0 m."""
     pred = t(
         [
             [
@@ -140,18 +146,16 @@ def test_predicted_ranges_by_hand(dev):
         ],
         dev,
     )
-    assert predicted_ranges(pred, f64(RANGE_5, dev)).cpu().tolist() == [[2.0, INF, 3.0]]
-    assert predicted_ranges(pred, RANGE_5, threshold=0.4).cpu().tolist() == [[2.0, 3.0, 3.0]]
+    assert predicted_ranges(pred, f64(RANGE_5, dev)).cpu().tolist() == [[2.0, 3.0, 3.0]]
     assert first_return_ranges(pred, RANGE_5).cpu().tolist() == [[1.5, INF, 3.0]]
 
 
-def test_range_mae_by_hand(dev):
+def test_peak_range_mae_by_hand(dev):
     """Ranges 0.21 .. 4.99 m in 2 cm bins, 4 beams. Image 0: label returns at rows 10, 20, none,
-    5; prediction peaks at row 12 (2 bins = 0.04 m off), row 20 (exact), row 3 (0.8: a false
-    return) and 0.3 at row 5 in the last column (exact range, but below 0.5: missed):
-    mae = (0.04 + 0 + 0) / 3, missed = 1/3, false = 1/1. Image 1: same label, empty prediction:
-    every column reads as the nearest bin (0.21 m): mae = (0.2 + 0.4 + 0.1) / 3, missed 1,
-    false 0. Image 2: empty label and prediction: mae nan, missed nan (no label return), false 0."""
+    5; prediction peaks at row 12 (0.04 m off), row 20 (exact), row 3 (no label return: not
+    scored) and 0.3 at row 5 (exact: the peak counts whatever its value) -> (0.04 + 0 + 0) / 3.
+    Image 1: same label, empty prediction: every column reads as the nearest bin (0.21 m) ->
+    (0.2 + 0.4 + 0.1) / 3. Image 2: empty label -> nan."""
     range_m = 0.21 + 0.02 * np.arange(240)
     target = torch.zeros(3, 240, 4, device=dev)
     target[:2, 10, 0] = target[:2, 20, 1] = target[:2, 5, 3] = 1.0
@@ -160,14 +164,130 @@ def test_range_mae_by_hand(dev):
     pred[0, 20, 1] = 0.7
     pred[0, 3, 2] = 0.8
     pred[0, 5, 3] = 0.3
-    got = range_mae(pred, target, f64(range_m, dev))
-    assert all(v.shape == (3,) and v.dtype == torch.float64 for v in got.values())
-    np.testing.assert_allclose(got["mae_m"].cpu().numpy(), [0.04 / 3, 0.7 / 3, np.nan], atol=1e-12)
-    np.testing.assert_allclose(got["missed"].cpu().numpy(), [1 / 3, 1.0, np.nan], atol=1e-12)
-    np.testing.assert_allclose(got["false"].cpu().numpy(), [1.0, 0.0, 0.0], atol=1e-12)
-    # A lower threshold turns the missed beam into a hit; the range error does not depend on it.
-    low = range_mae(pred[:1], target[:1], range_m, threshold=0.25)
-    np.testing.assert_allclose([low["mae_m"].item(), low["missed"].item()], [0.04 / 3, 0.0], atol=1e-12)
+    got = peak_range_mae(pred, target, f64(range_m, dev))
+    assert got.shape == (3,) and got.dtype == torch.float64
+    np.testing.assert_allclose(got.cpu().numpy(), [0.04 / 3, 0.7 / 3, np.nan], atol=1e-12)
+
+
+def test_scan_scores_by_hand(dev):
+    """Eight beams, predicted / true range [m] (inf = no return), tolerance 0.10 m:
+    0: 1.00 / 1.05 true positive (0.05); 1: 2.00 / 2.30 wrong range (both return, 0.30 off);
+    2: none / 1.00 missed; 3: 3.00 / none false; 4: none / none correct empty;
+    5: 1.50 / 1.50 true positive (0); 6: 4.00 / 4.08 true positive (0.08); 7: none / 2.00 missed.
+    TP 3 of 5 predicted and 6 true returns: F1 2 * 3 / 11, precision 3/5, recall 3/6, beam
+    accuracy (3 + 1) / 8, range error of TP (0.05 + 0 + 0.08) / 3, missed 2/6, false 1 of the 2
+    empty beams, no return on 3 of 8 beams. At 0.05 m (inclusive) beam 6 drops out: TP 2."""
+    pred = f64([[1.00, 2.00, INF, 3.00, INF, 1.50, 4.00, INF]], dev)
+    true = f64([[1.05, 2.30, 1.00, INF, INF, 1.50, 4.08, 2.00]], dev)
+    got = scan_scores(pred, true, tolerance_m=0.10)
+    want = {
+        "scan_f1": 6 / 11,
+        "beam_accuracy": 4 / 8,
+        "return_precision": 3 / 5,
+        "return_recall": 3 / 6,
+        "range_mae_tp_m": 0.13 / 3,
+        "missed": 2 / 6,
+        "false": 1 / 2,
+        "no_return": 3 / 8,
+    }
+    assert list(got) == list(want) and all(v.shape == (1,) and v.dtype == torch.float64 for v in got.values())
+    for k, v in want.items():
+        np.testing.assert_allclose(got[k].item(), v, atol=1e-12, err_msg=k)
+    tight = scan_scores(pred, true, tolerance_m=0.05)
+    np.testing.assert_allclose(
+        [tight[k].item() for k in ("scan_f1", "return_precision", "return_recall", "range_mae_tp_m")],
+        [4 / 11, 2 / 5, 2 / 6, 0.05 / 2],
+        atol=1e-12,
+    )
+
+
+def test_scan_scores_when_a_side_is_empty(dev):
+    """Scans of 3 beams. Both empty: they agree, every ratio is 1, nothing missed or false, no
+    true positive so no range error (nan). Empty prediction on returns: 0 everywhere, all
+    missed. Returns on an empty label: 0, all false."""
+    pred = f64([[INF] * 3, [INF] * 3, [1.0, 2.0, INF]], dev)
+    true = f64([[INF] * 3, [1.0, 2.0, 3.0], [INF] * 3], dev)
+    got = {k: v.cpu().numpy() for k, v in scan_scores(pred, true, tolerance_m=0.1).items()}
+    np.testing.assert_allclose(got["scan_f1"], [1, 0, 0])
+    np.testing.assert_allclose(got["return_precision"], [1, 0, 0])
+    np.testing.assert_allclose(got["return_recall"], [1, 0, 0])
+    np.testing.assert_allclose(got["beam_accuracy"], [1, 0, 1 / 3])
+    np.testing.assert_allclose(got["missed"], [0, 1, 0])
+    np.testing.assert_allclose(got["false"], [0, 0, 2 / 3])
+    np.testing.assert_allclose(got["no_return"], [1, 1, 1 / 3])
+    assert np.isnan(got["range_mae_tp_m"]).all()
+
+
+def _room_scan(azimuth_rad: np.ndarray) -> np.ndarray:
+    """Ranges [m] from a sensor at (1.0, 0.3) heading +x to the walls of the room
+    x in [0, 5.5], y in [-1.2, 2.0] (behind the sensor: the wall at x = 0)."""
+    c, s = np.cos(azimuth_rad), np.sin(azimuth_rad)
+    with np.errstate(divide="ignore"):
+        to_x = np.where(c > 1e-9, (5.5 - 1.0) / c, np.where(c < -1e-9, -1.0 / c, np.inf))
+        to_y = np.where(s > 1e-9, (2.0 - 0.3) / s, np.where(s < -1e-9, (-1.2 - 0.3) / s, np.inf))
+    return np.minimum(to_x, to_y)
+
+
+def test_scan_f1_ranks_baselines_that_game_other_metrics(dev):
+    """A room seen on the 240 x 181 grid. scan F1 at 0.10 m orders: the empty image and a faint copy
+    of the truth (0.4 everywhere the truth is 1, below the 0.5 threshold) score 0; the truth
+    shifted 0.2 m outwards scores 0 too (every return is off by more than the tolerance) but
+    ~1 at 0.25 m; an echo-peak readout (the true wall on the 40 beams facing a wall within
+    +-20 deg of its normal, where a specular echo returns, and a floor echo at 0.6 m on the others)
+    lies strictly between; the truth scores 1. The faint copy is what the column-peak range error
+    cannot see: it scores a perfect 0 there."""
+    range_m = 0.21 + 0.02 * np.arange(240)
+    azimuth_rad = np.deg2rad(np.arange(-90, 91))
+    true_r = _room_scan(azimuth_rad)
+    rows = np.searchsorted(range_m - 0.01, true_r) - 1
+    inside = true_r < range_m[-1]
+    truth = np.zeros((240, 181))
+    truth[rows[inside], np.flatnonzero(inside)] = 1.0
+    facing = np.abs(azimuth_rad) < np.deg2rad(20)  # the far wall's normal points at the sensor
+    facing |= np.abs(azimuth_rad - np.pi / 2) < np.deg2rad(20)  # the left wall
+    peak_rows = np.where(facing & inside, rows, np.searchsorted(range_m, 0.6))
+    echo_peak = np.zeros((240, 181))
+    echo_peak[peak_rows, np.arange(181)] = 1.0
+    shifted = np.roll(truth, 10, axis=0)
+    shifted[:10] = 0
+    images = {"empty": np.zeros_like(truth), "faint": 0.4 * truth, "shifted": shifted}
+    images |= {"echo peak": echo_peak, "truth": truth}
+    pred = t(np.stack(list(images.values())), dev)
+    target = t(np.broadcast_to(truth, pred.shape).copy(), dev)
+    f1 = dict(zip(images, scan_metrics(pred, target, f64(range_m, dev))["scan_f1"].tolist(), strict=True))
+    assert f1["empty"] == f1["faint"] == f1["shifted"] == 0.0
+    assert 0.1 < f1["echo peak"] < 0.9 and f1["truth"] == 1.0
+    loose = scan_metrics(pred, target, range_m, tolerance_m=0.25)["scan_f1"].tolist()
+    assert loose[2] > 0.95 > loose[3]  # shifted by 0.2 m: within 0.25 m
+    peak = peak_range_mae(pred, target, range_m).tolist()
+    assert peak[1] == 0.0 and peak[0] > 1.0  # faint copy "perfect" by the column peak
+
+
+def test_scan_reads_the_nearest_cell_at_the_threshold(dev):
+    """A column with 0.6 at 1.5 m and 0.9 at 2.0 m returns at 1.5 m (the nearest cell >= 0.5,
+    as a LiDAR's first return), not at the peak; at threshold 0.7 it returns at 2.0 m."""
+    pred = torch.zeros(1, 5, 1, device=dev)
+    pred[0, 1, 0], pred[0, 2, 0] = 0.6, 0.9
+    target = torch.zeros(1, 5, 1, device=dev)
+    target[0, 2, 0] = 1.0
+    assert scan_metrics(pred, target, RANGE_5)["scan_f1"].item() == 0.0
+    assert scan_metrics(pred, target, RANGE_5, threshold=0.7)["scan_f1"].item() == 1.0
+
+
+def test_threshold_sweep_equals_scan_metrics_at_each_threshold(dev):
+    """first_return_sweep and scan_f1_sweep (one binary search per threshold) equal
+    first_return_ranges and scan_metrics evaluated threshold by threshold, on random images."""
+    rng = np.random.default_rng(6)
+    range_m = f64(0.21 + 0.02 * np.arange(60), dev)
+    pred = t(rng.random((3, 60, 25)) ** 4, dev)
+    target = t(rng.random((3, 60, 25)) < 0.03, dev)
+    swept = first_return_sweep(pred, range_m, CALIBRATION_THRESHOLDS)
+    f1 = scan_f1_sweep(pred, target, range_m)
+    assert swept.shape == (19, 3, 25) and f1.shape == (19, 3)
+    for i, thr in enumerate(CALIBRATION_THRESHOLDS):
+        torch.testing.assert_close(swept[i], first_return_ranges(pred, range_m, threshold=thr))
+        torch.testing.assert_close(f1[i], scan_metrics(pred, target, range_m, threshold=thr)["scan_f1"])
+    assert len(set(f1[:, 0].tolist())) > 3  # the thresholds matter on these images
 
 
 def test_image_points_by_hand(dev):
@@ -186,7 +306,7 @@ def test_chamfer_by_hand(dev):
     pred -> label distances 0 and sqrt 2, label -> pred 0: 0.5 * sqrt(2) / 2 = sqrt(2) / 4.
     Image 2: label (1.04 m, -90 deg) = (0, -1.04) and (1.08 m, 0) = (1.08, 0), prediction
     (1.02 m, 0): pred -> label 0.06, label -> pred (sqrt(1.02^2 + 1.04^2) + 0.06) / 2.
-    Image 3: empty prediction -> nan."""
+    Image 3: empty prediction -> the penalty 2 x 1.08 m (more than any two cells are apart)."""
     range_m = [1.0, 1.02, 1.04, 1.06, 1.08]
     target = torch.zeros(4, 5, 3, device=dev)
     pred = torch.zeros(4, 5, 3, device=dev)
@@ -196,11 +316,13 @@ def test_chamfer_by_hand(dev):
     target[3, 0, 1] = 1.0
     pred[3, 0, 1] = 0.4  # below the threshold
     got = chamfer_distance(pred, target, f64(range_m, dev), f64(AZIMUTH_3, dev))
-    want = [0.04, math.sqrt(2) / 4, 0.5 * (0.06 + (math.hypot(1.02, 1.04) + 0.06) / 2), np.nan]
+    want = [0.04, math.sqrt(2) / 4, 0.5 * (0.06 + (math.hypot(1.02, 1.04) + 0.06) / 2), 2.16]
     assert got.shape == (4,) and got.dtype == torch.float64
     np.testing.assert_allclose(got.cpu().numpy(), want, atol=1e-12)
-    swapped = chamfer_distance(target[:3], pred[:3], range_m, AZIMUTH_3)
-    np.testing.assert_allclose(swapped.cpu().numpy(), want[:3], atol=1e-12)
+    swapped = chamfer_distance(target, pred, range_m, AZIMUTH_3)
+    np.testing.assert_allclose(swapped.cpu().numpy(), want, atol=1e-12)
+    empty = torch.zeros(1, 5, 3, device=dev)
+    assert chamfer_distance(empty, empty, range_m, AZIMUTH_3).item() == 0.0
 
 
 def test_chamfer_matches_numpy_bruteforce(dev, monkeypatch):
@@ -231,7 +353,7 @@ def test_iou_by_hand(dev):
     t = 0: |P & T| = 1, |P | T| = 4 -> 1/4.
     t = 1: correct P = (0,0), (1,1) (next to both T cells); (3,3) is 2 cells from (2,1) -> 2 of 3;
     found T = both -> matched (2 + 2) / 2 = 2, union 2 + 1 + 0 = 3 -> 2/3.
-    t = 2: every cell matched -> 1. Batch images 1 and 2: P empty -> 0; both empty -> nan."""
+    t = 2: every cell matched -> 1. Batch images 1 and 2: P empty -> 0; both empty -> 1 (they agree)."""
     pred = torch.zeros(3, 4, 4, device=dev)
     target = torch.zeros(3, 4, 4, device=dev)
     pred[0, 0, 0] = pred[0, 1, 1] = pred[0, 3, 3] = 0.7
@@ -241,7 +363,7 @@ def test_iou_by_hand(dev):
     for tol, first in [(0, 1 / 4), (1, 2 / 3), (2, 1.0)]:
         got = occupancy_iou(pred, target, tolerance_cells=tol)
         assert got.shape == (3,) and got.dtype == torch.float64
-        np.testing.assert_allclose(got.cpu().numpy(), [first, 0.0, np.nan], atol=1e-12)
+        np.testing.assert_allclose(got.cpu().numpy(), [first, 0.0, 1.0], atol=1e-12)
         np.testing.assert_allclose(occupancy_iou(target, pred, tolerance_cells=tol).cpu().numpy()[0], first)
     assert occupancy_iou(pred, target, threshold=0.2)[1].item() == 1.0
 
@@ -267,9 +389,9 @@ def test_iou_matches_numpy_bruteforce(dev):
 
 
 def test_image_metrics_on_a_batch(dev):
-    """image_metrics returns the seven (B,) float64 metrics, each equal to its own function;
-    a perfect prediction scores mse 0, ssim 1, range error 0, nothing missed or false,
-    chamfer 0 and iou 1."""
+    """image_metrics returns every (B,) float64 metric, scan F1 first, each equal to its own
+    function; a perfect prediction scores F1, beam accuracy, precision, recall, IoU and SSIM 1 and
+    range errors, missed, false, Chamfer and MSE 0."""
     rng = np.random.default_rng(5)
     range_m = t(0.21 + 0.02 * np.arange(60), dev)
     azimuth_rad = t(np.deg2rad(np.arange(-20, 21)), dev)
@@ -279,23 +401,27 @@ def test_image_metrics_on_a_batch(dev):
     target[:, :, :5] = 0  # empty columns
     pred = (target + 0.3 * t(rng.random((4, 60, 41)), dev)).clamp(0, 1)
     pred[0] = target[0]
-    got = image_metrics(pred, target, range_m, azimuth_rad)
-    assert list(got) == ["mse", "ssim", "range_mae_m", "missed", "false", "chamfer_m", "iou"]
+    got = image_metrics(pred, target, range_m, azimuth_rad, threshold=0.6)
+    scan = ["scan_f1", "beam_accuracy", "return_precision", "return_recall", "range_mae_tp_m"]
+    extra = [f"{k}_{cm}cm" for cm in (5, 25) for k in scan]
+    others = ["missed", "false", "no_return", "chamfer_m", "iou", *extra, "mse", "ssim", "peak_range_mae_m"]
+    assert list(got) == scan + others
     assert all(v.shape == (4,) and v.dtype == torch.float64 for v in got.values())
-    ranges = range_mae(pred, target, range_m)
-    want = {
+    want = scan_metrics(pred, target, range_m, threshold=0.6)
+    want |= {f"{k}_25cm": v for k, v in scan_metrics(pred, target, range_m, threshold=0.6, tolerance_m=0.25).items()}
+    want |= {
+        "chamfer_m": chamfer_distance(pred, target, range_m, azimuth_rad, threshold=0.6),
+        "iou": occupancy_iou(pred, target, threshold=0.6),
         "mse": mse(pred, target),
         "ssim": ssim(pred, target),
-        "range_mae_m": ranges["mae_m"],
-        "missed": ranges["missed"],
-        "false": ranges["false"],
-        "chamfer_m": chamfer_distance(pred, target, range_m, azimuth_rad),
-        "iou": occupancy_iou(pred, target),
+        "peak_range_mae_m": peak_range_mae(pred, target, range_m),
     }
     for k, v in want.items():
-        torch.testing.assert_close(got[k], v, equal_nan=True)
-    perfect = [got[k][0].item() for k in got]
-    np.testing.assert_allclose(perfect, [0, 1, 0, 0, 0, 0, 1], atol=1e-12)
+        if k in got:
+            torch.testing.assert_close(got[k], v, equal_nan=True)
+    perfect = {k: got[k][0].item() for k in got if not k.startswith("no_return")}
+    ones = {k for k in perfect if k.split("_")[0] in ("scan", "beam", "return", "iou", "ssim")}
+    assert perfect == {k: 1.0 if k in ones else 0.0 for k in perfect}
     tolerant = image_metrics(pred, target, range_m, azimuth_rad, iou_tolerance_cells=1)["iou"]
     torch.testing.assert_close(tolerant, occupancy_iou(pred, target, tolerance_cells=1))
 
