@@ -1,4 +1,4 @@
-"""Command line: `python -m learn train|evaluate|predict|export|table2|sim2real|sim2real-summary ...`."""
+"""Command line: `python -m learn train|evaluate|predict|export|table2|sim2real|sim2real-summary|seeds-summary ...`."""
 
 from __future__ import annotations
 
@@ -147,6 +147,14 @@ def _sim2real_summary(args) -> int:
     return 0
 
 
+def _seeds_summary(args) -> int:
+    from .studies import seeds_summary
+
+    seeds_summary(args.reports, args.out)
+    print(f"wrote {args.out}/summary.md")
+    return 0
+
+
 def _training_options(p) -> None:
     from .data import DataConfig
     from .models import MODEL_NAMES, ModelConfig
@@ -240,6 +248,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("runs", nargs="+", help="sim2real output folders (e.g. one per seed)")
     p.add_argument("--out", required=True)
     p.set_defaults(handler=_sim2real_summary)
+    p = sub.add_parser("seeds-summary", help="mean and std over repeated evaluations", formatter_class=fmt)
+    p.add_argument("reports", nargs="+", help="evaluate output folders (metrics.json), e.g. one per seed")
+    p.add_argument("--out", required=True)
+    p.set_defaults(handler=_seeds_summary)
     return parser
 
 

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 
 from .data import DataConfig, load_frames, shard_paths
-from .evaluate import evaluate
+from .evaluate import METRICS, evaluate
 from .models import ModelConfig
 from .train import TrainConfig, train
 
@@ -246,3 +246,41 @@ def _plot_sim2real(table: dict, path: Path, errorbars: bool) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
+
+
+def seeds_summary(reports: list[str | Path], out: str | Path) -> dict:
+    """Mean and std across repeated evaluations (e.g. one per training seed) of every predictor:
+    reads each folder's metrics.json (written by `evaluate`), writes summary.md and summary.json.
+    Each cell is the spread of the runs' window means, so it shows how much a result depends on
+    the seed rather than on the windows."""
+    runs = [json.loads((Path(r) / "metrics.json").read_text()) for r in reports]
+    if len(runs) < 2:
+        raise ValueError("give at least two evaluation folders to summarise")
+    names = list(runs[0]["results"])
+    if any(list(r["results"]) != names for r in runs):
+        raise ValueError(f"the evaluations scored different predictors: {[list(r['results']) for r in runs]}")
+    summary = {}
+    for name in names:
+        summary[name] = {}
+        for key, _, _ in METRICS:
+            values = [r["results"][name]["all"][key]["mean"] for r in runs]
+            summary[name][key] = {"mean": float(np.mean(values)), "std": float(np.std(values)), "runs": values}
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    lines = [
+        f"# {len(runs)} runs on `{runs[0]['data']}` ({runs[0]['split']} split, {runs[0]['windows']:,} windows each)",
+        "",
+        "Mean ± std over the runs of each run's mean over windows: " + ", ".join(f"`{Path(r)}`" for r in reports) + ".",
+        "",
+        "| predictor | " + " | ".join(label for _, label, _ in METRICS) + " |",
+        "|---" * (len(METRICS) + 1) + "|",
+    ]
+    for name, stats in summary.items():
+        cells = [
+            "-" if not np.isfinite(stats[k]["mean"]) else f"{f.format(stats[k]['mean'])} ± {f.format(stats[k]['std'])}"
+            for k, _, f in METRICS
+        ]
+        lines.append(f"| {name} | " + " | ".join(cells) + " |")
+    (out / "summary.md").write_text("\n".join(lines) + "\n")
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    return summary
