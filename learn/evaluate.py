@@ -244,8 +244,10 @@ def evaluate(
         report["inference"] = inference_timing(models[first_name][0], windows)
     (out / "metrics.json").write_text(json.dumps(report, indent=1))
     _write_per_scenario(out / "per_scenario.csv", results)
-    rows = _example_rows(predictors, first_name, per_window, windows, indices, frames, examples)
-    plot_examples(rows, frames.range_m, frames.azimuth_rad, out / "examples.png", threshold=predictors[first_name][1])
+    for name in models:  # the same windows for every model, picked by the first one's scores
+        rows = _example_rows(predictors, name, first_name, per_window, windows, indices, frames, examples)
+        path = out / example_file(name, first=name == first_name)
+        plot_examples(rows, frames.range_m, frames.azimuth_rad, path, threshold=predictors[name][1])
     (out / "report.md").write_text(report_markdown(report))
     return report
 
@@ -277,10 +279,15 @@ def _pick_windows(windows: Windows, ckpt: dict, frames: Frames, split: str, epis
     raise ValueError(f"split must be auto, val or all, got {split!r}")
 
 
-def _example_rows(predictors, name, per_window, windows, indices, frames, count) -> list[dict]:
-    """Windows at evenly spaced quantiles of the model's scan_f1 (poor to good, none cherry-picked)."""
+def example_file(name: str, *, first: bool) -> str:
+    """examples.png for the first model of an evaluation, examples_<name>.png for the others."""
+    return "examples.png" if first else "examples_" + "".join(c if c.isalnum() else "_" for c in name) + ".png"
+
+
+def _example_rows(predictors, name, picker, per_window, windows, indices, frames, count) -> list[dict]:
+    """Windows at evenly spaced quantiles of `picker`'s scan_f1 (poor to good, none cherry-picked)."""
     f1 = per_window[name]["scan_f1"]
-    order = np.argsort(f1, kind="stable")
+    order = np.argsort(per_window[picker]["scan_f1"], kind="stable")
     picks = sorted({int(order[round(q * (len(order) - 1))]) for q in np.linspace(0.1, 0.9, count)})
     predict, _ = predictors[name]
     offset = windows.config.label_offset
@@ -289,7 +296,7 @@ def _example_rows(predictors, name, per_window, windows, indices, frames, count)
         x, y = windows.batch([indices[local]])
         with torch.no_grad():
             pred = predict(x).float().clamp(0, 1)
-        rank = int(np.flatnonzero(order == local)[0])
+        rank = int(np.flatnonzero(np.argsort(f1, kind="stable") == local)[0])
         peak = per_window["echo peak"]["scan_f1"][local]
         rows.append(
             {
@@ -375,12 +382,13 @@ def report_markdown(report: dict) -> str:
         ]
     lines += [
         "",
-        f"`examples.png`: {first}'s predictions on windows at evenly spaced quantiles of its scan F1 (poor to "
-        "good), each row sonar input, LiDAR truth, prediction and the top-down scan.",
-        "",
-        "![sonar, LiDAR truth, prediction and top-down scan](examples.png)",
-        "",
+        f"Examples: windows at evenly spaced quantiles of {first}'s scan F1 (poor to good, not picked by hand); "
+        "each row shows the sonar input, the LiDAR truth, the prediction and the scan read from it, from above.",
     ]
+    for name in checkpoints:
+        path = example_file(name, first=name == first)
+        lines += ["", f"`{path}`: predictions of {name} (`{checkpoints[name]}`).", "", f"![{name}]({path})"]
+    lines.append("")
     return "\n".join(lines)
 
 
