@@ -68,9 +68,9 @@ def predict(
     with torch.no_grad():
         for start in range(0, len(windows), batch_size):
             x, _ = windows.batch(np.arange(start, min(start + batch_size, len(windows))))
-            image = run(x).float().clamp(0, 1)[:, 0]
-            ranges.append(first_return_ranges(image, frames.range_m, threshold=threshold).float().cpu().numpy())
-            preds.append(image.cpu().numpy().astype(np.float16))
+            image = run(x).float().clamp(0, 1)[:, 0].half()  # as saved: the scans read the saved images
+            ranges.append(first_return_ranges(image.float(), frames.range_m, threshold=threshold).float().cpu().numpy())
+            preds.append(image.cpu().numpy())
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(

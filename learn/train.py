@@ -345,7 +345,7 @@ def _train_one(
         } | {k: meta[k] for k in ("model_config", "data_config", "train_config", "parameters", "dataset")}
         summary["threshold"] = best["val_threshold"]
         (out / "summary.json").write_text(json.dumps(summary, indent=1))
-        _warn_if_silent(best, out)
+        _warn_if_silent(best, out, hint="" if config.loss == "bce" else ", or with --loss bce")
     return summary
 
 
@@ -363,14 +363,14 @@ def _epoch_line(row: dict, config: TrainConfig, state: dict, improved: bool) -> 
     return f"{line} | {kept}"
 
 
-def _warn_if_silent(best: dict, out: Path) -> None:
+def _warn_if_silent(best: dict, out: Path, hint: str = "") -> None:
     """A model that predicts no return almost anywhere looks fine on MSE and SSIM: say so loudly."""
     share = best["val_no_return"]
     if share >= NO_RETURN_ALARM:
         warnings.warn(
             f"{out}: the kept model (epoch {best['epoch']}) predicts no return on {share:.0%} of the validation "
             f"beams even at its best threshold {best['val_threshold']:.2f} (scan F1 {best['val_scan_f1']:.3f}): it "
-            "has not learnt to place walls. Train longer, on more data, or with --loss bce.",
+            f"has not learnt to place walls. Train longer or on more data{hint}.",
             stacklevel=3,
         )
 

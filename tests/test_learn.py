@@ -98,6 +98,92 @@ def test_train_checkpoint_resume_and_evaluate(tiny_dataset, tmp_path):
     out = predict(run / "best.pt", tmp_path / "recorded.npy", tmp_path / "pred.npz")
     pred = np.load(out)
     assert pred["prediction"].shape == (6, 240, 181) and list(pred["frame"]) == [1, 2, 3, 4, 5, 6]
+    kept = torch.load(run / "best.pt", weights_only=True)
+    assert float(pred["threshold"]) == report["thresholds"]["model"] == kept["threshold"]
+
+
+def test_predict_reads_scans_at_the_threshold(tiny_dataset, tmp_path):
+    """predict's scans are the nearest cell >= the checkpoint's threshold of each predicted image
+    (inf where none), and --threshold overrides it."""
+    from learn.metrics import first_return_ranges
+
+    run = tmp_path / "run"
+    train(tiny_dataset, run, model_config=MODEL, data_config=DATA, train_config=QUICK, progress=False)
+    best = torch.load(run / "best.pt", weights_only=True)
+    for override in (None, 0.3):
+        got = np.load(predict(run / "best.pt", tiny_dataset, tmp_path / f"p{override}.npz", threshold=override))
+        threshold = best["threshold"] if override is None else override
+        assert float(got["threshold"]) == threshold and got["ranges"].shape == (12, 181)
+        want = first_return_ranges(
+            torch.from_numpy(got["prediction"].astype(np.float32)), got["range_m"], threshold=threshold
+        )
+        np.testing.assert_array_equal(got["ranges"], want.float().numpy())
+
+
+def test_evaluate_compares_checkpoints_side_by_side(tiny_dataset, tmp_path):
+    """Two named checkpoints and the baselines are scored on the same windows at each model's own
+    threshold; the report names each checkpoint and draws examples for both; checkpoints that
+    read other windows (K) are refused."""
+    a, b, k5 = tmp_path / "a", tmp_path / "b", tmp_path / "k5"
+    for run, seed in ((a, 0), (b, 1)):
+        config = dataclasses.replace(QUICK, epochs=1, seed=seed)
+        train(tiny_dataset, run, model_config=MODEL, data_config=DATA, train_config=config, progress=False)
+    named = {"first": a / "best.pt", "second": b / "best.pt"}
+    report = evaluate([f"{k}={v}" for k, v in named.items()], tiny_dataset, tmp_path / "cmp", split="all", timing=False)
+    assert list(report["results"]) == ["first", "second", "echo peak", "empty"]
+    assert report["thresholds"]["second"] == torch.load(b / "best.pt", weights_only=True)["threshold"]
+    assert report["windows"] == 12 and report["checkpoints"] == {k: str(v) for k, v in named.items()}
+    text = (tmp_path / "cmp" / "report.md").read_text()
+    assert f"| second | `{b / 'best.pt'}` |" in text and "examples_second.png" in text
+    assert (tmp_path / "cmp" / "examples.png").exists() and (tmp_path / "cmp" / "examples_second.png").exists()
+    alone = evaluate(b / "best.pt", tiny_dataset, tmp_path / "alone", split="all", timing=False)
+    assert _same(alone["results"]["model"], report["results"]["second"])
+    five = ModelConfig(name="polar_unet", frames=5, width=4)
+    config = dataclasses.replace(QUICK, epochs=1)
+    train(tiny_dataset, k5, model_config=five, data_config=DataConfig(frames=5), train_config=config, progress=False)
+    with pytest.raises(ValueError, match="other windows"):
+        evaluate({"a": a / "best.pt", "k5": k5 / "best.pt"}, tiny_dataset, tmp_path / "bad", timing=False)
+
+
+def test_checkpoints_never_run_pickled_code(tmp_path):
+    """A .pt whose unpickling would run code is refused with a clear error, and the code never runs."""
+    marker = tmp_path / "ran"
+
+    class Payload:
+        def __reduce__(self):
+            return (os.system, (f"touch {marker}",))
+
+    torch.save({"model": Payload()}, tmp_path / "evil.pt")
+    with pytest.raises(ValueError, match="not a checkpoint this learner can read safely"):
+        load_checkpoint(tmp_path / "evil.pt")
+    assert not marker.exists()
+
+
+def test_silent_model_warning():
+    """The kept model warns when it predicts no return on >= 90 % of the validation beams, not below."""
+    from learn.train import _warn_if_silent
+
+    row = {"epoch": 3, "val_no_return": 0.95, "val_threshold": 0.5, "val_scan_f1": 0.01}
+    with pytest.warns(UserWarning, match="predicts no return on 95% of the validation beams"):
+        _warn_if_silent(row, "run")
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        _warn_if_silent(row | {"val_no_return": 0.5}, "run")
+
+
+def test_train_help_shows_every_default():
+    """Every option of `learn train --help` states its default (they come from the config dataclasses)."""
+    from learn.cli import build_parser
+
+    help_text = build_parser()._subparsers._group_actions[0].choices["train"].format_help()
+    options = [a for a in build_parser()._subparsers._group_actions[0].choices["train"]._actions if a.option_strings]
+    flat = " ".join(help_text.split())
+    for action in options:
+        if action.dest != "help":
+            assert f"(default: {action.default})" in flat, action.dest
+    assert "(default: scan_f1)" in flat
 
 
 def test_ddp_under_torchrun_on_cpu(tiny_dataset, tmp_path):
@@ -190,3 +276,18 @@ def test_table2_scores_every_row_on_the_same_held_out_episodes(tiny_dataset, tmp
     text = (tmp_path / "t2" / "table2.md").read_text()
     assert f"{rows['K = 5 fine-tuned']['many']['mse']['mean']:.4f}" in text
     assert text.index("scan F1") < text.index("MSE") and f"{rows['K = 1']['minimal']['scan_f1']['mean']:.4f}" in text
+
+
+def test_pretrained_model_reads_walls_on_a_fresh_drive(tiny_dataset, tmp_path):
+    """The shipped polar UNet (learn/pretrained/, trained on the H100) loads safely, reads at its
+    calibrated threshold, and finds the walls of the tiny suite's room and corridor, scenes it never
+    saw: scan F1 >= 0.8 and >= 2x the echo peak's (0.999 and 0.26 when it was shipped)."""
+    import learn
+
+    _, ckpt = load_checkpoint(learn.PRETRAINED_CHECKPOINT)
+    assert ckpt["model_config"] == {"name": "polar_unet", "frames": 5, "width": 16} and 0 < ckpt["threshold"] < 1
+    assert "optimizer" not in ckpt
+    report = evaluate(learn.PRETRAINED_CHECKPOINT, tiny_dataset, tmp_path / "eval", timing=False, examples=1)
+    f1 = {name: r["all"]["scan_f1"]["mean"] for name, r in report["results"].items()}
+    assert report["split"] == "all" and report["thresholds"]["model"] == ckpt["threshold"]
+    assert f1["model"] >= 0.8 and f1["model"] >= 2 * f1["echo peak"], f1

@@ -185,7 +185,7 @@ def test_onnx_matches_torch(name, tmp_path):
             if isinstance(module, torch.nn.modules.batchnorm._BatchNorm):
                 module.running_mean.uniform_(-0.1, 0.1)
                 module.running_var.uniform_(0.5, 2.0)
-    info = export_onnx(model, tmp_path / "model.onnx", frames=3, range_count=40, azimuth_count=30)
+    info = export_onnx(model, tmp_path / "model.onnx", frames=3, range_count=40, azimuth_count=30, threshold=0.35)
     assert info["path"] == str(tmp_path / "model.onnx") and info["opset"] >= 17
     assert info["max_abs_diff"] <= info["tolerance"]
     assert model.training  # mode restored
@@ -194,6 +194,8 @@ def test_onnx_matches_torch(name, tmp_path):
 
     x = torch.rand(3, 1, 3, 40, 30, generator=torch.Generator().manual_seed(1))
     session = onnxruntime.InferenceSession(info["path"], providers=["CPUExecutionProvider"])
+    meta = session.get_modelmeta().custom_metadata_map
+    assert meta == {"output_kind": model.output, "return_threshold": "0.35"}
     (got,) = session.run(None, {"energyscapes": x.numpy()})
     with torch.no_grad():
         expected = model.eval()(x).numpy()
