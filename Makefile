@@ -11,7 +11,7 @@ DEVICE ?= cpu
 # the smoke run are scored side by side.
 DEMO_FRAMES ?= 300
 DEMO_DRIVE_FRAMES ?= 200
-DEMO_TRAIN ?= --epochs 4 --lr 2e-3 --loss bce --val-fraction 0.34 --quiet
+DEMO_TRAIN ?= --epochs 4 --lr 2e-3 --loss bce --val-fraction 0.34 --quiet --overwrite
 PRETRAINED ?= learn/pretrained/polar_unet_k5.pt
 
 .PHONY: demo test lint system-deps clean

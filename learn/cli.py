@@ -46,6 +46,7 @@ def _train(args) -> int:
         folds=args.folds,
         progress=not args.quiet,
         init_from=args.init_from,
+        overwrite=args.overwrite,
     )
     if summary:
         shown = summary["folds"] if "folds" in summary else [summary]
@@ -197,16 +198,21 @@ def _threshold_option(p) -> None:
 def build_parser() -> argparse.ArgumentParser:
     fmt = argparse.ArgumentDefaultsHelpFormatter
     parser = argparse.ArgumentParser(prog="python -m learn", description=__doc__)
+    common = argparse.ArgumentParser(add_help=False)
+    common.add_argument("--debug", action="store_true", help="show the full trace of an error")
     sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("train", help="train a model on a dataset folder", formatter_class=fmt)
+    p = sub.add_parser("train", help="train a model on a dataset folder", formatter_class=fmt, parents=[common])
     p.add_argument("--data", required=True, help="dataset folder (shard-*.h5)")
     p.add_argument("--out", required=True, help="run folder (checkpoints, history, curves)")
     p.add_argument("--folds", type=int, default=1, help="k-fold cross-validation over episodes")
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
+    p.add_argument("--overwrite", action="store_true", help="replace a run already in OUT")
     p.add_argument("--init-from", default=None, help="start from this checkpoint's weights (fine-tuning)")
     _training_options(p)
     p.set_defaults(handler=_train)
-    p = sub.add_parser("evaluate", help="metrics, baselines, examples and a report", formatter_class=fmt)
+    p = sub.add_parser(
+        "evaluate", help="metrics, baselines, examples and a report", formatter_class=fmt, parents=[common]
+    )
     p.add_argument(
         "--checkpoint",
         required=True,
@@ -219,7 +225,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
     _threshold_option(p)
     p.set_defaults(handler=_evaluate)
-    p = sub.add_parser("predict", help="predict LiDAR images from shards or energyscapes (.npy)", formatter_class=fmt)
+    p = sub.add_parser(
+        "predict", help="predict LiDAR images from shards or energyscapes (.npy)", formatter_class=fmt, parents=[common]
+    )
     p.add_argument("--checkpoint", required=True)
     p.add_argument("--input", required=True, help="dataset folder, or .npy of energyscapes (N, R, A) in time order")
     p.add_argument("--out", required=True, help=".npz to write")
@@ -227,40 +235,55 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
     _threshold_option(p)
     p.set_defaults(handler=_predict)
-    p = sub.add_parser("export", help="write ONNX, checked against torch", formatter_class=fmt)
+    p = sub.add_parser("export", help="write ONNX, checked against torch", formatter_class=fmt, parents=[common])
     p.add_argument("--checkpoint", required=True)
     p.add_argument("--out", required=True, help=".onnx to write")
     _threshold_option(p)
     p.set_defaults(handler=_export)
-    p = sub.add_parser("table2", help="the paper's Table 2 layout on the table2 suite", formatter_class=fmt)
+    p = sub.add_parser(
+        "table2", help="the paper's Table 2 layout on the table2 suite", formatter_class=fmt, parents=[common]
+    )
     p.add_argument("--train", required=True, help="training dataset (e.g. the paper suite)")
     p.add_argument("--test", required=True, help="table2 suite folder (minimal/, many/, noisy/)")
     p.add_argument("--out", required=True)
     _training_options(p)
     p.set_defaults(handler=_table2)
-    p = sub.add_parser("sim2real", help="train per ablation variant, score on the reality suite", formatter_class=fmt)
+    p = sub.add_parser(
+        "sim2real", help="train per ablation variant, score on the reality suite", formatter_class=fmt, parents=[common]
+    )
     p.add_argument("--ablation", required=True, help="ablation suite folder (bounces_0/, bounces_1/, bounces_3/)")
     p.add_argument("--reality", required=True, help="reality suite folder")
     p.add_argument("--out", required=True)
     _training_options(p)
     p.set_defaults(handler=_sim2real)
-    p = sub.add_parser("sim2real-summary", help="mean and std over repeated sim2real runs", formatter_class=fmt)
+    p = sub.add_parser(
+        "sim2real-summary", help="mean and std over repeated sim2real runs", formatter_class=fmt, parents=[common]
+    )
     p.add_argument("runs", nargs="+", help="sim2real output folders (e.g. one per seed)")
     p.add_argument("--out", required=True)
     p.set_defaults(handler=_sim2real_summary)
-    p = sub.add_parser("seeds-summary", help="mean and std over repeated evaluations", formatter_class=fmt)
+    p = sub.add_parser(
+        "seeds-summary", help="mean and std over repeated evaluations", formatter_class=fmt, parents=[common]
+    )
     p.add_argument("reports", nargs="+", help="evaluate output folders (metrics.json), e.g. one per seed")
     p.add_argument("--out", required=True)
     p.set_defaults(handler=_seeds_summary)
     return parser
 
 
+USER_ERRORS = (ValueError, TypeError, KeyError, OSError, FloatingPointError)
+"""Bad input, files or settings: one `error:` line and exit code 2 (the trace with --debug)."""
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.handler(args)
-    except (ValueError, FileNotFoundError) as err:
-        print(f"error: {err}", file=sys.stderr)
+    except USER_ERRORS as err:
+        if args.debug:
+            raise
+        text = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        print(f"error: {text}", file=sys.stderr)
         return 2
 
 

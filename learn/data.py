@@ -147,9 +147,12 @@ def load_frames(folder: str | Path) -> Frames:
                 if name not in names:
                     names.append(name)
             remap = np.array([names.index(n) for n in local], dtype=np.int64)
+            energyscape = f["energyscape"][:]
+            if not np.isfinite(energyscape).all():
+                raise DataError(f"{path}: energyscape holds NaN or inf values; regenerate this shard")
             parts.append(
                 (
-                    f["energyscape"][:],
+                    energyscape,
                     f["lidar/image"][:],
                     f["episode"][:].astype(np.int64),
                     remap[f["scenario"][:].astype(np.int64)],

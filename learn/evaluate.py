@@ -187,8 +187,9 @@ def evaluate(
     timing: bool = True,
     threshold: float | None = None,
 ) -> dict:
-    """Score one or more checkpoints on a dataset (with baselines) and write metrics.json,
-    per_scenario.csv, examples.png and report.md into `out`.
+    """Score one or more checkpoints on a dataset (with baselines) and write metrics.json (means
+    and std overall and per scenario), per_scenario.csv, per_window.csv (every metric of every
+    window), examples.png and report.md into `out`.
 
     Args:
         checkpoint: A checkpoint path (reported as "model"), or several as a list of paths or
@@ -208,8 +209,7 @@ def evaluate(
     ckpt = models[first_name][1]
     frames = data if isinstance(data, Frames) else load_frames(data)
     for name, (_, c) in models.items():
-        if not (np.allclose(frames.range_m, c["range_m"]) and np.allclose(frames.azimuth_rad, c["azimuth_rad"])):
-            raise ValueError(f"the dataset's range/azimuth grid differs from the one {name!r} was trained on")
+        check_grid(frames, c, name)
         if c["data_config"] != ckpt["data_config"]:
             raise ValueError(f"{name!r} reads other windows ({c['data_config']}) than {first_name!r}; compare alike")
     data_config = DataConfig(**ckpt["data_config"])
@@ -244,12 +244,30 @@ def evaluate(
         report["inference"] = inference_timing(models[first_name][0], windows)
     (out / "metrics.json").write_text(json.dumps(report, indent=1))
     _write_per_scenario(out / "per_scenario.csv", results)
+    _write_per_window(out / "per_window.csv", per_window, indices, windows)
     for name in models:  # the same windows for every model, picked by the first one's scores
         rows = _example_rows(predictors, name, first_name, per_window, windows, indices, frames, examples)
         path = out / example_file(name, first=name == first_name)
         plot_examples(rows, frames.range_m, frames.azimuth_rad, path, threshold=predictors[name][1])
     (out / "report.md").write_text(report_markdown(report))
     return report
+
+
+def _grid_text(range_m, azimuth_rad) -> str:
+    r, a = np.asarray(range_m), np.rad2deg(np.asarray(azimuth_rad))
+    return f"{len(r)} ranges {r[0]:.3f}..{r[-1]:.3f} m x {len(a)} azimuths {a[0]:.1f}..{a[-1]:.1f} deg"
+
+
+def check_grid(frames: Frames, ckpt: dict, name: str = "the model") -> None:
+    """Refuse data on another range/azimuth grid than the checkpoint's, naming both."""
+    same = len(frames.range_m) == len(ckpt["range_m"]) and len(frames.azimuth_rad) == len(ckpt["azimuth_rad"])
+    if not (
+        same and np.allclose(frames.range_m, ckpt["range_m"]) and np.allclose(frames.azimuth_rad, ckpt["azimuth_rad"])
+    ):
+        raise ValueError(
+            f"{frames.info.get('folder')} is on the grid {_grid_text(frames.range_m, frames.azimuth_rad)}, but "
+            f"{name} was trained on {_grid_text(ckpt['range_m'], ckpt['azimuth_rad'])}"
+        )
 
 
 def return_threshold(ckpt: dict, override: float | None = None) -> float:
@@ -390,6 +408,19 @@ def report_markdown(report: dict) -> str:
         lines += ["", f"`{path}`: predictions of {name} (`{checkpoints[name]}`).", "", f"![{name}]({path})"]
     lines.append("")
     return "\n".join(lines)
+
+
+def _write_per_window(path: Path, per_window: dict, indices: np.ndarray, windows: Windows) -> None:
+    """One row per predictor and window: its index, episode, scenario and every metric."""
+    keys = list(next(iter(per_window.values())))
+    names = windows.frames.scenarios
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["predictor", "window", "episode", "scenario", *keys])
+        for name, per in per_window.items():
+            for i, w in enumerate(indices):
+                row = [name, int(w), int(windows.episode[w]), names[windows.scenario[w]]]
+                writer.writerow(row + [f"{per[k][i]:.6g}" for k in keys])
 
 
 def _write_per_scenario(path: Path, results: dict) -> None:

@@ -17,13 +17,15 @@ import numpy as np
 import torch
 
 from .data import DataConfig, Frames, Windows, load_frames
-from .evaluate import model_predictor, return_threshold
+from .evaluate import check_grid, model_predictor, return_threshold
 from .metrics import first_return_ranges
 from .train import load_checkpoint
 
 
 def _frames_from_array(path: Path, ckpt: dict) -> Frames:
-    energyscape = np.load(path)
+    energyscape = np.load(path)  # allow_pickle stays False: an object array is refused, not unpickled
+    if not (np.issubdtype(energyscape.dtype, np.floating) or np.issubdtype(energyscape.dtype, np.integer)):
+        raise ValueError(f"{path}: energyscapes must be real numbers, got dtype {energyscape.dtype}")
     shape = (len(ckpt["range_m"]), len(ckpt["azimuth_rad"]))
     if energyscape.ndim != 3 or energyscape.shape[1:] != shape:
         raise ValueError(f"{path}: expected energyscapes (N, {shape[0]}, {shape[1]}), got {energyscape.shape}")
@@ -52,7 +54,8 @@ def predict(
     png: str | None = None,
     threshold: float | None = None,
 ) -> Path:
-    """Predictions of every window, saved as .npz: "prediction" (windows, R, A) float16 images,
+    """Predictions of every window, saved as .npz (the suffix is added if `out` lacks it; the path
+    written is returned): "prediction" (windows, R, A) float16 images,
     "ranges" (windows, A) float32 scans [m] (inf = no return), "threshold", "frame" (the label
     frame of each window), "range_m", "azimuth_rad". `threshold` overrides the checkpoint's."""
     model, ckpt = load_checkpoint(checkpoint, device)
@@ -61,6 +64,7 @@ def predict(
         raise ValueError(f"the return threshold must lie in (0, 1], got {threshold}")
     source = Path(source)
     frames = _frames_from_array(source, ckpt) if source.suffix == ".npy" else load_frames(source)
+    check_grid(frames, ckpt)
     config = DataConfig(**ckpt["data_config"])
     windows = Windows(frames, config, device)
     run = model_predictor(model)
@@ -72,6 +76,7 @@ def predict(
             ranges.append(first_return_ranges(image.float(), frames.range_m, threshold=threshold).float().cpu().numpy())
             preds.append(image.cpu().numpy())
     out = Path(out)
+    out = out if out.suffix == ".npz" else out.with_name(out.name + ".npz")  # numpy appends it anyway
     out.parent.mkdir(parents=True, exist_ok=True)
     np.savez_compressed(
         out,

@@ -150,13 +150,16 @@ def train(
     folds: int = 1,
     progress: bool = True,
     init_from: str | Path | None = None,
+    overwrite: bool = False,
 ) -> dict:
     """Train a model (or `folds` models) on a dataset folder; returns the summary of the run.
 
     Writes into `out`: last.pt and best.pt (weights, optimizer, epoch, all configs, dataset
     identity), history.csv and curves.png, summary.json. With folds > 1: out/fold_i/ each,
-    and folds.json/folds.md with mean and std over the folds.
+    and folds.json/folds.md with mean and std over the folds. A folder that already holds
+    checkpoints is continued (`resume`) or replaced (`overwrite`), never silently overwritten.
     """
+    _check_out(Path(out), resume=resume, overwrite=overwrite)
     dist_info, dev = _init_distributed(device)
     if dev.type == "cpu":
         torch.set_flush_denormal(True)  # denormal gradients make CPU steps many times slower
@@ -198,6 +201,17 @@ def train(
         dist.barrier()  # rank 0 writes the summaries last; leaving without this aborts gloo ranks at exit
         dist.destroy_process_group()
     return result
+
+
+def _check_out(out: Path, *, resume: bool, overwrite: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file; give a folder for the run")
+    found = sorted(p.relative_to(out).as_posix() for p in out.glob("**/*.pt")) if out.is_dir() else []
+    if found and not (resume or overwrite):
+        raise ValueError(
+            f"--out {out} already holds a run ({', '.join(found[:3])}); continue it with --resume, "
+            "replace it with --overwrite, or choose another folder"
+        )
 
 
 def _nan_low(x: float) -> float:
@@ -280,6 +294,11 @@ def _train_one(
             x, y = windows.batch(order[s * config.batch_size : (s + 1) * config.batch_size])
             with torch.autocast("cuda", dtype=torch.bfloat16, enabled=use_amp):
                 loss = loss_fn(model, x, y, config)
+            if not torch.isfinite(loss):  # one sync per step; NaN would silently end with no best.pt
+                raise FloatingPointError(
+                    f"the training loss became {float(loss.detach())} at epoch {epoch + 1}, step {s + 1}: "
+                    "lower --lr or check the data"
+                )
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
@@ -420,11 +439,16 @@ def load_checkpoint(path: str | Path, device: str = "cpu"):
     except Exception as err:
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise ValueError(f"{path} is not a checkpoint this learner can read safely: {first}") from None
-    if not isinstance(ckpt, dict) or ckpt.get("dataset", {}).get("format_version") != FORMAT_VERSION:
-        version = ckpt.get("dataset", {}).get("format_version") if isinstance(ckpt, dict) else None
+    meta = ckpt.get("dataset") if isinstance(ckpt, dict) else None
+    version = meta.get("format_version") if isinstance(meta, dict) else None
+    if version != FORMAT_VERSION:
         raise ValueError(f"{path} is not a learn checkpoint for dataset format {FORMAT_VERSION} (found {version})")
-    model = build_model(ModelConfig(**ckpt["model_config"])).to(device)
-    model.load_state_dict(ckpt["model"])
+    try:
+        model = build_model(ModelConfig(**ckpt["model_config"])).to(device)
+        model.load_state_dict(ckpt["model"])
+    except (KeyError, TypeError, RuntimeError) as err:  # missing keys, other sizes: the file does not fit
+        first = str(err).strip().splitlines()[0]
+        raise ValueError(f"{path}: its weights do not fit the model it names ({first})") from None
     model.eval()
     return model, ckpt
 

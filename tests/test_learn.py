@@ -1,6 +1,7 @@
 """The learner on a tiny simulated dataset: windows and folds never leak, training writes
 checkpoints that round-trip and resume, evaluation and prediction write their outputs, DDP runs."""
 
+import csv
 import dataclasses
 import json
 import os
@@ -136,6 +137,10 @@ def test_evaluate_compares_checkpoints_side_by_side(tiny_dataset, tmp_path):
     text = (tmp_path / "cmp" / "report.md").read_text()
     assert f"| second | `{b / 'best.pt'}` |" in text and "examples_second.png" in text
     assert (tmp_path / "cmp" / "examples.png").exists() and (tmp_path / "cmp" / "examples_second.png").exists()
+    rows = list(csv.DictReader(open(tmp_path / "cmp" / "per_window.csv")))
+    assert len(rows) == 4 * 12 and rows[0]["predictor"] == "first" and list(rows[0])[4] == "scan_f1"
+    second = [float(r["scan_f1"]) for r in rows if r["predictor"] == "second"]
+    assert np.mean(second) == pytest.approx(report["results"]["second"]["all"]["scan_f1"]["mean"], abs=1e-5)
     alone = evaluate(b / "best.pt", tiny_dataset, tmp_path / "alone", split="all", timing=False)
     assert _same(alone["results"]["model"], report["results"]["second"])
     five = ModelConfig(name="polar_unet", frames=5, width=4)
