@@ -15,7 +15,7 @@ def _scene_from_args(args):
     for item in args.scene_arg or []:
         key, sep, value = item.partition("=")
         if not sep:
-            raise SystemExit(f"--scene-arg expects KEY=VALUE, got {item!r}")
+            raise ValueError(f"--scene-arg expects KEY=VALUE, got {item!r}")
         try:
             kwargs[key.replace("-", "_")] = json.loads(value)
         except json.JSONDecodeError:
@@ -43,15 +43,10 @@ def _render(args) -> int:
     from .render import render_lidar
 
     t0 = time.perf_counter()
-    try:
-        scene = _scene_from_args(args)
-        poses = scenes.trajectory(scene, frames=args.frames, dt=args.dt, speed=args.speed, seed=args.seed)
-    except (scenes.SceneError, TypeError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+    scene = _scene_from_args(args)
+    poses = scenes.trajectory(scene, frames=args.frames, dt=args.dt, speed=args.speed, seed=args.seed)
     if not 0 <= args.frame < len(poses):
-        print(f"error: --frame must lie in 0..{len(poses) - 1}", file=sys.stderr)
-        return 2
+        raise ValueError(f"--frame must lie in 0..{len(poses) - 1}")
     config = LidarConfig.hokuyo_ust20lx(noise=args.lidar_noise, noise_m=args.lidar_noise_m)
     with wp.ScopedDevice(args.device):
         ranges = Lidar(config, seed=args.seed).scan(scene, poses)
@@ -96,33 +91,28 @@ def _generate(args) -> int:
     if not args.verbose:
         wp.config.quiet = True
         wp.config.log_level = wp.LOG_WARNING
-    from .dataset import DatasetError
     from .generate import generate
     from .suites import load_suite
 
-    try:
-        suite = load_suite(args.suite)
-        if args.max_bounces is not None:
-            if len({p.max_bounces for p in suite.variants.values()}) > 1:
-                raise ValueError(f"suite {suite.name!r} varies max_bounces across its variants; drop --max-bounces")
-            variants = {k: dataclasses.replace(p, max_bounces=args.max_bounces) for k, p in suite.variants.items()}
-            suite = dataclasses.replace(suite, variants=variants)
-        summary = generate(
-            suite,
-            args.out,
-            frames=args.frames,
-            shards=args.shards,
-            seed=args.seed,
-            device=args.device,
-            workers=args.workers,
-            ray_address=args.ray_address,
-            keep_signals=args.signals,
-            keep_arrivals=args.arrivals,
-            progress=not args.quiet,
-        )
-    except (ValueError, FileNotFoundError, DatasetError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+    suite = load_suite(args.suite)
+    if args.max_bounces is not None:
+        if len({p.max_bounces for p in suite.variants.values()}) > 1:
+            raise ValueError(f"suite {suite.name!r} varies max_bounces across its variants; drop --max-bounces")
+        variants = {k: dataclasses.replace(p, max_bounces=args.max_bounces) for k, p in suite.variants.items()}
+        suite = dataclasses.replace(suite, variants=variants)
+    summary = generate(
+        suite,
+        args.out,
+        frames=args.frames,
+        shards=args.shards,
+        seed=args.seed,
+        device=args.device,
+        workers=args.workers,
+        ray_address=args.ray_address,
+        keep_signals=args.signals,
+        keep_arrivals=args.arrivals,
+        progress=not args.quiet,
+    )
     print(
         f"{summary['suite']}: {summary['frames']:,} frames in {summary['shards']} shards under {summary['out']} "
         f"({summary['shards_written']} written, {summary['shards_skipped']} already complete) in "
@@ -135,6 +125,7 @@ def build_parser() -> argparse.ArgumentParser:
     import scenes
 
     parser = argparse.ArgumentParser(prog="python -m acoustic_sim", description=__doc__)
+    parser.add_argument("--debug", action="store_true", help="show the full trace of an error (anywhere on the line)")
     sub = parser.add_subparsers(dest="command", required=True)
     render = sub.add_parser(
         "render",
@@ -200,9 +191,23 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+USER_ERRORS = (ValueError, TypeError, KeyError, OSError)
+"""Bad input, files or settings (SceneError and DatasetError are ValueErrors): one `error:` line,
+exit code 2; `--debug` shows the trace."""
+
+
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
-    return args.handler(args)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    debug = "--debug" in argv
+    args = build_parser().parse_args([a for a in argv if a != "--debug"])
+    try:
+        return args.handler(args)
+    except USER_ERRORS as err:
+        if debug:
+            raise
+        text = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        print(f"error: {text}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

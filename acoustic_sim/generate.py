@@ -106,7 +106,7 @@ def plan(
     if frames < 1:
         raise ValueError(f"frames must be >= 1, got {frames}")
     episodes = plan_episodes(suite, frames, seed)
-    shards = shards or min(math.ceil(frames / FRAMES_PER_SHARD), len(episodes))
+    shards = min(math.ceil(frames / FRAMES_PER_SHARD), len(episodes)) if shards is None else shards
     if not 1 <= shards <= len(episodes):
         raise ValueError(f"shards must lie in 1..{len(episodes)} (one episode at least per shard), got {shards}")
     suite_json = suite.to_json()
@@ -331,6 +331,13 @@ def _check_plan_file(out: Path, tasks: list[ShardTask], meta: dict) -> None:
                 "rerun with those settings to resume it, or use another --out"
             )
         return
+    if out.exists() and not out.is_dir():
+        raise DatasetError(f"--out {out} is a file; give a folder for the dataset")
+    if out.is_dir() and any(out.iterdir()):
+        raise DatasetError(
+            f"--out {out} holds other files and no {PLAN_FILE}: it is not a dataset folder, and nothing in it "
+            "will be overwritten; choose an empty or new folder"
+        )
     out.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(PLAN_FILE + ".tmp")
     tmp.write_text(

@@ -158,6 +158,14 @@ class Suite:
             raise ValueError(f"suite {self.name!r}: scenario names repeat: {names}")
         if not self.variants or ("" in self.variants and len(self.variants) > 1):
             raise ValueError(f"suite {self.name!r}: variants need names when there are several")
+        for variant in self.variants:  # a variant is a folder under --out: never a path that leaves it
+            if variant and not (
+                variant.replace("_", "").replace("-", "").replace(".", "").isalnum() and variant[0] != "."
+            ):
+                raise ValueError(
+                    f"suite {self.name!r}: variant name {variant!r} must be letters, digits, '_', '-' or '.' "
+                    "(not starting with '.'): it names a folder under --out"
+                )
         if self.frames < 1 or self.episode_frames < 1 or not self.dt_s > 0 or self.speed_m_s < 0:
             raise ValueError(f"suite {self.name!r}: frames, episode_frames >= 1, dt_s > 0, speed_m_s >= 0")
 

@@ -1,0 +1,63 @@
+"""`generate` and the simulator's CLI refuse bad output folders and names before they write
+anything, with one `error:` line (the trace only with --debug)."""
+
+import dataclasses
+import subprocess
+import sys
+
+import pytest
+
+from acoustic_sim.cli import main
+from acoustic_sim.dataset import DatasetError
+from acoustic_sim.generate import generate
+from acoustic_sim.suites import SUITES, Physics
+
+
+def cli_error(capsys, argv: list[str]) -> str:
+    assert main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: "), err
+    return err[0]
+
+
+def test_generate_never_writes_into_a_foreign_folder(tmp_path, capsys):
+    """A folder with the user's own files and no plan.json is refused and left as it was; so is a
+    file given as --out."""
+    (tmp_path / "README.md").write_text("my notes")
+    with pytest.raises(DatasetError, match="not a dataset folder"):
+        generate(SUITES["tiny"], tmp_path, frames=3, device="cpu", progress=False)
+    assert [p.name for p in tmp_path.iterdir()] == ["README.md"] and (tmp_path / "README.md").read_text() == "my notes"
+    argv = ["generate", "--suite", "tiny", "--frames", "3", "--out", str(tmp_path / "README.md"), "--device", "cpu"]
+    assert "is a file" in cli_error(capsys, argv)
+
+
+@pytest.mark.parametrize("name", ["../escape", "/tmp/abs", "a/b", ".hidden", "..", "x\\y"])
+def test_variant_names_cannot_leave_the_output_folder(name):
+    with pytest.raises(ValueError, match="variant name"):
+        dataclasses.replace(SUITES["tiny"], variants={name: Physics(), "ok": Physics()})
+
+
+def test_zero_shards_is_refused_not_replaced_by_the_default(tmp_path, capsys):
+    argv = ["generate", "--suite", "tiny", "--frames", "3", "--shards", "0", "--out", str(tmp_path / "z")]
+    assert "shards must lie in 1..1" in cli_error(capsys, argv)
+    assert not (tmp_path / "z").exists()
+
+
+def test_cli_errors_are_one_line_and_debug_shows_the_trace(tmp_path, capsys):
+    """A missing mesh file: one line from `render`; in a subprocess with --debug the trace appears."""
+    argv = ["render", "--mesh", str(tmp_path / "missing.obj"), "--out", str(tmp_path / "m.png")]
+    assert "missing.obj" in cli_error(capsys, argv)
+    done = subprocess.run(
+        [sys.executable, "-m", "acoustic_sim", "generate", "--suite", "nope", "--out", str(tmp_path / "n")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 2 and "Traceback" not in done.stderr and "unknown suite" in done.stderr
+    done = subprocess.run(
+        [sys.executable, "-m", "acoustic_sim", "render", *argv[1:], "--debug"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode != 0 and "Traceback" in done.stderr
