@@ -82,8 +82,11 @@ def free_space(
     the largest connected one enclosed by obstacles; if nothing encloses the robot (an open
     scene), the largest region inside the scene's footprint is used.
     """
-    if clearance <= 0 or robot_height <= 0.05 or cell <= 0:
-        raise SceneError("clearance and cell must be > 0 and robot_height > 0.05 m")
+    if (
+        not (clearance > 0 and robot_height > 0.05 and cell > 0)
+        or not np.isfinite([clearance, robot_height, cell]).all()
+    ):
+        raise SceneError("clearance and cell must be finite and > 0 and robot_height > 0.05 m")
     segments = obstacle_segments(scene, np.linspace(0.05, robot_height, 4))
     if len(segments) == 0:
         raise SceneError(
@@ -91,9 +94,13 @@ def free_space(
         )
     lo = scene.mesh.bounds[0, :2] - 2 * cell
     hi = scene.mesh.bounds[1, :2] + 2 * cell
-    shape = np.ceil((hi - lo) / cell).astype(int) + 1
-    if shape.prod() > 25_000_000:
-        raise SceneError(f"{scene.name}: footprint {hi - lo} m is too large for a {cell} m grid")
+    size = np.ceil((hi - lo) / cell) + 1  # float: an int64 product overflows for huge scenes or tiny cells
+    if not np.isfinite(size).all() or float(np.prod(size)) > 25_000_000:
+        raise SceneError(
+            f"{scene.name}: footprint {hi - lo} m is too large for a {cell} m grid "
+            f"({float(np.prod(size)):.3g} cells, at most 2.5e7)"
+        )
+    shape = size.astype(int)
     # Rasterise every segment densely enough that no cell along it is skipped.
     a, b = segments[:, 0], segments[:, 1]
     steps = np.ceil(np.linalg.norm(b - a, axis=1) / (0.5 * cell)).astype(int) + 1

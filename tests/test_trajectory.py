@@ -88,3 +88,12 @@ def test_pose_helpers_agree():
     batch = scenes.poses([[1.0, 2.0], [3.0, 4.0]], [np.pi / 2, 0.3], 0.5)
     np.testing.assert_allclose(batch[0], scenes.pose(1.0, 2.0, np.pi / 2, 0.5))
     np.testing.assert_allclose(batch[0][:3, :3] @ [1, 0, 0], [0, 1, 0], atol=1e-12)
+
+
+@pytest.mark.parametrize("cell", [1e-9, 1e-4, float("nan"), float("inf"), 0.0])
+def test_free_space_refuses_grids_it_cannot_hold(cell):
+    """A cell so small that the grid's size overflows int64 (1e-9 m: ~1e19 cells) or would need
+    gigabytes, and non-finite cells, are refused with SceneError before anything is allocated."""
+    room = scenes.box_room(size=(4.0, 3.0, 2.5))
+    with pytest.raises(scenes.SceneError, match=r"too large|finite"):
+        scenes.free_space(room, cell=cell)
