@@ -2,7 +2,7 @@
 
 from importlib.metadata import PackageNotFoundError, version
 
-from .config import AtmosphereConfig, ChirpConfig, LidarConfig, PolarGrid, SonarConfig
+from .config import AtmosphereConfig, ChirpConfig, ConfigError, LidarConfig, PolarGrid, SonarConfig
 from .lidar import Lidar, LidarScan, check_poses, lidar_image, ranges_to_points
 from .paths import Arrivals, Sonar
 from .scene import WarpScene, warp_scene
@@ -16,6 +16,7 @@ __all__ = [
     "Arrivals",
     "AtmosphereConfig",
     "ChirpConfig",
+    "ConfigError",
     "Lidar",
     "LidarConfig",
     "LidarScan",

@@ -10,6 +10,27 @@ import numpy as np
 NOISE_KINDS = ("none", "gaussian", "uniform")
 
 
+class ConfigError(ValueError):
+    """A configuration value that is missing, non-finite or out of range."""
+
+
+def check_finite(config) -> None:
+    """Refuse NaN and inf in every float field of a config dataclass (and in float tuples and
+    arrays), naming the field: comparisons with NaN are False, so range checks alone let it pass."""
+    for f in dataclasses.fields(config):
+        value = getattr(config, f.name)
+        if isinstance(value, float | np.floating):
+            numbers = np.float64(value)
+        elif isinstance(value, np.ndarray) and value.dtype.kind in "fc":
+            numbers = value
+        elif isinstance(value, tuple | list) and value and all(isinstance(v, float | int) for v in np.ravel(value)):
+            numbers = np.asarray(value, dtype=np.float64)
+        else:
+            continue  # ints, strings, flags, nested configs (checked when built), tables of other things
+        if not np.isfinite(numbers).all():
+            raise ConfigError(f"{type(config).__name__}.{f.name} must be finite, got {value!r}")
+
+
 @dataclass(frozen=True, kw_only=True)
 class PolarGrid:
     """Range x azimuth grid shared by energyscapes and LiDAR images.
@@ -26,6 +47,7 @@ class PolarGrid:
     azimuth_step_deg: float = 1.0
 
     def __post_init__(self) -> None:
+        check_finite(self)
         if not 0 <= self.range_min_m < self.range_max_m:
             raise ValueError("PolarGrid needs 0 <= range_min_m < range_max_m")
         if self.range_bin_m <= 0 or self.azimuth_step_deg <= 0:
@@ -79,6 +101,7 @@ class LidarConfig:
     dropout_probability: float = 0.0
 
     def __post_init__(self) -> None:
+        check_finite(self)
         if self.azimuth_count < 1 or self.elevation_count < 1:
             raise ValueError("LidarConfig needs azimuth_count >= 1 and elevation_count >= 1")
         if self.azimuth_max_deg < self.azimuth_min_deg or self.elevation_max_deg < self.elevation_min_deg:
@@ -166,6 +189,7 @@ class ChirpConfig:
     taper_fraction: float = 0.1
 
     def __post_init__(self) -> None:
+        check_finite(self)
         from .signals import chirp
 
         chirp(**dataclasses.asdict(self))  # validates every field with a clear message
@@ -198,6 +222,7 @@ class AtmosphereConfig:
     pressure_kpa: float = 101.325
 
     def __post_init__(self) -> None:
+        check_finite(self)
         if not -50.0 <= self.temperature_c <= 60.0:
             raise ValueError(f"temperature_c must lie in [-50, 60], got {self.temperature_c}")
         if not 0.0 <= self.relative_humidity <= 100.0:
@@ -230,6 +255,7 @@ class SonarConfig:
     microphone_delay_s: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
+        check_finite(self)
         mics = np.asarray(self.microphones_m, dtype=np.float64)
         if mics.ndim != 2 or mics.shape[1] != 3 or len(mics) < 2 or not np.isfinite(mics).all():
             raise ValueError(f"microphones_m must be >= 2 finite (x, y, z) positions, got shape {mics.shape}")

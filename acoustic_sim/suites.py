@@ -18,6 +18,8 @@ import numpy as np
 
 import scenes
 
+from .config import ConfigError, check_finite
+
 
 @dataclass(frozen=True, kw_only=True)
 class Scenario:
@@ -111,6 +113,7 @@ class Physics:
     def __post_init__(self) -> None:
         object.__setattr__(self, "snr_db", _pair(self.snr_db, "snr_db"))
         object.__setattr__(self, "temperature_c", _pair(self.temperature_c, "temperature_c"))
+        check_finite(self)
         if not 0 <= self.max_bounces <= 10 or self.ray_count < 1:
             raise ValueError("Physics needs max_bounces in 0..10 and ray_count >= 1")
         sigmas = (self.mic_position_sigma_m, self.mic_gain_sigma_db, self.mic_delay_sigma_s, self.lidar_noise_m)
@@ -120,6 +123,8 @@ class Physics:
 
 def _pair(value, name: str) -> tuple[float, float]:
     pair = (float(value), float(value)) if np.ndim(value) == 0 else tuple(float(v) for v in value)
+    if not np.isfinite(pair).all():
+        raise ConfigError(f"Physics.{name} must be finite, got {value!r}")
     if len(pair) != 2 or pair[0] > pair[1]:
         raise ValueError(f"{name} must be a number or [low, high], got {value!r}")
     return pair
@@ -151,6 +156,7 @@ class Suite:
     speed_m_s: float = 0.3
 
     def __post_init__(self) -> None:
+        check_finite(self)
         if not self.scenarios:
             raise ValueError(f"suite {self.name!r} has no scenarios")
         names = [s.name for s in self.scenarios]
