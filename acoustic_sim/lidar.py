@@ -38,8 +38,8 @@ def raise_for_pose_error(error: np.ndarray) -> None:
         if not np.isfinite(error[k]):
             raise ValueError(f"pose {k} contains NaN or inf")
         raise ValueError(
-            f"pose {k} is not a rigid transform (rotation not orthonormal or last row not "
-            f"[0, 0, 0, 1]; error {error[k]:.2g})"
+            f"pose {k} is not a rigid transform (rotation not orthonormal, a mirror with determinant -1, "
+            f"or last row not [0, 0, 0, 1]; error {error[k]:.2g})"
         )
 
 

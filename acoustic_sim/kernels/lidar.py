@@ -23,7 +23,8 @@ def pose_error(
     # out
     error_out: wp.array[float],
 ):
-    """One thread per pose: max |R^T R - I| and |last row - (0, 0, 0, 1)|; inf if any entry is not finite."""
+    """One thread per pose: max of |R^T R - I|, |det R - 1| (a mirror has det -1 yet R^T R = I) and
+    |last row - (0, 0, 0, 1)|; inf if any entry is not finite."""
     p = wp.tid()
     m = poses[p]
     total = float(0.0)
@@ -37,6 +38,12 @@ def pose_error(
             if i == j:
                 dot = dot - 1.0
             err = wp.max(err, wp.abs(dot))
+    det = (
+        m[0, 0] * (m[1, 1] * m[2, 2] - m[1, 2] * m[2, 1])
+        - m[0, 1] * (m[1, 0] * m[2, 2] - m[1, 2] * m[2, 0])
+        + m[0, 2] * (m[1, 0] * m[2, 1] - m[1, 1] * m[2, 0])
+    )
+    err = wp.max(err, wp.abs(det - 1.0))
     if not wp.isfinite(total):
         err = wp.inf
     error_out[p] = err
