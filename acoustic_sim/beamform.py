@@ -200,6 +200,11 @@ def beamformer(
     return _cached_beamformer(config, samples=samples, elevation_deg=elevation, device=device, **options)
 
 
+MAX_SIGNAL = 1e20
+"""Largest |sample| energyscape accepts: matched filtering and beamforming sum ~1e6 products in
+float32 (max 3.4e38), so samples far above this would overflow to inf."""
+
+
 def energyscape(
     signals: np.ndarray,
     config: SonarConfig,
@@ -234,6 +239,8 @@ def energyscape(
         device: Warp device.
     """
     signals = np.asarray(signals)
+    if signals.dtype.kind not in "fiu":  # complex, object, bool, strings: not microphone samples
+        raise ValueError(f"signals must be real numbers (float or integer), got dtype {signals.dtype}")
     if signals.ndim == 2:
         signals = signals[None]
     mics = config.microphone_count
@@ -241,6 +248,14 @@ def energyscape(
         raise ValueError(f"signals must have shape (N, {mics}, samples), got {signals.shape}")
     if not np.isfinite(signals).all():
         raise ValueError("signals contain NaN or inf")
+    peak = float(np.abs(signals).max(initial=0.0))
+    if peak > MAX_SIGNAL:
+        raise ValueError(
+            f"signals reach {peak:.3g}; above {MAX_SIGNAL:.0e} the float32 processing overflows: rescale them"
+        )
+    call_samples = config.chirp.sample_count if call is None else len(np.asarray(call))
+    if signals.shape[2] < call_samples:
+        raise ValueError(f"signals hold {signals.shape[2]} samples, fewer than the call's {call_samples}")
     device = wp.get_device(device)
     former = beamformer(
         config,

@@ -109,6 +109,13 @@ def test_bad_signals():
         energyscape(np.zeros((1, 5, 100)), CONFIG)
     with pytest.raises(ValueError, match="NaN"):
         energyscape(np.full((32, 2000), np.nan), CONFIG)
+    with pytest.raises(ValueError, match="overflows"):
+        energyscape(np.full((32, 2000), 1e39), CONFIG)  # float32 would turn it into inf, then NaN
+    for dtype in (np.complex64, object, bool):
+        with pytest.raises(ValueError, match="real numbers"):
+            energyscape(np.zeros((32, 2000), dtype=dtype), CONFIG)
+    with pytest.raises(ValueError, match="fewer than the call's 1126"):
+        energyscape(np.zeros((32, 500)), CONFIG)
 
 
 def test_baseband_processing_equals_a_full_rate_reference(device):
