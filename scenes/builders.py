@@ -269,6 +269,7 @@ def random_world(
                     str(rng.choice(["painted_wall", "metal", "wood"])),
                 )
             )
+    placer.warn_skipped("random_world")
     return assemble(
         parts,
         name="random_world",

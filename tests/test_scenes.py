@@ -168,3 +168,10 @@ def test_describe_is_json_with_builder_params():
     info = json.loads(scenes.office(seed=3, clutter="low").describe())
     assert info["name"] == "office" and info["params"]["seed"] == 3 and info["params"]["clutter"] == "low"
     assert {m["name"] for m in info["materials"]} >= {"painted_wall", "wood"}
+
+
+def test_random_world_warns_when_objects_do_not_fit():
+    """Asking for 60 cylinders in a 3.5 x 3.5 m room: most cannot keep their passages free, and it
+    says so (as office does) instead of silently building a sparser world."""
+    with pytest.warns(UserWarning, match=r"random_world: \d+ objects did not fit"):
+        scenes.random_world(size=(3.5, 3.5, 2.5), wall_count=0, cylinder_count=60, seed=1)
