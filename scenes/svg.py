@@ -5,6 +5,7 @@ from __future__ import annotations
 import io
 import itertools
 import os
+import re
 
 import numpy as np
 import svgelements as se
@@ -20,17 +21,37 @@ def _read_svg(source: str | os.PathLike | io.IOBase) -> se.SVG:
     """Parse an SVG given as a path, a file object or the SVG text itself."""
     try:
         if hasattr(source, "read"):
-            return se.SVG.parse(source)
-        text = str(source)
-        if text.lstrip().startswith("<"):
-            return se.SVG.parse(io.StringIO(text))
-        if not os.path.exists(text):
-            raise SceneError(f"SVG file not found: {text}")
-        return se.SVG.parse(text)
+            text = source.read()
+            text = text.decode() if isinstance(text, bytes) else text
+        elif str(source).lstrip().startswith("<"):
+            text = str(source)
+        elif not os.path.exists(str(source)):
+            raise SceneError(f"SVG file not found: {source}")
+        else:
+            with open(source, encoding="utf-8", errors="replace") as f:
+                text = f.read()
+        _refuse_non_finite(text)
+        return se.SVG.parse(io.StringIO(text))
     except SceneError:
         raise
     except Exception as err:
         raise SceneError(f"could not parse SVG: {err}") from err
+
+
+_NON_FINITE = re.compile(r"(?<![A-Za-z_])(nan|inf(inity)?)(?![A-Za-z_])", re.IGNORECASE)
+
+
+def _refuse_non_finite(text: str) -> None:
+    """svgelements reads "NaN" and "inf" in coordinates as 0 or drops the rest of a path, which
+    silently moves or loses walls: refuse them, naming the attribute."""
+    for match in re.finditer(r'([\w:-]+)\s*=\s*("[^"]*"|\'[^\']*\')', text):
+        name, value = match.group(1), match.group(2)
+        if (
+            name not in ("id", "class", "style")
+            and not name.startswith(("xmlns", "xlink"))
+            and _NON_FINITE.search(value)
+        ):
+            raise SceneError(f"the SVG has a non-finite (NaN or inf) number in {name}={value}")
 
 
 def _strokes(shape: se.Shape, scale: float) -> list[np.ndarray]:
@@ -95,14 +116,19 @@ def from_svg(
     for element in svg.elements():
         if not isinstance(element, se.Shape):
             continue
+        what = f"<{type(element).__name__.lower()}{' id=' + repr(element.id) if element.id else ''}>"
         if isinstance(element, (se.Circle, se.Ellipse)):
             rx, ry = float(element.implicit_rx) * scale, float(element.implicit_ry) * scale
             center = np.array([element.implicit_center.x, element.implicit_center.y]) * flip
+            if not np.isfinite([rx, ry, *center]).all():
+                raise SceneError(f"the SVG's {what} has a non-finite (NaN or inf) centre or radius")
             if rx > 0 and ry > 0:
                 pillars.append((center, rx, ry, -float(element.rotation)))
             continue
         for line in _strokes(element, scale):
             pts = line * flip
+            if not np.isfinite(pts).all():
+                raise SceneError(f"the SVG's {what} has non-finite (NaN or inf) coordinates")
             for a, b in itertools.pairwise(pts):
                 if np.linalg.norm(b - a) > 1e-6:
                     walls.append((a, b))

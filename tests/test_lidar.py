@@ -229,7 +229,7 @@ def test_bad_poses_raise(device):
     with pytest.raises(ValueError, match="empty"):
         lidar.scan(scene, np.zeros((0, 4, 4)))
     mirrored = np.diag([1.0, -1.0, 1.0, 1.0])  # orthonormal (R^T R = I) but det -1: left and right swap
-    with pytest.raises(ValueError, match="pose 0 is not a rigid transform .*determinant -1"):
+    with pytest.raises(ValueError, match=r"pose 0 is not a rigid transform .*determinant -1"):
         lidar.scan(scene, mirrored)
     with pytest.raises(ValueError, match="determinant -1"):
         sim.Sonar(sim.SonarConfig.ertis(), device=device).trace(scene, mirrored)

@@ -175,3 +175,16 @@ def test_random_world_warns_when_objects_do_not_fit():
     says so (as office does) instead of silently building a sparser world."""
     with pytest.warns(UserWarning, match=r"random_world: \d+ objects did not fit"):
         scenes.random_world(size=(3.5, 3.5, 2.5), wall_count=0, cylinder_count=60, seed=1)
+
+
+@pytest.mark.parametrize(
+    "shape",
+    ['<path d="M 10 10 L nan 20"/>', '<line x1="20" y1="20" x2="NaN" y2="40"/>', '<circle cx="inf" cy="50" r="5"/>'],
+)
+def test_svg_with_non_finite_coordinates_is_refused(shape, tmp_path):
+    """A NaN or inf coordinate used to drop that wall silently; now it names the element."""
+    path = tmp_path / "plan.svg"
+    rect = '<rect x="0" y="0" width="100" height="100"/>'
+    path.write_text(f'<svg xmlns="http://www.w3.org/2000/svg" width="100" height="100">{rect}{shape}</svg>')
+    with pytest.raises(SceneError, match="non-finite"):
+        scenes.from_svg(path, scale=0.05)
