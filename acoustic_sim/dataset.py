@@ -1,8 +1,10 @@
 """HDF5 dataset shards: the one interface between simulation and learning.
 
 A shard holds whole episodes (robot drives). It is written under a temporary name and renamed
-only when complete, so a file with the final name is always whole. Layout (all plain HDF5,
-readable with h5py or MATLAB's h5read):
+only when complete, so a file with the final name is always whole; a write that fails (a full
+disk) removes the temporary file. Every dataset carries an HDF5 Fletcher-32 checksum, so a shard
+damaged later fails `verify_shard` (and any read) instead of feeding wrong numbers to training.
+Layout (all plain HDF5, readable with h5py or MATLAB's h5read):
 
     shard-00000.h5   attrs: format, format_version, frame_count, plan_id, suite, variant,
                             config (JSON), episodes (JSON), scenarios (JSON), package_version
@@ -30,7 +32,8 @@ import numpy as np
 
 FORMAT = "sonar2lidar-dataset"
 FORMAT_VERSION = 1
-COMPRESSION = {"compression": "gzip", "compression_opts": 1, "shuffle": True}  # MATLAB reads gzip
+CHECKSUM = {"fletcher32": True}  # an HDF5 built-in filter: h5py and MATLAB verify it on every read
+COMPRESSION = {"compression": "gzip", "compression_opts": 1, "shuffle": True, **CHECKSUM}  # MATLAB reads gzip
 
 
 class DatasetError(ValueError):
@@ -57,9 +60,19 @@ class ShardFrames:
 
 
 def write_shard(path: Path, frames: ShardFrames, *, attrs: dict, range_m: np.ndarray, azimuth_rad: np.ndarray) -> None:
-    """Write a complete shard: to `<name>.tmp` first, then an atomic rename onto `path`."""
+    """Write a complete shard: to `<name>.tmp` first, then an atomic rename onto `path`. On any
+    error (a full or read-only disk) the file is closed and the temporary removed."""
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
+    try:
+        _write(tmp, frames, attrs=attrs, range_m=range_m, azimuth_rad=azimuth_rad)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    os.replace(tmp, path)
+
+
+def _write(tmp: Path, frames: ShardFrames, *, attrs: dict, range_m: np.ndarray, azimuth_rad: np.ndarray) -> None:
     cat = np.concatenate
     with h5py.File(tmp, "w") as f:
         f.attrs["format"] = FORMAT
@@ -73,8 +86,8 @@ def write_shard(path: Path, frames: ShardFrames, *, attrs: dict, range_m: np.nda
         )
         escape.attrs["dims"] = "frame, range, azimuth"
         escape.attrs["description"] = "beamformed echo envelope (linear, pressure re the call at 1 m)"
-        f.create_dataset("range_m", data=range_m).attrs["units"] = "m"
-        f.create_dataset("azimuth_rad", data=azimuth_rad).attrs["units"] = "rad, 0 ahead, + to the left"
+        f.create_dataset("range_m", data=range_m, **CHECKSUM).attrs["units"] = "m"
+        f.create_dataset("azimuth_rad", data=azimuth_rad, **CHECKSUM).attrs["units"] = "rad, 0 ahead, + to the left"
         ranges = f.create_dataset("lidar/ranges", data=cat(frames.lidar_ranges).astype(np.float32), **COMPRESSION)
         ranges.attrs["units"] = "m, inf = no return"
         image = f.create_dataset(
@@ -82,10 +95,10 @@ def write_shard(path: Path, frames: ShardFrames, *, attrs: dict, range_m: np.nda
         )
         image.attrs["dims"] = "frame, range, azimuth"
         image.attrs["description"] = "1 where a LiDAR return falls in the cell (the label)"
-        f.create_dataset("pose", data=cat(frames.pose)).attrs["description"] = "4x4 sensor-to-world, z up"
-        f.create_dataset("time", data=cat(frames.time)).attrs["units"] = "s since the episode's start"
-        f.create_dataset("episode", data=cat(frames.episode).astype(np.int32))
-        f.create_dataset("scenario", data=cat(frames.scenario).astype(np.int16))
+        f.create_dataset("pose", data=cat(frames.pose), **CHECKSUM).attrs["description"] = "4x4 sensor-to-world, z up"
+        f.create_dataset("time", data=cat(frames.time), **CHECKSUM).attrs["units"] = "s since the episode's start"
+        f.create_dataset("episode", data=cat(frames.episode).astype(np.int32), **CHECKSUM)
+        f.create_dataset("scenario", data=cat(frames.scenario).astype(np.int16), **CHECKSUM)
         if frames.signals:
             signals = cat(frames.signals).astype(np.float16)
             f.create_dataset("signals", data=signals, chunks=(1, *signals.shape[1:]), **COMPRESSION)
@@ -95,7 +108,6 @@ def write_shard(path: Path, frames: ShardFrames, *, attrs: dict, range_m: np.nda
             for key in frames.arrivals[0]:
                 group.create_dataset(key, data=cat([a[key] for a in frames.arrivals]), **COMPRESSION)
             group.attrs["description"] = "one row per echo; `frame` indexes the shard's frames"
-    os.replace(tmp, path)
 
 
 def read_attrs(path: Path) -> dict:
@@ -120,3 +132,23 @@ def read_attrs(path: Path) -> dict:
         if key in attrs:
             attrs[key] = json.loads(attrs[key])
     return attrs
+
+
+def verify_shard(path: Path) -> None:
+    """Read every dataset of a shard in full, so HDF5 checks each chunk's checksum (and that it
+    decompresses); raises DatasetError naming the first damaged dataset."""
+    path = Path(path)
+    where = "its metadata"
+    try:
+        with h5py.File(path, "r") as f:
+            names: list[str] = []
+            f.visit(lambda name: names.append(name) if isinstance(f[name], h5py.Dataset) else None)
+            for where in names:
+                dataset = f[where]
+                if dataset.ndim == 0:
+                    dataset[()]
+                for start in range(0, len(dataset) if dataset.ndim else 0, 64):  # bounded memory
+                    dataset[start : start + 64]
+    except OSError as err:
+        first = str(err).strip().splitlines()[0]
+        raise DatasetError(f"{path} is damaged (in {where}: {first})") from None

@@ -9,12 +9,17 @@ same device gives identical arrays, and a rerun skips the shards that are alread
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import hashlib
 import json
 import math
 import multiprocessing
+import os
+import socket
+import threading
 import time
+import warnings
 import zlib
 from collections import Counter
 from concurrent.futures import ProcessPoolExecutor, as_completed
@@ -24,11 +29,12 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from .dataset import FORMAT, FORMAT_VERSION, DatasetError, ShardFrames, read_attrs, write_shard
+from .dataset import FORMAT, FORMAT_VERSION, DatasetError, ShardFrames, read_attrs, verify_shard, write_shard
 from .suites import Physics, Suite
 
 FRAMES_PER_SHARD = 250  # default shard size: ~20 MB; enough shards to keep several workers busy
 PLAN_FILE = "plan.json"
+LOCK_FILE = ".generate.lock"  # "pid host" of the run writing the folder
 
 
 @dataclass(frozen=True)
@@ -301,16 +307,62 @@ def shard_entry(task: ShardTask) -> dict:
 
 
 def is_complete(task: ShardTask) -> bool:
-    """Whether the task's shard exists and belongs to this plan (else False if absent)."""
+    """Whether the task's shard exists, belongs to this plan and passes its checksums. A shard of
+    this plan that fails them is moved aside (`.damaged`) and counted as not done."""
     path = Path(task.path)
     if not path.exists():
         return False
-    attrs = read_attrs(path)  # raises DatasetError for foreign, corrupt or other-version files
+    attrs = read_attrs(path)  # raises DatasetError for foreign, truncated or other-version files
     if attrs.get("plan_id") != task.plan_id or int(attrs["frame_count"]) != task.frame_count:
         raise DatasetError(
             f"{path} belongs to another run (plan {attrs.get('plan_id')}, not {task.plan_id}); "
             "use another --out or remove that folder"
         )
+    try:
+        verify_shard(path)
+    except DatasetError as err:
+        damaged = path.with_name(path.name + ".damaged")
+        os.replace(path, damaged)
+        warnings.warn(f"{err}; moved it to {damaged.name} and writing the shard again", stacklevel=2)
+        return False
+    return True
+
+
+@contextlib.contextmanager
+def output_lock(out: Path):
+    """Hold `out`/.generate.lock while writing, so two runs never write the same shards. A lock
+    left by a run that died on this host is taken over; a live one is refused."""
+    path = out / LOCK_FILE
+    me = f"{os.getpid()} {socket.gethostname()}"
+    for _ in range(2):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+            break
+        except FileExistsError:
+            pid, _, host = path.read_text(errors="replace").strip().partition(" ")
+            if host != socket.gethostname() or _alive(pid):
+                raise DatasetError(
+                    f"another generate (pid {pid} on {host or '?'}) is writing {out}; wait for it, or delete "
+                    f"{path} if it is no longer running"
+                ) from None
+            path.unlink(missing_ok=True)  # its writer is gone
+    else:
+        raise DatasetError(f"could not take the lock {path}")
+    with os.fdopen(fd, "w") as f:
+        f.write(me)
+    try:
+        yield
+    finally:
+        path.unlink(missing_ok=True)
+
+
+def _alive(pid: str) -> bool:
+    try:
+        os.kill(int(pid), 0)
+    except (ValueError, ProcessLookupError):
+        return False
+    except PermissionError:
+        return True
     return True
 
 
@@ -349,9 +401,17 @@ def _check_plan_file(out: Path, tasks: list[ShardTask], meta: dict) -> None:
 _WORKER_DEVICE = None
 
 
-def _init_worker(devices) -> None:
+def _init_worker(devices, parent: int) -> None:
     global _WORKER_DEVICE
     _WORKER_DEVICE = devices.get()
+    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
+
+
+def _exit_with_parent(parent: int) -> None:
+    """A worker whose parent died (even by SIGKILL) exits too, instead of simulating on for nobody."""
+    while os.getppid() == parent:
+        time.sleep(0.5)
+    os._exit(1)
 
 
 def _run_in_worker(task: ShardTask) -> dict:
@@ -399,30 +459,32 @@ def generate(
     frames = sum(t.frame_count for t in tasks) // len(suite.variants)
     meta = {"suite": suite.name, "frames": frames, "shards": len(tasks) // len(suite.variants), "seed": seed}
     _check_plan_file(out, tasks, meta | {"variants": list(suite.variants), "suite_config": suite.to_json()})
-    todo = [t for t in tasks if not is_complete(t)]
-    done_frames = sum(t.frame_count for t in tasks) - sum(t.frame_count for t in todo)
-    bar = tqdm(total=sum(t.frame_count for t in tasks), initial=done_frames, unit="frame", disable=not progress)
-    bar.set_description(f"{suite.name}")
-    devices = worker_devices(device, workers)
-    if ray_address:
-        _run_on_ray(todo, ray_address, devices[0].startswith("cuda"), bar)
-    elif workers == 1 or len(todo) <= 1:
-        for task in todo:
-            run_task(task, devices[0], on_frames=bar.update)
-    else:
-        queue = multiprocessing.get_context("spawn").Manager().Queue()
-        for d in devices:
-            queue.put(d)
-        context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker, initargs=(queue,)) as pool:
-            futures = {pool.submit(_run_in_worker, t): t for t in todo}
-            for future in as_completed(futures):
-                future.result()
-                bar.update(futures[future].frame_count)
-    bar.close()
-    seconds = time.perf_counter() - t0
-    for variant in suite.variants:
-        write_manifest(out / variant, [t for t in tasks if t.variant == variant], suite, meta)
+    with output_lock(out):  # one writer per folder
+        todo = [t for t in tasks if not is_complete(t)]
+        done_frames = sum(t.frame_count for t in tasks) - sum(t.frame_count for t in todo)
+        bar = tqdm(total=sum(t.frame_count for t in tasks), initial=done_frames, unit="frame", disable=not progress)
+        bar.set_description(f"{suite.name}")
+        devices = worker_devices(device, workers)
+        if ray_address:
+            _run_on_ray(todo, ray_address, devices[0].startswith("cuda"), bar)
+        elif workers == 1 or len(todo) <= 1:
+            for task in todo:
+                run_task(task, devices[0], on_frames=bar.update)
+        else:
+            context = multiprocessing.get_context("spawn")
+            queue = context.Queue()  # handed to each worker at its start; no manager process to outlive us
+            for d in devices:
+                queue.put(d)
+            init = (queue, os.getpid())
+            with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker, initargs=init) as pool:
+                futures = {pool.submit(_run_in_worker, t): t for t in todo}
+                for future in as_completed(futures):
+                    future.result()
+                    bar.update(futures[future].frame_count)
+        bar.close()
+        seconds = time.perf_counter() - t0
+        for variant in suite.variants:
+            write_manifest(out / variant, [t for t in tasks if t.variant == variant], suite, meta)
     made = sum(t.frame_count for t in todo)
     return {
         "suite": suite.name,

@@ -147,17 +147,15 @@ def load_frames(folder: str | Path) -> Frames:
                 if name not in names:
                     names.append(name)
             remap = np.array([names.index(n) for n in local], dtype=np.int64)
-            energyscape = f["energyscape"][:]
+            try:
+                arrays = [f[k][:] for k in ("energyscape", "lidar/image", "episode", "scenario")]
+            except (OSError, KeyError) as err:  # a checksum or decompression failure, a missing dataset
+                first = str(err).strip().splitlines()[0]
+                raise DataError(f"{path} is damaged or incomplete ({first}); regenerate it") from None
+            energyscape, label, episode, scenario = arrays
             if not np.isfinite(energyscape).all():
                 raise DataError(f"{path}: energyscape holds NaN or inf values; regenerate this shard")
-            parts.append(
-                (
-                    energyscape,
-                    f["lidar/image"][:],
-                    f["episode"][:].astype(np.int64),
-                    remap[f["scenario"][:].astype(np.int64)],
-                )
-            )
+            parts.append((energyscape, label, episode.astype(np.int64), remap[scenario.astype(np.int64)]))
             info.setdefault("config", json.loads(f.attrs["config"]))
     energyscape, label, episode, scenario = (np.concatenate(p) for p in zip(*parts, strict=True))
     return Frames(energyscape, label, episode, scenario, names, grid[0], grid[1], info)
