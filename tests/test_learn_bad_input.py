@@ -121,7 +121,7 @@ def test_bad_arguments_and_folders(run, tmp_path, capsys, tiny_dataset):
     np.save(wrong, np.zeros((6, 100, 181), np.float32))
     np.save(tmp_path / "complex.npy", np.zeros((6, 240, 181), np.complex64))
     np.save(tmp_path / "nan.npy", np.full((6, 240, 181), np.nan, np.float32))
-    np.save(tmp_path / "object.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    np.save(tmp_path / "object.npy", np.array([{"a": 1}], dtype=object))  # np.save pickles objects by default
     predict = ["predict", "--checkpoint", str(best), "--out", str(tmp_path / "p"), "--input"]
     cases = [
         ([*predict, str(tmp_path / "complex.npy")], "real numbers"),
