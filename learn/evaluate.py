@@ -272,11 +272,12 @@ def check_grid(frames: Frames, ckpt: dict, name: str = "the model") -> None:
 
 def return_threshold(ckpt: dict, override: float | None = None) -> float:
     """The return threshold to read a checkpoint's predictions at: `override`, else its calibrated one."""
-    if override is not None:
-        return float(override)
-    if "threshold" not in ckpt:
+    if override is None and "threshold" not in ckpt:
         raise ValueError("the checkpoint has no calibrated return threshold (it predates calibration): set one")
-    return float(ckpt["threshold"])
+    threshold = float(ckpt["threshold"] if override is None else override)
+    if not 0 < threshold <= 1:
+        raise ValueError(f"the return threshold must lie in (0, 1], got {threshold}")
+    return threshold
 
 
 def _pick_windows(windows: Windows, ckpt: dict, frames: Frames, split: str, episodes) -> tuple[np.ndarray, str]:
@@ -305,6 +306,8 @@ def example_file(name: str, *, first: bool) -> str:
 def _example_rows(predictors, name, picker, per_window, windows, indices, frames, count) -> list[dict]:
     """Windows at evenly spaced quantiles of `picker`'s scan_f1 (poor to good, none cherry-picked)."""
     f1 = per_window[name]["scan_f1"]
+    rank = np.empty(len(f1), dtype=int)
+    rank[np.argsort(f1, kind="stable")] = np.arange(len(f1))  # this model's rank of each window
     order = np.argsort(per_window[picker]["scan_f1"], kind="stable")
     picks = sorted({int(order[round(q * (len(order) - 1))]) for q in np.linspace(0.1, 0.9, count)})
     predict, _ = predictors[name]
@@ -314,13 +317,12 @@ def _example_rows(predictors, name, picker, per_window, windows, indices, frames
         x, y = windows.batch([indices[local]])
         with torch.no_grad():
             pred = predict(x).float().clamp(0, 1)
-        rank = int(np.flatnonzero(np.argsort(f1, kind="stable") == local)[0])
         peak = per_window["echo peak"]["scan_f1"][local]
         rows.append(
             {
                 "title": f"{frames.scenarios[windows.scenario[indices[local]]]}, window {int(indices[local])}",
                 "caption": f"{name}: scan_f1 {f1[local]:.2f}, beam accuracy "
-                f"{per_window[name]['beam_accuracy'][local]:.2f} (rank {rank + 1} of {len(f1)}); "
+                f"{per_window[name]['beam_accuracy'][local]:.2f} (rank {rank[local] + 1} of {len(f1)}); "
                 f"echo peak scan_f1 {peak:.2f}",
                 "sonar": x[0, 0, offset].cpu().numpy(),
                 "truth": y[0, 0].cpu().numpy(),

@@ -81,9 +81,12 @@ def plot_curves(
 
 
 def _first_return(image: np.ndarray, range_m: np.ndarray, threshold: float) -> np.ndarray:
-    """Range [m] of the nearest cell >= threshold per column of an (R, A) image, inf where none, shape (A,)."""
-    hit = np.asarray(image) >= threshold
-    return np.where(hit.any(axis=0), np.asarray(range_m)[hit.argmax(axis=0)], np.inf)
+    """The scan the metrics read (`learn.metrics.first_return_ranges`) of one (R, A) image: (A,) [m], inf = none."""
+    import torch
+
+    from .metrics import first_return_ranges
+
+    return first_return_ranges(torch.as_tensor(np.asarray(image))[None], range_m, threshold=threshold)[0].numpy()
 
 
 def _edges(centres: np.ndarray) -> tuple[float, float]:

@@ -60,8 +60,6 @@ def predict(
     frame of each window), "range_m", "azimuth_rad". `threshold` overrides the checkpoint's."""
     model, ckpt = load_checkpoint(checkpoint, device)
     threshold = return_threshold(ckpt, threshold)
-    if not 0 < threshold <= 1:
-        raise ValueError(f"the return threshold must lie in (0, 1], got {threshold}")
     source = Path(source)
     frames = _frames_from_array(source, ckpt) if source.suffix == ".npy" else load_frames(source)
     check_grid(frames, ckpt)
