@@ -39,13 +39,20 @@ def _timed(fn, repeats: int, warmup: int, sync) -> float:
     return float(np.median(times))
 
 
-def bench_model(name: str, device: torch.device, *, repeats: int, batch: int = 12, warmup: int = 2) -> dict:
+def bench_model(
+    name: str, device: torch.device, *, repeats: int, batch: int = 12, warmup: int = 2, channels_last: bool = False
+) -> dict:
     torch.manual_seed(0)
     model = build_model(ModelConfig(name=name, frames=5)).to(device)
+    layout = torch.channels_last_3d if name == "paper" else torch.channels_last
+    if channels_last:  # the layout tensor cores read without transposes
+        model = model.to(memory_format=layout)
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-4)
     sync = (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else (lambda: None)
     amp = device.type == "cuda"
     x = torch.rand(batch, 1, 5, 240, 181, device=device)
+    if channels_last and name == "paper":
+        x = x.contiguous(memory_format=layout)
     y = (torch.rand(batch, 1, 240, 181, device=device) > 0.995).float()
 
     def step():
@@ -82,6 +89,9 @@ def main(argv=None) -> dict:
     parser.add_argument("--batch", type=int, default=12, help="training batch (the paper's 12; less on a slow CPU)")
     parser.add_argument("--warmup", type=int, default=2)
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    parser.add_argument(
+        "--channels-last", action="store_true", help="also time the paper network in channels-last layout"
+    )
     args = parser.parse_args(argv)
     device = torch.device(args.device)
     torch.backends.cudnn.benchmark = True  # as learn.train does on GPUs
@@ -97,6 +107,10 @@ def main(argv=None) -> dict:
             for m in ("paper", "polar_unet")
         },
     }
+    if args.channels_last:
+        res["models"]["paper_channels_last"] = bench_model(
+            "paper", device, repeats=args.repeats, batch=args.batch, warmup=args.warmup, channels_last=True
+        )
     paper, ours = res["models"]["paper"], res["models"]["polar_unet"]
     res["train_speedup"] = ours["train_windows_per_s"] / paper["train_windows_per_s"]
     out = Path(args.out)

@@ -9,10 +9,18 @@
 #   bash benchmarks/learner_converged.sh gen   WORKDIR
 #   bash benchmarks/learner_converged.sh train WORKDIR polar_unet 0 1 2
 #   bash benchmarks/learner_converged.sh eval  WORKDIR polar_unet 0 1 2
+#   bash benchmarks/learner_converged.sh pack  WORKDIR DEST     # runs -> DEST/state.tgz.part* (<= 15 MiB each)
+#   bash benchmarks/learner_converged.sh unpack WORKDIR SRC     # and back, on the next machine
+#
+# pack/unpack carry unfinished runs from one lent machine to the next (files come back in parts of
+# at most 16 MiB): checkpoints without optimizer state (Adam restarts its moments on resume, with a
+# warning) and with convolution/linear weights in bfloat16, the precision autocast computes them
+# in (batch-norm and bias tensors stay float32); `train` then resumes them.
 #
 # The pretrained model shipped in learn/pretrained/ is polar_unet seed 0's best.pt without its
 # optimizer state (`python -c "from learn.train import strip_checkpoint; strip_checkpoint(A, B)"`).
-# Environment: FRAMES (60000), MINUTES (time budget per call and run), DEVICE (cuda), GEN_DEVICE.
+# Environment: FRAMES (60000), MINUTES (time budget per call and run), DEVICE (cuda), GEN_DEVICE,
+# TRAIN_OPTS (more `learn train` options, e.g. --channels-last).
 set -euo pipefail
 phase=$1 W=$2
 shift 2
@@ -36,7 +44,7 @@ train)
   fi
   for s in "$@"; do
     python -m learn train --data "$D/paper" --out "$W/runs/${model}_seed$s" --model "$model" --frames 5 --seed "$s" \
-      "${OPTS[@]}" --epochs "${EPOCHS:-100}" --patience "${PATIENCE:-4}" --max-train-windows "${WINDOWS:-12000}" \
+      "${OPTS[@]}" ${TRAIN_OPTS:-} --epochs "${EPOCHS:-100}" --patience "${PATIENCE:-4}" --max-train-windows "${WINDOWS:-12000}" \
       --max-val-windows 2000 --max-minutes "${MINUTES:-8}" --resume --device "$DEVICE" --quiet \
       >> "$W/logs/${model}_seed$s.log" 2>&1 &
   done
@@ -62,8 +70,36 @@ for data, folder in (("paper", "held_out"), ("drive", "drive")):  # held_out: th
         print(f"{run} on {data} ({report['split']}, {report['windows']} windows): scan F1 {f1}", flush=True)
 PY
   ;;
+pack)
+  dest=$1
+  python - "$W" <<'PY'
+import sys
+from pathlib import Path
+
+import torch
+
+work = Path(sys.argv[1])
+for src in sorted(p for p in [*work.glob("runs/**/*"), *work.glob("logs/*")] if p.is_file()):
+    dst = work / "packed" / src.relative_to(work)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    if src.suffix != ".pt":
+        dst.write_bytes(src.read_bytes())
+        continue
+    ckpt = torch.load(src, map_location="cpu", weights_only=True)
+    ckpt.pop("optimizer", None)
+    ckpt["model"] = {k: v.bfloat16() if v.is_floating_point() and v.ndim >= 2 else v for k, v in ckpt["model"].items()}
+    torch.save(ckpt, dst)
+PY
+  mkdir -p "$dest"
+  tar -C "$W/packed" -czf - runs logs | split -b 15m - "$dest/state.tgz.part"
+  ;;
+unpack)
+  src=$1
+  mkdir -p "$W"
+  cat "$src"/state.tgz.part* | tar -C "$W" -xzf -
+  ;;
 *)
-  echo "usage: $0 gen|train|eval WORKDIR [MODEL SEED...]" >&2
+  echo "usage: $0 gen|train|eval|pack|unpack WORKDIR [MODEL SEED...]" >&2
   exit 2
   ;;
 esac

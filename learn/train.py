@@ -247,7 +247,10 @@ def _train_one(
         ckpt = torch.load(last, map_location=dev, weights_only=True)
         _check_compatible(ckpt, model_config, data_config, windows)
         model.load_state_dict(ckpt["model"])
-        optimizer.load_state_dict(ckpt["optimizer"])
+        if "optimizer" in ckpt:
+            optimizer.load_state_dict(ckpt["optimizer"])
+        else:  # packed to travel between machines (benchmarks/learner_converged.sh pack)
+            warnings.warn(f"{last} has no optimizer state: Adam restarts its moment estimates", stacklevel=2)
         state = ckpt["state"]
         state.setdefault("best", state.pop("best_ssim", -math.inf))  # checkpoints from before `monitor`
     elif init_from is not None:  # fine-tuning: weights only

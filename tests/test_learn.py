@@ -17,7 +17,7 @@ from learn.data import DataConfig, DataError, Windows, load_frames, normalise, s
 from learn.evaluate import evaluate
 from learn.models import ModelConfig
 from learn.predict import predict
-from learn.train import TrainConfig, load_checkpoint, train
+from learn.train import TrainConfig, load_checkpoint, strip_checkpoint, train
 
 MODEL = ModelConfig(name="polar_unet", frames=3, width=4)
 DATA = DataConfig(frames=3)
@@ -68,7 +68,8 @@ def test_bad_dataset_folders(tmp_path, tiny_dataset):
 
 def test_train_checkpoint_resume_and_evaluate(tiny_dataset, tmp_path):
     """Two epochs write last/best checkpoints, history.csv and curves.png; the checkpoint restores
-    the same predictions; --resume to 3 epochs adds one epoch; evaluate writes its report."""
+    the same predictions; --resume to 3 epochs adds one epoch (and to 4 from a checkpoint without
+    optimizer state, with a warning); evaluate writes its report."""
     run = tmp_path / "run"
     summary = train(tiny_dataset, run, model_config=MODEL, data_config=DATA, train_config=QUICK, progress=False)
     assert summary["epochs"] == 2 and summary["val_windows"] > 0
@@ -86,6 +87,18 @@ def test_train_checkpoint_resume_and_evaluate(tiny_dataset, tmp_path):
         tiny_dataset, run, model_config=MODEL, data_config=DATA, train_config=more, resume=True, progress=False
     )
     assert summary["epochs"] == 3 and len(open(run / "history.csv").read().strip().splitlines()) == 4
+    strip_checkpoint(run / "last.pt", run / "last.pt")  # as packed to move between machines
+    with pytest.warns(UserWarning, match="no optimizer state"):
+        summary = train(
+            tiny_dataset,
+            run,
+            model_config=MODEL,
+            data_config=DATA,
+            train_config=dataclasses.replace(QUICK, epochs=4),
+            resume=True,
+            progress=False,
+        )
+    assert summary["epochs"] == 4
     report = evaluate(run / "best.pt", tiny_dataset, run / "eval", timing=False)
     assert report["split"] == "val" and set(report["results"]) == {"model", "echo peak", "empty"}
     assert np.isfinite(report["results"]["model"]["all"]["ssim"]["mean"])
