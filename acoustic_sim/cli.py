@@ -39,10 +39,12 @@ def _render(args) -> int:
     import scenes
 
     from .config import LidarConfig, PolarGrid
+    from .devices import check_device
     from .lidar import Lidar, lidar_image
     from .render import render_lidar
 
     t0 = time.perf_counter()
+    check_device(args.device)
     scene = _scene_from_args(args)
     poses = scenes.trajectory(scene, frames=args.frames, dt=args.dt, speed=args.speed, seed=args.seed)
     if not 0 <= args.frame < len(poses):

@@ -30,6 +30,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from .dataset import FORMAT, FORMAT_VERSION, DatasetError, ShardFrames, read_attrs, verify_shard, write_shard
+from .devices import check_device
 from .suites import Physics, Suite
 
 FRAMES_PER_SHARD = 250  # default shard size: ~20 MB; enough shards to keep several workers busy
@@ -447,6 +448,7 @@ def generate(
     out = Path(out)
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
+    check_device(device, allow_auto=True)
     tasks = plan(
         suite,
         out,

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -12,7 +13,7 @@ from scenes import Scene
 
 from .config import NOISE_KINDS, LidarConfig, PolarGrid
 from .kernels import lidar as kernels
-from .scene import warp_scene
+from .scene import warn_if_far, warp_scene
 
 
 def check_poses(poses: np.ndarray) -> np.ndarray:
@@ -27,11 +28,13 @@ def check_poses(poses: np.ndarray) -> np.ndarray:
         raise ValueError(f"poses must have shape (N, 4, 4) or (4, 4), got {poses.shape}")
     if len(poses) == 0:
         raise ValueError("poses is empty")
+    warn_if_far(poses[:, :3, 3], "sensor positions")
     return poses
 
 
-def raise_for_pose_error(error: np.ndarray) -> None:
-    """Raise ValueError naming the first bad pose, given per-pose errors from `kernels.pose_error`."""
+def check_pose_results(error: np.ndarray, behind: np.ndarray) -> None:
+    """Raise ValueError naming the first bad pose, and warn about poses behind a surface, given the
+    per-pose outputs of `kernels.pose_error`."""
     bad = ~(error <= kernels.POSE_TOLERANCE)  # NaN counts as bad
     if bad.any():
         k = int(np.argmax(bad))
@@ -40,6 +43,14 @@ def raise_for_pose_error(error: np.ndarray) -> None:
         raise ValueError(
             f"pose {k} is not a rigid transform (rotation not orthonormal, a mirror with determinant -1, "
             f"or last row not [0, 0, 0, 1]; error {error[k]:.2g})"
+        )
+    if behind.any():
+        k = int(np.argmax(behind))
+        warnings.warn(
+            f"{int(behind.sum())} of {len(behind)} poses (first: pose {k}) lie behind the surfaces around them "
+            "(most axis rays hit the back of a face): inside an object or outside the room, their scans and "
+            "echoes do not come from free space",
+            stacklevel=3,
         )
 
 
@@ -79,7 +90,8 @@ class Lidar:
         return self.config.beam_count
 
     def _buffers_for(self, pose_count: int) -> tuple[wp.array, ...]:
-        """(host staging poses, device poses, pose errors, ranges, faces), reused across calls."""
+        """(host staging poses, device poses, pose errors, poses behind a surface, ranges, faces),
+        reused across calls."""
         if pose_count not in self._buffers:
             self._buffers.clear()  # keep one size: a stream of equal batches reuses memory
             # Pinned staging makes the pose upload ~5x faster than from pageable numpy memory.
@@ -88,6 +100,7 @@ class Lidar:
                 wp.empty(pose_count, dtype=wp.mat44, device="cpu", pinned=pinned),
                 wp.empty(pose_count, dtype=wp.mat44, device=self.device),
                 wp.empty(pose_count, dtype=float, device=self.device),
+                wp.empty(pose_count, dtype=wp.int32, device=self.device),
                 wp.empty(pose_count * self.beam_count, dtype=float, device=self.device),
                 wp.empty(pose_count * self.beam_count, dtype=wp.int32, device=self.device),
             )
@@ -109,14 +122,14 @@ class Lidar:
             seed = (self.seed * 1_000_003 + self._calls) % (2**31 - 1)
             self._calls += 1
         ws = warp_scene(scene, self.device)
-        staging, pose_buf, error_buf, range_out, face_out = self._buffers_for(len(poses))
+        staging, pose_buf, error_buf, behind_buf, range_out, face_out = self._buffers_for(len(poses))
         np.copyto(staging.numpy(), poses, casting="same_kind")
         wp.copy(pose_buf, staging)
         cfg = self.config
         launch = functools.partial(wp.launch, device=self.device)
         # Poses are checked on the device, in the same stream as the scan: one tiny launch and a
         # 4-byte-per-pose read-back cost far less than numpy on large batches.
-        launch(kernels.pose_error, dim=len(poses), inputs=[pose_buf], outputs=[error_buf])
+        launch(kernels.pose_error, dim=len(poses), inputs=[ws.mesh.id, pose_buf], outputs=[error_buf, behind_buf])
         launch(
             kernels.lidar_scan,
             dim=len(range_out),
@@ -130,7 +143,7 @@ class Lidar:
                 inputs=[cfg.range_min_m, NOISE_KINDS.index(cfg.noise), cfg.noise_m, cfg.dropout_probability, int(seed)],
                 outputs=[range_out, face_out],
             )
-        raise_for_pose_error(error_buf.numpy())  # waits for the launches above
+        check_pose_results(error_buf.numpy(), behind_buf.numpy())  # waits for the launches above
         shape = (len(poses), self.beam_count)
         return LidarScan(range_m=range_out.reshape(shape), face=face_out.reshape(shape))
 

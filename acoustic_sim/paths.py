@@ -26,7 +26,7 @@ from .beamform import beamformer, energyscape
 from .config import SonarConfig
 from .kernels import lidar as lidar_kernels
 from .kernels import paths as kernels
-from .lidar import check_poses, raise_for_pose_error
+from .lidar import check_pose_results, check_poses
 from .scene import warp_scene
 from .signals import EchoBuffer, ping_seeds, record
 from .signals import recorder as signals_recorder
@@ -287,8 +287,9 @@ class Sonar:
                 count=wp.zeros(n, dtype=wp.int32),
             )
         emitter = wp.vec3(*self.config.emitter_m)
-        launch(lidar_kernels.pose_error, dim=n, inputs=[pose_buf], outputs=[errors])
-        raise_for_pose_error(errors.numpy())
+        behind = wp.empty(n, dtype=wp.int32, device=self.device)
+        launch(lidar_kernels.pose_error, dim=n, inputs=[ws.mesh.id, pose_buf], outputs=[errors, behind])
+        check_pose_results(errors.numpy(), behind.numpy())
         launch(
             kernels.discover_sequences,
             dim=n * self.ray_count,

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import warnings
 import weakref
 from dataclasses import dataclass
 
@@ -68,6 +69,23 @@ def face_edges(scene: Scene, *, sharp_deg: float = 20.0) -> tuple[np.ndarray, np
 
 _CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
+# Beyond this distance from the origin [m], float32 resolves 61 um or worse: comparable to the
+# 0.1 mm the tracer steps off a surface, so rays start inside walls and ranges round coarsely.
+FLOAT32_SAFE_M = 512.0
+
+
+def warn_if_far(coordinates: np.ndarray, what: str) -> None:
+    """Warn when `coordinates` [m] reach beyond FLOAT32_SAFE_M, naming the float32 spacing there."""
+    coordinates = np.abs(np.asarray(coordinates, dtype=np.float64))
+    far = float(coordinates[np.isfinite(coordinates)].max(initial=0.0))  # non-finite ones are refused elsewhere
+    if far > FLOAT32_SAFE_M:
+        warnings.warn(
+            f"{what} reach {far:,.0f} m from the origin, where float32 (the GPU's precision) resolves only "
+            f"{1e3 * float(np.spacing(np.float32(far))):.2g} mm: move them near the origin (subtract a local "
+            "reference point) for sub-millimetre ranges",
+            stacklevel=3,
+        )
+
 
 def warp_scene(scene: Scene, device=None) -> WarpScene:
     """The Warp mesh of `scene` on `device`, built on first use and cached.
@@ -81,6 +99,7 @@ def warp_scene(scene: Scene, device=None) -> WarpScene:
     cached = per_device.get(device.alias)
     if cached is not None and cached.mesh_hash == mesh_hash:
         return cached
+    warn_if_far(scene.mesh.vertices, f"the vertices of {scene.name!r}")
     vertices = np.ascontiguousarray(scene.mesh.vertices, dtype=np.float32)
     faces = np.ascontiguousarray(scene.mesh.faces, dtype=np.int32).reshape(-1)
     face_plane, plane_normal, plane_offset = face_planes(scene)

@@ -169,6 +169,27 @@ def normalise(energyscape: torch.Tensor, floor_db: float) -> torch.Tensor:
     return 1.0 + db / floor_db
 
 
+def torch_device(name: str | torch.device) -> torch.device:
+    """The torch device `name` ("cpu", "cuda", "cuda:1", ...), refused with a clear message when this
+    machine cannot provide it (torch's own errors name a deserialiser or a driver call instead)."""
+    try:
+        device = torch.device(name)
+    except RuntimeError:
+        raise ValueError(f"device {name!r} is not a torch device: use cpu, cuda or cuda:i") from None
+    if device.type == "cuda":
+        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+        if count == 0:
+            built = f"CUDA {torch.version.cuda}" if torch.version.cuda else "no CUDA"
+            raise ValueError(
+                f"device {name!r}: no CUDA GPU is usable here (torch {torch.__version__}, {built}); use cpu"
+            )
+        if device.index is not None and device.index >= count:
+            raise ValueError(f"device {name!r}: this machine has {count} CUDA GPU(s), cuda:0..cuda:{count - 1}")
+    elif device.type != "cpu":
+        raise ValueError(f"device {name!r} is not supported: use cpu, cuda or cuda:i")
+    return device
+
+
 class Windows:
     """Windows of a dataset on a device: `batch(indices)` -> (x (B, 1, K, R, A), y (B, 1, R, A)).
 
@@ -180,7 +201,7 @@ class Windows:
 
     def __init__(self, frames: Frames, config: DataConfig, device: str | torch.device = "cpu"):
         self.frames, self.config = frames, config
-        self.device = torch.device(device)
+        self.device = torch_device(device)
         self.starts = window_starts(frames.episode, config.frames)
         if len(self.starts) == 0:
             raise DataError(f"no window of {config.frames} frames fits in any episode of {frames.info['folder']}")

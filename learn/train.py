@@ -29,7 +29,7 @@ import torch
 import torch.nn.functional as F
 from tqdm.auto import tqdm
 
-from .data import FORMAT_VERSION, DataConfig, Frames, Windows, load_frames, split_groups, validation_split
+from .data import FORMAT_VERSION, DataConfig, Frames, Windows, load_frames, split_groups, torch_device, validation_split
 from .evaluate import calibrate_threshold, model_predictor, score
 from .models import ModelConfig, build_model, parameter_count
 
@@ -116,7 +116,7 @@ def _init_distributed(device: str) -> tuple[_Dist, torch.device]:
     """Under torchrun: join the process group and take this rank's GPU (or the CPU with gloo)."""
     world = int(os.environ.get("WORLD_SIZE", "1"))
     if world == 1:
-        return _Dist(), torch.device(device)
+        return _Dist(), torch_device(device)
     import torch.distributed as dist
 
     local = int(os.environ.get("LOCAL_RANK", "0"))
@@ -434,7 +434,7 @@ def _write_fold_summary(out: Path, results: list[dict]) -> None:
 
 def load_checkpoint(path: str | Path, device: str = "cpu"):
     """(model in eval mode, checkpoint dict) from a .pt file written by `train`."""
-    path = Path(path)
+    path, device = Path(path), torch_device(device)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {path} does not exist")
     try:

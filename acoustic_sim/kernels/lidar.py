@@ -19,14 +19,34 @@ POSE_TOLERANCE = 1.0e-4
 @wp.kernel(enable_backward=False)
 def pose_error(
     # in
+    mesh: wp.uint64,
     poses: wp.array[wp.mat44],
     # out
     error_out: wp.array[float],
+    behind_out: wp.array[wp.int32],
 ):
     """One thread per pose: max of |R^T R - I|, |det R - 1| (a mirror has det -1 yet R^T R = I) and
-    |last row - (0, 0, 0, 1)|; inf if any entry is not finite."""
+    |last row - (0, 0, 0, 1)|; inf if any entry is not finite. behind_out is 1 when most of six
+    axis rays from the sensor hit the back of a face (inside a closed object, or outside the room),
+    else 0. A vote, not the nearest face: an object standing on the floor has a bottom face that
+    coincides with the floor, so the nearest face can be either. A sensor beyond a corner of the
+    room sees no face along the axes and is not flagged."""
     p = wp.tid()
     m = poses[p]
+    origin = wp.vec3(m[0, 3], m[1, 3], m[2, 3])
+    back = int(0)
+    front = int(0)
+    for axis in range(3):
+        for side in range(2):
+            d = wp.vec3(0.0)
+            d[axis] = float(2 * side - 1)
+            hit = wp.mesh_query_ray(mesh, origin, d, 1.0e6)
+            if hit.result:
+                if hit.sign < 0.0:
+                    back += 1
+                else:
+                    front += 1
+    behind_out[p] = wp.where(back > front, 1, 0)
     total = float(0.0)
     for i in range(4):
         for j in range(4):
