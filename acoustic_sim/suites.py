@@ -306,7 +306,10 @@ def load_suite(name_or_path: str | Path) -> Suite:
         raise ValueError(f"unknown suite {text!r}; named suites are {sorted(SUITES)}, or give a .toml/.json file")
     if not path.is_file():
         raise FileNotFoundError(f"suite file {path} does not exist")
-    data = tomllib.loads(path.read_text()) if path.suffix == ".toml" else json.loads(path.read_text())
+    try:
+        data = tomllib.loads(path.read_text()) if path.suffix == ".toml" else json.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"suite file {path} is not valid {path.suffix[1:].upper()}: {err}") from None
     base = SUITES.get(data.pop("base", None)) if "base" in data else None
     if base is None and "scenarios" not in data:
         raise ValueError(f"{path}: give `scenarios` or a `base` suite (one of {sorted(SUITES)})")

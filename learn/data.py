@@ -47,6 +47,8 @@ class DataConfig:
             raise ValueError(f"frames must be >= 1, got {self.frames}")
         if self.label not in LABELS:
             raise ValueError(f"label must be one of {LABELS}, got {self.label!r}")
+        if self.label == "middle" and self.frames % 2 == 0:
+            raise ValueError(f"label 'middle' needs an odd window length K, got frames={self.frames} (or label 'last')")
         if not self.floor_db > 0:
             raise ValueError(f"floor_db must be > 0, got {self.floor_db}")
 

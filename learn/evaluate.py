@@ -203,6 +203,9 @@ def evaluate(
     from .plots import plot_examples
     from .train import load_checkpoint
 
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file; give a folder for the report")
     named = _named_checkpoints(checkpoint)
     models = {name: load_checkpoint(path, device) for name, path in named.items()}
     first_name = next(iter(models))
@@ -215,7 +218,6 @@ def evaluate(
     data_config = DataConfig(**ckpt["data_config"])
     windows = Windows(frames, data_config, device)
     indices, split = _pick_windows(windows, ckpt, frames, split, episodes)
-    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     scenario = windows.scenario[indices]
     predictors = {name: (model_predictor(m), return_threshold(c, threshold)) for name, (m, c) in models.items()}

@@ -83,6 +83,12 @@ class TrainConfig:
             raise ValueError(f"split_by must be one of {SPLITS}, got {self.split_by!r}")
         if self.epochs < 1 or self.batch_size < 1 or not self.lr > 0 or self.patience < 1:
             raise ValueError("epochs, batch_size, patience must be >= 1 and lr > 0")
+        if not (0 < self.val_fraction < 1):
+            raise ValueError(f"val_fraction must lie in (0, 1), got {self.val_fraction}")
+        if not (self.pos_weight > 0) or not math.isfinite(self.pos_weight) or not math.isfinite(self.lr):
+            raise ValueError(f"lr and pos_weight must be finite and > 0, got {self.lr} and {self.pos_weight}")
+        if self.max_minutes is not None and not (0 < self.max_minutes < math.inf):
+            raise ValueError(f"max_minutes must be a finite number of minutes > 0, got {self.max_minutes}")
 
 
 def loss_fn(model, x: torch.Tensor, y: torch.Tensor, config: TrainConfig) -> torch.Tensor:
@@ -160,6 +166,8 @@ def train(
     checkpoints is continued (`resume`) or replaced (`overwrite`), never silently overwritten.
     """
     _check_out(Path(out), resume=resume, overwrite=overwrite)
+    if init_from is not None and not Path(init_from).is_file():
+        raise FileNotFoundError(f"--init-from checkpoint {init_from} does not exist")
     dist_info, dev = _init_distributed(device)
     if dev.type == "cpu":
         torch.set_flush_denormal(True)  # denormal gradients make CPU steps many times slower

@@ -296,7 +296,9 @@ def from_mesh(
     source = os.fspath(mesh) if isinstance(mesh, (str, os.PathLike)) else None
     if source is not None:
         try:
-            mesh = trimesh.load(source, force="mesh")
+            # process=False: trimesh's clean-up drops NaN vertices and their faces without a word;
+            # clean_mesh refuses them instead (assemble merges duplicate vertices afterwards)
+            mesh = trimesh.load(source, force="mesh", process=False)
         except Exception as err:
             raise SceneError(f"could not load a mesh from {source!r}: {err}") from err
     return assemble([(mesh, material)], name=name, params={"source": source})
