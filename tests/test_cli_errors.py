@@ -215,6 +215,8 @@ def test_user_error_is_one_line(results, name, package, argv, words):
 def test_the_audit_is_wide_and_no_case_ran_file_code(results):
     assert len(CASES) >= 60 and len({c[0] for c in CASES}) == len(CASES)
     assert not (results["tmp"] / "code_ran").exists()
+    refused_runs = [results["tmp"] / f"g{i}" for i in range(1, 11)]  # settings are checked before plan.json
+    assert not any(p.exists() for p in refused_runs), [p for p in refused_runs if p.exists()]
 
 
 def test_debug_shows_the_trace():
