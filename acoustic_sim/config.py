@@ -7,6 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .air import chirp, speed_of_sound
+
 NOISE_KINDS = ("none", "gaussian", "uniform")
 
 
@@ -179,7 +181,7 @@ class LidarConfig:
 
 @dataclass(frozen=True, kw_only=True)
 class ChirpConfig:
-    """The emitted call: an FM sweep with Hann tapers (see `signals.chirp`)."""
+    """The emitted call: an FM sweep with Hann tapers (see `air.chirp`)."""
 
     start_frequency_hz: float = 50e3
     stop_frequency_hz: float = 25e3
@@ -190,8 +192,6 @@ class ChirpConfig:
 
     def __post_init__(self) -> None:
         check_finite(self)
-        from .signals import chirp
-
         chirp(**dataclasses.asdict(self))  # validates every field with a clear message
 
     @classmethod
@@ -208,8 +208,6 @@ class ChirpConfig:
 
     def samples(self) -> np.ndarray:
         """The call, float64 (sample_count,)."""
-        from .signals import chirp
-
         return chirp(**dataclasses.asdict(self))
 
 
@@ -232,8 +230,6 @@ class AtmosphereConfig:
 
     @property
     def speed_of_sound(self) -> float:
-        from .signals import speed_of_sound
-
         return speed_of_sound(self.temperature_c)
 
 

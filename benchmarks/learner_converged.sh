@@ -18,7 +18,7 @@
 # in (batch-norm and bias tensors stay float32); `train` then resumes them.
 #
 # The pretrained model shipped in learn/pretrained/ is polar_unet seed 0's best.pt without its
-# optimizer state (`python -c "from learn.train import strip_checkpoint; strip_checkpoint(A, B)"`).
+# optimizer state (`python -c "from learn.checkpoint import strip_checkpoint; strip_checkpoint(A, B)"`).
 # Environment: FRAMES (60000), MINUTES (time budget per call and run), DEVICE (cuda), GEN_DEVICE,
 # TRAIN_OPTS (more `learn train` options, e.g. --channels-last).
 set -euo pipefail

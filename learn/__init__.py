@@ -9,4 +9,4 @@ from pathlib import Path
 
 PRETRAINED_CHECKPOINT = Path(__file__).parent / "pretrained" / "polar_unet_k5.pt"
 """Our polar UNet (K = 5) trained on the H100 by benchmarks/learner_converged.sh (seed 0), with its
-calibrated return threshold; load it with `learn.train.load_checkpoint`."""
+calibrated return threshold; load it with `learn.checkpoint.load_checkpoint`."""

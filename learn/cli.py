@@ -87,8 +87,8 @@ def _predict(args) -> int:
 
 
 def _export(args) -> int:
+    from .checkpoint import load_checkpoint
     from .export import export_onnx
-    from .train import load_checkpoint
 
     model, ckpt = load_checkpoint(args.checkpoint)
     info = export_onnx(

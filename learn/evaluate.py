@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .checkpoint import load_checkpoint
 from .data import DataConfig, Frames, Windows, load_frames
 from .metrics import CALIBRATION_THRESHOLDS, EXTRA_TOLERANCES_M, image_metrics, scan_f1_sweep, tolerance_suffix
 from .models import predict_image
@@ -201,7 +202,6 @@ def evaluate(
         threshold: Return threshold for every model instead of each checkpoint's calibrated one.
     """
     from .plots import plot_examples
-    from .train import load_checkpoint
 
     out = Path(out)
     if out.exists() and not out.is_dir():

@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from .checkpoint import load_checkpoint
 from .data import DataConfig, Frames, Windows, load_frames
 from .evaluate import check_grid, model_predictor, return_threshold
 from .metrics import first_return_ranges
-from .train import load_checkpoint
 
 
 def _frames_from_array(path: Path, ckpt: dict) -> Frames:

@@ -29,6 +29,7 @@ import torch
 import torch.nn.functional as F
 from tqdm.auto import tqdm
 
+from .checkpoint import check_compatible, save_checkpoint
 from .data import FORMAT_VERSION, DataConfig, Frames, Windows, load_frames, split_groups, torch_device, validation_split
 from .evaluate import calibrate_threshold, model_predictor, score
 from .models import ModelConfig, build_model, parameter_count
@@ -253,7 +254,7 @@ def _train_one(
     last = out / "last.pt"
     if resume and last.exists():
         ckpt = torch.load(last, map_location=dev, weights_only=True)
-        _check_compatible(ckpt, model_config, data_config, windows)
+        check_compatible(ckpt, model_config, data_config, windows)
         model.load_state_dict(ckpt["model"])
         if "optimizer" in ckpt:
             optimizer.load_state_dict(ckpt["optimizer"])
@@ -347,9 +348,9 @@ def _train_one(
                 "state": state,
                 "threshold": metrics["threshold"],
             } | meta
-            _atomic_save(ckpt, last)
+            save_checkpoint(ckpt, last)
             if improved:
-                _atomic_save(ckpt, out / "best.pt")
+                save_checkpoint(ckpt, out / "best.pt")
             _write_history(out, state["history"], state.get("best_epoch"), config.monitor)
             out_of_time = config.max_minutes is not None and time.perf_counter() - started > 60 * config.max_minutes
             stop[0] = float(state["stale"] >= config.patience or out_of_time)
@@ -405,21 +406,6 @@ def _warn_if_silent(best: dict, out: Path, hint: str = "") -> None:
         )
 
 
-def _check_compatible(ckpt: dict, model_config, data_config, windows) -> None:
-    if ckpt["model_config"] != dataclasses.asdict(model_config) or ckpt["data_config"] != dataclasses.asdict(
-        data_config
-    ):
-        raise ValueError("--resume: the checkpoint was trained with another model or data config")
-    if ckpt["dataset"]["plan_id"] != windows.frames.info.get("plan_id"):
-        raise ValueError("--resume: the checkpoint was trained on another dataset")
-
-
-def _atomic_save(obj, path: Path) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(obj, tmp)
-    tmp.replace(path)
-
-
 def _write_history(out: Path, history: list[dict], kept_epoch: int | None, monitor: str) -> None:
     with open(out / "history.csv", "w", newline="") as f:
         writer = csv.DictWriter(f, fieldnames=list(history[0]))
@@ -438,38 +424,3 @@ def _write_fold_summary(out: Path, results: list[dict]) -> None:
     lines = ["| metric | mean | std |", "|---|---|---|"]
     lines += [f"| {k} | {s['mean']:.4g} | {s['std']:.4g} |" for k, s in summary.items()]
     (out / "folds.md").write_text(f"# {len(results)}-fold cross-validation\n\n" + "\n".join(lines) + "\n")
-
-
-def load_checkpoint(path: str | Path, device: str = "cpu"):
-    """(model in eval mode, checkpoint dict) from a .pt file written by `train`."""
-    path, device = Path(path), torch_device(device)
-    if not path.is_file():
-        raise FileNotFoundError(f"checkpoint {path} does not exist")
-    try:
-        ckpt = torch.load(path, map_location=device, weights_only=True)  # a checkpoint is untrusted: no pickled code
-    except Exception as err:
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise ValueError(f"{path} is not a checkpoint this learner can read safely: {first}") from None
-    meta = ckpt.get("dataset") if isinstance(ckpt, dict) else None
-    version = meta.get("format_version") if isinstance(meta, dict) else None
-    if version != FORMAT_VERSION:
-        raise ValueError(f"{path} is not a learn checkpoint for dataset format {FORMAT_VERSION} (found {version})")
-    try:
-        model = build_model(ModelConfig(**ckpt["model_config"])).to(device)
-        model.load_state_dict(ckpt["model"])
-    except (KeyError, TypeError, RuntimeError) as err:  # missing keys, other sizes: the file does not fit
-        first = str(err).strip().splitlines()[0]
-        raise ValueError(f"{path}: its weights do not fit the model it names ({first})") from None
-    model.eval()
-    return model, ckpt
-
-
-def strip_checkpoint(src: str | Path, dst: str | Path) -> Path:
-    """Copy a checkpoint without its optimizer state (a third of the size): for shipping a model
-    that is used, not trained further."""
-    ckpt = torch.load(src, map_location="cpu", weights_only=True)
-    ckpt.pop("optimizer", None)
-    dst = Path(dst)
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    _atomic_save(ckpt, dst)
-    return dst

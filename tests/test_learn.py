@@ -13,11 +13,12 @@ import numpy as np
 import pytest
 import torch
 
+from learn.checkpoint import load_checkpoint, strip_checkpoint
 from learn.data import DataConfig, DataError, Windows, load_frames, normalise, split_groups, validation_split
 from learn.evaluate import evaluate
 from learn.models import ModelConfig
 from learn.predict import predict
-from learn.train import TrainConfig, load_checkpoint, strip_checkpoint, train
+from learn.train import TrainConfig, train
 
 MODEL = ModelConfig(name="polar_unet", frames=3, width=4)
 DATA = DataConfig(frames=3)

@@ -12,11 +12,12 @@ import numpy as np
 import pytest
 import torch
 
+from learn.checkpoint import load_checkpoint
 from learn.cli import main
 from learn.data import DataConfig, DataError, load_frames
 from learn.evaluate import check_grid
 from learn.models import ModelConfig
-from learn.train import TrainConfig, load_checkpoint, train
+from learn.train import TrainConfig, train
 
 MODEL = ModelConfig(name="polar_unet", frames=3, width=4)
 DATA = DataConfig(frames=3)

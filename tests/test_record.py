@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 
 import acoustic_sim as sim
+from acoustic_sim.air import air_absorption_db_per_m
 from acoustic_sim.paths import KIND_SPECULAR, Arrivals
-from acoustic_sim.signals import air_absorption_db_per_m, record
+from acoustic_sim.signals import record
 
 CONFIG = sim.SonarConfig.ertis()
 C = CONFIG.atmosphere.speed_of_sound

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import acoustic_sim as sim
+from acoustic_sim.air import air_absorption_db_per_m, chirp, instantaneous_frequency, speed_of_sound
 from acoustic_sim.array import ertis_microphones, piston_directivity
-from acoustic_sim.signals import air_absorption_db_per_m, chirp, instantaneous_frequency, speed_of_sound
 from tests.reference.air_absorption import air_absorption_db_per_m as reference_absorption
 
 

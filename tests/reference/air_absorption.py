@@ -1,4 +1,4 @@
-"""Air absorption from its physics, for checking `acoustic_sim.signals.air_absorption_db_per_m`.
+"""Air absorption from its physics, for checking `acoustic_sim.air.air_absorption_db_per_m`.
 
 ISO 9613-1 (annex A) condenses three terms into fitted constants: classical (viscosity and heat
 conduction) absorption and one relaxation process each for oxygen and nitrogen. Here the

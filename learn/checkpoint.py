@@ -1,0 +1,68 @@
+"""Checkpoints: written whole or not at all, read without unpickling code, checked before resuming.
+
+A checkpoint is a dict of tensors and plain types: "model" (state dict), "optimizer" (absent in
+stripped or packed ones), "state" (epoch, best, history), "threshold" (the calibrated return
+threshold), and the configs, dataset identity and grid it was trained with.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import torch
+
+from .data import FORMAT_VERSION, torch_device
+from .models import ModelConfig, build_model
+
+
+def check_compatible(ckpt: dict, model_config, data_config, windows) -> None:
+    """Refuse to resume from a checkpoint of another model, window or dataset."""
+    if ckpt["model_config"] != dataclasses.asdict(model_config) or ckpt["data_config"] != dataclasses.asdict(
+        data_config
+    ):
+        raise ValueError("--resume: the checkpoint was trained with another model or data config")
+    if ckpt["dataset"]["plan_id"] != windows.frames.info.get("plan_id"):
+        raise ValueError("--resume: the checkpoint was trained on another dataset")
+
+
+def save_checkpoint(obj, path: Path) -> None:
+    """Write through a temporary file, so a crash never leaves half a checkpoint under `path`."""
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(obj, tmp)
+    tmp.replace(path)
+
+
+def load_checkpoint(path: str | Path, device: str = "cpu"):
+    """(model in eval mode, checkpoint dict) from a .pt file written by `train`."""
+    path, device = Path(path), torch_device(device)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint {path} does not exist")
+    try:
+        ckpt = torch.load(path, map_location=device, weights_only=True)  # a checkpoint is untrusted: no pickled code
+    except Exception as err:
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise ValueError(f"{path} is not a checkpoint this learner can read safely: {first}") from None
+    meta = ckpt.get("dataset") if isinstance(ckpt, dict) else None
+    version = meta.get("format_version") if isinstance(meta, dict) else None
+    if version != FORMAT_VERSION:
+        raise ValueError(f"{path} is not a learn checkpoint for dataset format {FORMAT_VERSION} (found {version})")
+    try:
+        model = build_model(ModelConfig(**ckpt["model_config"])).to(device)
+        model.load_state_dict(ckpt["model"])
+    except (KeyError, TypeError, RuntimeError) as err:  # missing keys, other sizes: the file does not fit
+        first = str(err).strip().splitlines()[0]
+        raise ValueError(f"{path}: its weights do not fit the model it names ({first})") from None
+    model.eval()
+    return model, ckpt
+
+
+def strip_checkpoint(src: str | Path, dst: str | Path) -> Path:
+    """Copy a checkpoint without its optimizer state (a third of the size): for shipping a model
+    that is used, not trained further."""
+    ckpt = torch.load(src, map_location="cpu", weights_only=True)
+    ckpt.pop("optimizer", None)
+    dst = Path(dst)
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(ckpt, dst)
+    return dst
