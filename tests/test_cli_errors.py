@@ -20,6 +20,8 @@ import torch
 
 import learn
 
+from .crafted import pickle_payload
+
 CKPT = Path(learn.PRETRAINED_CHECKPOINT)
 
 # (id, package, argv with {placeholders}, words the error line must contain)
@@ -143,15 +145,7 @@ def _inputs(tmp: Path, data: Path) -> dict[str, str]:
     files["truncated"].write_bytes(CKPT.read_bytes()[: CKPT.stat().st_size // 2])
     files["text"] = tmp / "notes.txt"
     files["text"].write_text("my notes\n")
-    files["evil"] = tmp / "evil.pt"
-    marker = tmp / "code_ran"
-    code = (
-        "import os, torch\n"
-        "class P:\n"
-        f"    def __reduce__(self): return (os.system, ('touch {marker}',))\n"
-        f"torch.save({{'model': P()}}, '{files['evil']}')\n"
-    )
-    subprocess.run([sys.executable, "-c", code], check=True)
+    files["evil"] = pickle_payload(tmp / "evil.pt", tmp / "code_ran")
     ckpt = torch.load(CKPT, weights_only=True)
     ckpt["model_config"]["width"] = 8
     files["misfit"] = tmp / "misfit.pt"

@@ -19,6 +19,8 @@ from learn.evaluate import check_grid
 from learn.models import ModelConfig
 from learn.train import TrainConfig, train
 
+from .crafted import pickle_payload
+
 MODEL = ModelConfig(name="polar_unet", frames=3, width=4)
 DATA = DataConfig(frames=3)
 QUICK = TrainConfig(epochs=1, batch_size=4, lr=1e-3, loss="bce", val_fraction=0.5, max_val_windows=8)
@@ -92,14 +94,7 @@ def test_crafted_checkpoint_never_runs_code_through_the_cli(tmp_path, tiny_datas
     subprocesses: exit 2, one error line, no traceback, and the command never ran. --debug shows
     the trace."""
     marker = tmp_path / "ran"
-    payload = tmp_path / "evil.pt"
-    code = (
-        "import os, torch\n"
-        "class P:\n"
-        f"    def __reduce__(self): return (os.system, ('touch {marker}',))\n"
-        f"torch.save({{'model': P(), 'dataset': {{'format_version': 1}}}}, '{payload}')\n"
-    )
-    subprocess.run([sys.executable, "-c", code], check=True)
+    payload = pickle_payload(tmp_path / "evil.pt", marker)
     commands = [
         ["evaluate", "--checkpoint", str(payload), "--data", str(tiny_dataset), "--out", str(tmp_path / "e")],
         ["export", "--checkpoint", str(payload), "--out", str(tmp_path / "m.onnx")],
