@@ -117,7 +117,3 @@ def instantaneous_frequency(
     if sweep == "linear":
         return f0 + (f1 - f0) * t / duration_s
     return f0 * f1 * duration_s / (f1 * duration_s + (f0 - f1) * t)
-
-
-# Fractional-delay filter of a recorded echo: taps, and steps of the sample fraction between
-# the rows of its table.

@@ -267,6 +267,7 @@ class Sonar:
             pose_buf = wp.array(poses.astype(np.float32), dtype=wp.mat44)
             inverse_buf = wp.array(np.linalg.inv(poses).astype(np.float32), dtype=wp.mat44)
             errors = wp.empty(n, dtype=float)
+            behind = wp.empty(n, dtype=wp.int32)
             key = wp.zeros((n, size), dtype=wp.uint64)
             order = wp.zeros((n, size), dtype=wp.int32)
             planes = wp.zeros((n, size, kernels.MAX_ORDER), dtype=wp.int32)
@@ -287,7 +288,6 @@ class Sonar:
                 count=wp.zeros(n, dtype=wp.int32),
             )
         emitter = wp.vec3(*self.config.emitter_m)
-        behind = wp.empty(n, dtype=wp.int32, device=self.device)
         launch(lidar_kernels.pose_error, dim=n, inputs=[ws.mesh.id, pose_buf], outputs=[errors, behind])
         check_pose_results(errors.numpy(), behind.numpy())
         launch(

@@ -13,6 +13,8 @@ from .air import air_absorption_db_per_m
 from .config import NOISE_KINDS
 from .kernels import signals as kernels
 
+# Fractional-delay filter of a recorded echo: taps, and steps of the sample fraction between
+# the rows of its table.
 DELAY_TAPS = 8
 FRACTION_STEPS = 32
 
