@@ -9,6 +9,7 @@
 #   bash benchmarks/learner_converged.sh gen   WORKDIR
 #   bash benchmarks/learner_converged.sh train WORKDIR polar_unet 0 1 2
 #   bash benchmarks/learner_converged.sh eval  WORKDIR polar_unet 0 1 2
+#   K=1 bash benchmarks/learner_converged.sh train WORKDIR polar_unet 0 1 2   # Table 2's other window lengths
 #   bash benchmarks/learner_converged.sh pack  WORKDIR DEST     # runs -> DEST/state.tgz.part* (<= 15 MiB each)
 #   bash benchmarks/learner_converged.sh unpack WORKDIR SRC     # and back, on the next machine
 #
@@ -19,7 +20,8 @@
 #
 # The pretrained model shipped in learn/pretrained/ is polar_unet seed 0's best.pt without its
 # optimizer state (`python -c "from learn.checkpoint import strip_checkpoint; strip_checkpoint(A, B)"`).
-# Environment: FRAMES (60000), MINUTES (time budget per call and run), DEVICE (cuda), GEN_DEVICE,
+# Environment: K (window length, 5; runs of other K are named MODEL_kK_seedS), FRAMES (60000),
+# MINUTES (time budget per call and run), DEVICE (cuda), GEN_DEVICE,
 # TRAIN_OPTS (more `learn train` options, e.g. --channels-last).
 set -euo pipefail
 phase=$1 W=$2
@@ -27,6 +29,8 @@ shift 2
 export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
 D=$W/data
 DEVICE=${DEVICE:-cuda}
+K=${K:-5}
+run_name() { if [ "$K" = 5 ]; then echo "${1}_seed$2"; else echo "${1}_k${K}_seed$2"; fi; }
 mkdir -p "$W/logs" "$W/runs"
 case $phase in
 gen)
@@ -43,10 +47,11 @@ train)
     OPTS=(--loss bce --lr 1e-3 --batch-size 16)
   fi
   for s in "$@"; do
-    python -m learn train --data "$D/paper" --out "$W/runs/${model}_seed$s" --model "$model" --frames 5 --seed "$s" \
+    name=$(run_name "$model" "$s")
+    python -m learn train --data "$D/paper" --out "$W/runs/$name" --model "$model" --frames "$K" --seed "$s" \
       "${OPTS[@]}" ${TRAIN_OPTS:-} --epochs "${EPOCHS:-100}" --patience "${PATIENCE:-4}" --max-train-windows "${WINDOWS:-12000}" \
       --max-val-windows 2000 --max-minutes "${MINUTES:-8}" --resume --device "$DEVICE" --quiet \
-      >> "$W/logs/${model}_seed$s.log" 2>&1 &
+      >> "$W/logs/$name.log" 2>&1 &
   done
   wait
   ;;
@@ -54,17 +59,19 @@ eval)
   model=$1
   shift
   # One process: each dataset is read once for all seeds (60,000 frames take a while to load).
-  python - "$W" "$model" "$DEVICE" "$@" <<'PY'
+  names=()
+  for s in "$@"; do names+=("$(run_name "$model" "$s")"); done
+  python - "$W" "$DEVICE" "${names[@]}" <<'PY'
 import sys
 
 from learn.data import load_frames
 from learn.evaluate import evaluate
 
-work, model, device, seeds = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4:]
+work, device, names = sys.argv[1], sys.argv[2], sys.argv[3:]
 for data, folder in (("paper", "held_out"), ("drive", "drive")):  # held_out: the episodes validation held out
     frames = load_frames(f"{work}/data/{data}")
-    for seed in seeds:
-        run = f"{work}/runs/{model}_seed{seed}"
+    for name in names:
+        run = f"{work}/runs/{name}"
         report = evaluate(f"{run}/best.pt", frames, f"{run}/{folder}", device=device)
         f1 = {k: round(v["all"]["scan_f1"]["mean"], 3) for k, v in report["results"].items()}
         print(f"{run} on {data} ({report['split']}, {report['windows']} windows): scan F1 {f1}", flush=True)
