@@ -10,13 +10,15 @@
 #   bash benchmarks/learner_converged.sh train WORKDIR polar_unet 0 1 2
 #   bash benchmarks/learner_converged.sh eval  WORKDIR polar_unet 0 1 2
 #   K=1 bash benchmarks/learner_converged.sh train WORKDIR polar_unet 0 1 2   # Table 2's other window lengths
-#   bash benchmarks/learner_converged.sh pack  WORKDIR DEST     # runs -> DEST/state.tgz.part* (<= 15 MiB each)
+#   bash benchmarks/learner_converged.sh pack  WORKDIR DEST [RUN...]  # -> DEST/state.tgz.part* (<= 15 MiB each)
 #   bash benchmarks/learner_converged.sh unpack WORKDIR SRC     # and back, on the next machine
 #
 # pack/unpack carry unfinished runs from one lent machine to the next (files come back in parts of
 # at most 16 MiB): checkpoints without optimizer state (Adam restarts its moments on resume, with a
 # warning) and with convolution/linear weights in bfloat16, the precision autocast computes them
-# in (batch-norm and bias tensors stay float32); `train` then resumes them.
+# in (batch-norm and bias tensors stay float32); `train` then resumes them. Naming RUNs (folder
+# names under WORKDIR/runs) packs only their checkpoints, so finished runs travel without theirs;
+# every run's history, reports and logs always travel.
 #
 # The pretrained model shipped in learn/pretrained/ is polar_unet seed 0's best.pt without its
 # optimizer state (`python -c "from learn.checkpoint import strip_checkpoint; strip_checkpoint(A, B)"`).
@@ -79,15 +81,19 @@ PY
   ;;
 pack)
   dest=$1
-  python - "$W" <<'PY'
+  shift
+  rm -rf "$W/packed"
+  python - "$W" "$@" <<'PY'
 import sys
 from pathlib import Path
 
 import torch
 
-work = Path(sys.argv[1])
+work, keep = Path(sys.argv[1]), set(sys.argv[2:])
 for src in sorted(p for p in [*work.glob("runs/**/*"), *work.glob("logs/*")] if p.is_file()):
     dst = work / "packed" / src.relative_to(work)
+    if src.suffix == ".pt" and keep and src.parent.name not in keep:
+        continue
     dst.parent.mkdir(parents=True, exist_ok=True)
     if src.suffix != ".pt":
         dst.write_bytes(src.read_bytes())
