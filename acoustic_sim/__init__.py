@@ -2,10 +2,21 @@
 
 from importlib.metadata import PackageNotFoundError, version
 
-from .config import AtmosphereConfig, ChirpConfig, ConfigError, LidarConfig, PolarGrid, SonarConfig
+from .config import (
+    AtmosphereConfig,
+    ChirpConfig,
+    ConfigError,
+    LidarConfig,
+    PolarGrid,
+    ProcessingConfig,
+    SimConfig,
+    SonarConfig,
+    TracerConfig,
+)
 from .lidar import Lidar, LidarScan, check_poses, lidar_image, ranges_to_points
-from .paths import Arrivals, Sonar
+from .paths import Arrivals, PathTracer
 from .scene import WarpScene, warp_scene
+from .sonar import Sonar, SonarFrames
 
 try:
     __version__ = version("sonar2lidar")
@@ -20,9 +31,14 @@ __all__ = [
     "Lidar",
     "LidarConfig",
     "LidarScan",
+    "PathTracer",
     "PolarGrid",
+    "ProcessingConfig",
+    "SimConfig",
     "Sonar",
     "SonarConfig",
+    "SonarFrames",
+    "TracerConfig",
     "WarpScene",
     "check_poses",
     "lidar_image",

@@ -13,18 +13,17 @@ Everything runs in Warp kernels, on the CPU or a GPU, on batches of pings:
 
 from __future__ import annotations
 
+import dataclasses
 import functools
-from collections.abc import Sequence
 
 import numpy as np
 import warp as wp
 from scipy import signal as sps
 
-from .config import PolarGrid, SonarConfig
+from .config import ProcessingConfig, SonarConfig
 from .kernels import beamform as kernels
 from .signals import tile_block_dim
 
-NORMALISE = (None, "max", "db")
 FLOOR_DB = -60.0  # lowest value of a "db" energyscape
 
 
@@ -36,27 +35,20 @@ class Beamformer:
         config: SonarConfig,
         *,
         samples: int,
-        grid: PolarGrid | None = None,
-        speed_of_sound: float = 343.0,
-        elevation_deg: float | Sequence[float] = 0.0,
-        lowpass_hz: float | None = 1e3,
-        normalise: str | None = None,
+        processing: ProcessingConfig | None = None,
         call: np.ndarray | None = None,
         device=None,
     ):
-        if normalise not in NORMALISE:
-            raise ValueError(f"normalise must be one of {NORMALISE}, got {normalise!r}")
-        if speed_of_sound <= 0:
-            raise ValueError(f"speed_of_sound must be positive, got {speed_of_sound}")
+        processing = processing or ProcessingConfig()
         self.config = config
-        self.grid = grid or PolarGrid()
+        self.processing = processing
+        self.grid = processing.grid
         self.samples = int(samples)
-        self.normalise = normalise
+        self.normalise = processing.normalise
         self.device = wp.get_device(device)
-        self.elevations_deg = np.atleast_1d(np.asarray(elevation_deg, dtype=np.float64))
-        self._scalar_elevation = np.ndim(elevation_deg) == 0
-        if self.elevations_deg.ndim != 1 or not np.all(np.abs(self.elevations_deg) <= 90):
-            raise ValueError("elevation_deg must be an angle or a 1-D sequence of angles in [-90, 90]")
+        self.elevations_deg = np.atleast_1d(np.asarray(processing.elevation_deg, dtype=np.float64))
+        self._scalar_elevation = np.ndim(processing.elevation_deg) == 0
+        speed_of_sound, lowpass_hz = processing.speed_of_sound, processing.lowpass_hz
         fs = config.chirp.sample_rate_hz
         call = config.chirp.samples() if call is None else np.asarray(call, dtype=np.float64)
         if call.ndim != 1 or len(call) < 2 or not np.isfinite(call).all():
@@ -183,21 +175,17 @@ def beamformer(
     config: SonarConfig,
     *,
     samples: int,
-    elevation_deg: float | Sequence[float] = 0.0,
+    processing: ProcessingConfig | None = None,
     call: np.ndarray | None = None,
     device=None,
-    **options,
 ) -> Beamformer:
-    """A Beamformer, reused across calls with the same options (building one evaluates the call's
+    """A Beamformer, reused across calls with the same settings (building one evaluates the call's
     spectrum and the steering weights); a custom `call` always builds a new one."""
+    processing = processing or ProcessingConfig()
     if call is not None:
-        return Beamformer(config, samples=samples, elevation_deg=elevation_deg, call=call, device=device, **options)
-    if np.ndim(elevation_deg) == 0:
-        elevation = float(elevation_deg)
-    else:
-        elevation = tuple(np.asarray(elevation_deg, dtype=float).ravel())
+        return Beamformer(config, samples=samples, processing=processing, call=call, device=device)
     device = str(wp.get_device(device))
-    return _cached_beamformer(config, samples=samples, elevation_deg=elevation, device=device, **options)
+    return _cached_beamformer(config, samples=samples, processing=processing, device=device)
 
 
 MAX_SIGNAL = 1e20
@@ -208,36 +196,34 @@ float32 (max 3.4e38), so samples far above this would overflow to inf."""
 def energyscape(
     signals: np.ndarray,
     config: SonarConfig,
+    processing: ProcessingConfig | None = None,
     *,
-    grid: PolarGrid | None = None,
-    speed_of_sound: float = 343.0,
-    elevation_deg: float | Sequence[float] = 0.0,
-    lowpass_hz: float | None = 1e3,
-    normalise: str | None = None,
     call: np.ndarray | None = None,
     batch: int = 64,
     device=None,
+    **settings,
 ) -> np.ndarray:
     """Energyscapes of pings: reflected energy over range x azimuth, float32 (N, R, A).
 
     Processing as on the eRTIS: matched filter with the call; delay-and-sum beamforming with
-    far-field delays (m . u) / c for each azimuth of `grid` at `elevation_deg`; envelope
-    (magnitude of the analytic beam signal); zero-phase low-pass at `lowpass_hz` (None: off);
-    values at the range bins of `grid` with range = c t / 2 (t from the start of the call).
+    far-field delays (m . u) / c for each azimuth of the grid at the elevation; envelope
+    (magnitude of the analytic beam signal); zero-phase low-pass; values at the range bins of
+    the grid with range = c t / 2 (t from the start of the call).
 
     Args:
         signals: Microphone signals (N, M, S) or (M, S), in the order of `config.microphones_m`,
             sampled at `config.chirp.sample_rate_hz`.
         config: Array geometry and call of the recording.
-        grid: Output grid; default `PolarGrid()` (0.2-5 m x -90..90 deg).
-        speed_of_sound: Used for the steering delays and the range axis [m/s].
-        elevation_deg: Elevation of the beams; a sequence gives (N, E, R, A).
-        normalise: None; "max" scales each ping to a peak of 1; "db" gives 20 log10 of that,
-            floored at FLOOR_DB.
+        processing: Grid, speed of sound, elevation, low-pass and normalisation (see
+            `ProcessingConfig`); default the eRTIS processing on the training grid. A sequence
+            of elevations gives (N, E, R, A).
         call: The emitted waveform, if not the chirp of `config` (e.g. one measured on a sensor).
         batch: Pings processed at once.
         device: Warp device.
+        **settings: ProcessingConfig fields to change, e.g. `grid=PolarGrid(...)`,
+            `lowpass_hz=None`, `normalise="db"`, `speed_of_sound=340.0`.
     """
+    processing = dataclasses.replace(processing or ProcessingConfig(), **settings)
     signals = np.asarray(signals)
     if signals.dtype.kind not in "fiu":  # complex, object, bool, strings: not microphone samples
         raise ValueError(f"signals must be real numbers (float or integer), got dtype {signals.dtype}")
@@ -257,17 +243,7 @@ def energyscape(
     if signals.shape[2] < call_samples:
         raise ValueError(f"signals hold {signals.shape[2]} samples, fewer than the call's {call_samples}")
     device = wp.get_device(device)
-    former = beamformer(
-        config,
-        samples=signals.shape[2],
-        grid=grid,
-        speed_of_sound=speed_of_sound,
-        elevation_deg=elevation_deg,
-        lowpass_hz=lowpass_hz,
-        normalise=normalise,
-        call=call,
-        device=device,
-    )
+    former = beamformer(config, samples=signals.shape[2], processing=processing, call=call, device=device)
     out = np.empty((len(signals), *former.output_shape), dtype=np.float32)
     for start in range(0, len(signals), batch):
         chunk = wp.array(np.ascontiguousarray(signals[start : start + batch], dtype=np.float32), device=device)

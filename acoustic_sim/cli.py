@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -24,24 +25,21 @@ def _scene_from_args(args):
         return scenes.from_svg(args.svg, **kwargs)
     if args.mesh:
         return scenes.from_mesh(args.mesh, **kwargs)
-    builder = scenes.BUILDERS[args.scene]
-    if args.scene != "box_room" and "seed" not in kwargs:
-        kwargs["seed"] = args.seed
-    return builder(**kwargs)
+    return scenes.BUILDERS[args.scene](**({"seed": args.seed} | kwargs))
 
 
 def _render(args) -> int:
     import warp as wp
 
-    if not args.verbose:  # Warp's start-up banner and per-module load times
-        wp.config.quiet = True
-        wp.config.log_level = wp.LOG_WARNING
+    from .devices import check_device, quiet_warp
+
+    quiet_warp(not args.verbose)
     import scenes
 
-    from .config import LidarConfig, PolarGrid
-    from .devices import check_device
+    from .config import SimConfig
     from .lidar import Lidar, lidar_image
     from .render import render_lidar
+    from .settings import apply_settings
 
     t0 = time.perf_counter()
     check_device(args.device)
@@ -49,12 +47,15 @@ def _render(args) -> int:
     poses = scenes.trajectory(scene, frames=args.frames, dt=args.dt, speed=args.speed, seed=args.seed)
     if not 0 <= args.frame < len(poses):
         raise ValueError(f"--frame must lie in 0..{len(poses) - 1}")
-    config = LidarConfig.hokuyo_ust20lx(noise=args.lidar_noise, noise_m=args.lidar_noise_m)
+    rig = apply_settings(SimConfig(), args.set or ())
+    flags = {"noise": args.lidar_noise, "noise_m": args.lidar_noise_m}
+    config = dataclasses.replace(rig.lidar, **{k: v for k, v in flags.items() if v is not None})
     with wp.ScopedDevice(args.device):
         ranges = Lidar(config, seed=args.seed).scan(scene, poses)
-    grid = PolarGrid()
+    grid = rig.processing.grid
     if args.sonar:
-        return _render_sonar(args, scene, poses[args.frame], lidar_image(ranges[args.frame], config, grid)[0], grid, t0)
+        label = lidar_image(ranges[args.frame], config, grid)[0]
+        return _render_sonar(args, rig, scene, poses[args.frame], label, t0)
     out = render_lidar(
         scene, poses, ranges, config, lidar_image(ranges, config, grid), grid, args.out, frame=args.frame
     )
@@ -65,19 +66,19 @@ def _render(args) -> int:
     return 0
 
 
-def _render_sonar(args, scene, pose, lidar, grid, t0) -> int:
+def _render_sonar(args, rig, scene, pose, lidar, t0) -> int:
     """The sonar picture: the same ping simulated with max_bounces 0 and with --max-bounces."""
-    from .config import SonarConfig
-    from .paths import Sonar
     from .render import render_sonar
+    from .sonar import Sonar
 
+    tracer = rig.tracer if args.rays is None else dataclasses.replace(rig.tracer, ray_count=args.rays)
     results = []
-    for bounces in sorted({0, args.max_bounces}):
-        sonar = Sonar(SonarConfig.ertis(), max_bounces=bounces, ray_count=args.rays, device=args.device)
+    for bounces in sorted({0, rig.tracer.max_bounces if args.max_bounces is None else args.max_bounces}):
+        sonar = Sonar(rig.sonar, tracer, max_bounces=bounces, device=args.device)
         arrivals = sonar.trace(scene, pose)
-        image = sonar.energyscape(sonar.record(arrivals, pose_count=1, noise="gaussian", seed=args.seed))[0]
-        results.append((f"max_bounces={bounces}", arrivals.for_pose(0), image))
-    out = render_sonar(scene, pose, results, lidar, grid, args.out)
+        signals = sonar.record(arrivals, pose_count=1, noise="gaussian", seed=args.seed)
+        results.append((f"max_bounces={bounces}", arrivals.for_pose(0), sonar.energyscape(signals, rig.processing)[0]))
+    out = render_sonar(scene, pose, results, lidar, rig.processing.grid, args.out)
     print(
         f"{scene!r}: sonar ping at frame {args.frame} with max_bounces {[r[0] for r in results]}; "
         f"wrote {out} in {time.perf_counter() - t0:.1f} s"
@@ -86,13 +87,9 @@ def _render_sonar(args, scene, pose, lidar, grid, t0) -> int:
 
 
 def _generate(args) -> int:
-    import dataclasses
+    from .devices import quiet_warp
 
-    import warp as wp
-
-    if not args.verbose:
-        wp.config.quiet = True
-        wp.config.log_level = wp.LOG_WARNING
+    quiet_warp(not args.verbose)
     from .generate import generate
     from .suites import load_suite
 
@@ -102,6 +99,8 @@ def _generate(args) -> int:
             raise ValueError(f"suite {suite.name!r} varies max_bounces across its variants; drop --max-bounces")
         variants = {k: dataclasses.replace(p, max_bounces=args.max_bounces) for k, p in suite.variants.items()}
         suite = dataclasses.replace(suite, variants=variants)
+    if args.set:
+        suite = dataclasses.replace(suite, settings=suite.settings + tuple(args.set))
     summary = generate(
         suite,
         args.out,
@@ -123,8 +122,18 @@ def _generate(args) -> int:
     return 0
 
 
+SET_HELP = (
+    "change the rig: lidar.*, sonar.*, tracer.*, processing.* (repeatable; e.g. tracer.max_bounces=1, "
+    "processing.grid.range_max_m=4, sonar.atmosphere.temperature_c=30, lidar=multibeam_64x1024 for a preset)"
+)
+
+
 def build_parser() -> argparse.ArgumentParser:
     import scenes
+
+    from .config import NOISE_KINDS, TracerConfig
+
+    tracer = TracerConfig()
 
     parser = argparse.ArgumentParser(prog="python -m acoustic_sim", description=__doc__)
     parser.add_argument("--debug", action="store_true", help="show the full trace of an error (anywhere on the line)")
@@ -149,16 +158,23 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--dt", type=float, default=0.1, help="time between poses [s]")
     render.add_argument("--speed", type=float, default=0.3, help="robot speed [m/s]")
     render.add_argument("--frame", type=int, default=0, help="which pose's scan to draw")
-    render.add_argument("--lidar-noise", choices=["none", "gaussian", "uniform"], default="none")
-    render.add_argument("--lidar-noise-m", type=float, default=0.0, help="noise std / half-width [m]")
+    render.add_argument("--lidar-noise", choices=NOISE_KINDS, help="LiDAR range noise (default: lidar.noise)")
+    render.add_argument("--lidar-noise-m", type=float, help="noise std / half-width [m] (default: lidar.noise_m)")
     render.add_argument(
         "--sonar",
         action="store_true",
         help="draw a sonar ping (echo points, energyscape) instead of the LiDAR view, "
         "with max_bounces 0 beside --max-bounces",
     )
-    render.add_argument("--max-bounces", type=int, default=3, help="secondary reflections for --sonar")
-    render.add_argument("--rays", type=int, default=20_000, help="rays per ping for --sonar")
+    render.add_argument(
+        "--max-bounces",
+        type=int,
+        help=f"secondary reflections for --sonar (default: tracer.max_bounces, {tracer.max_bounces})",
+    )
+    render.add_argument(
+        "--rays", type=int, help=f"rays per ping for --sonar (default: tracer.ray_count, {tracer.ray_count})"
+    )
+    render.add_argument("--set", action="append", metavar="SECTION.FIELD=VALUE", help=SET_HELP)
     render.add_argument("--device", default="cpu", help="Warp device: cpu, cuda:0, ...")
     render.add_argument("--out", default="scene.png", help="PNG to write")
     render.add_argument("--verbose", action="store_true", help="show Warp's compile messages")
@@ -179,6 +195,9 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--frames", type=int, default=None, help="frames per variant (default: the suite's)")
     gen.add_argument("--shards", type=int, default=None, help="shards per variant (default: one per 250 frames)")
     gen.add_argument("--max-bounces", type=int, default=None, help="override the suite's secondary bounces")
+    gen.add_argument(
+        "--set", action="append", metavar="SECTION.FIELD=VALUE", help=SET_HELP + " (after each variant's physics)"
+    )
     gen.add_argument("--device", default="auto", help="auto (all GPUs, else CPU), cpu or cuda:i")
     gen.add_argument("--workers", type=int, default=1, help="parallel shard writers (processes)")
     gen.add_argument("--seed", type=int, default=0, help="seeds every scene, drive and noise")

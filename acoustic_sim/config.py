@@ -1,15 +1,32 @@
-"""Configuration dataclasses. Units are SI unless a name ends in `_deg`."""
+"""The configuration tree: frozen dataclasses, SI units unless a name ends in `_deg`.
+
+    SimConfig
+    ├── lidar: LidarConfig          the scanner that makes the labels
+    ├── sonar: SonarConfig          array, emitter, call (ChirpConfig) and air (AtmosphereConfig)
+    ├── tracer: TracerConfig        how the path tracer searches for echoes
+    └── processing: ProcessingConfig  the beamformer: grid, speed of sound, low-pass, normalisation
+
+Each class checks its own fields when built (ConfigError for NaN/inf, ValueError for a value out
+of range); `settings.apply_settings` applies `section.field=value` from the command line.
+"""
 
 from __future__ import annotations
 
 import dataclasses
+import typing
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
 from .air import chirp, speed_of_sound
 
-NOISE_KINDS = ("none", "gaussian", "uniform")
+NoiseKind = Literal["none", "gaussian", "uniform"]
+NOISE_KINDS: tuple[str, ...] = typing.get_args(NoiseKind)
+Normalise = Literal[None, "max", "db"]
+NORMALISE: tuple[str | None, ...] = typing.get_args(Normalise)
+MAX_BOUNCES = 10
+"""Most secondary reflections a path may have (the tracer's kernels store MAX_BOUNCES + 1 planes)."""
 
 
 class ConfigError(ValueError):
@@ -98,7 +115,7 @@ class LidarConfig:
     range_min_m: float
     range_max_m: float
     rate_hz: float
-    noise: str = "none"  # "none", "gaussian" (std noise_m) or "uniform" (+-noise_m, as in the paper)
+    noise: NoiseKind = "none"  # "gaussian" (std noise_m) or "uniform" (+-noise_m, as in the paper)
     noise_m: float = 0.0
     dropout_probability: float = 0.0
 
@@ -187,7 +204,7 @@ class ChirpConfig:
     stop_frequency_hz: float = 25e3
     duration_s: float = 2.5e-3
     sample_rate_hz: float = 450e3
-    sweep: str = "hyperbolic"  # or "linear"
+    sweep: Literal["hyperbolic", "linear"] = "hyperbolic"
     taper_fraction: float = 0.1
 
     def __post_init__(self) -> None:
@@ -205,6 +222,10 @@ class ChirpConfig:
     @property
     def sample_count(self) -> int:
         return round(self.duration_s * self.sample_rate_hz) + 1
+
+    @property
+    def centre_frequency_hz(self) -> float:
+        return 0.5 * (self.start_frequency_hz + self.stop_frequency_hz)
 
     def samples(self) -> np.ndarray:
         """The call, float64 (sample_count,)."""
@@ -287,3 +308,94 @@ class SonarConfig:
     @property
     def record_duration_s(self) -> float:
         return self.record_samples / self.chirp.sample_rate_hz
+
+
+@dataclass(frozen=True, kw_only=True)
+class TracerConfig:
+    """How the acoustic path tracer searches for echoes (see `paths.PathTracer`).
+
+    Attributes:
+        max_bounces: Secondary reflections after the first (0 = first-order echoes only),
+            0..MAX_BOUNCES.
+        ray_count: Rays per ping that discover reflection sequences (front hemisphere: a
+            baffled emitter radiates nothing backwards).
+        table_size: Slots per ping for the distinct sequences the rays discover (a power of two
+            >= 16). A ping that overflows it is traced again with twice the slots, so no echo is
+            lost; a larger table only saves those retries.
+        scattering: Trace scattered (diffuse and edge) arrivals as well as specular ones.
+        edge_width_m: Band along sharp mesh edges (> 20 deg) that scatters everything it
+            reflects, a stand-in for edge diffraction [m]; None: half a wavelength at the call's
+            centre frequency; 0: no edge echoes.
+    """
+
+    max_bounces: int = 3
+    ray_count: int = 20_000
+    table_size: int = 32768
+    scattering: bool = True
+    edge_width_m: float | None = None
+
+    def __post_init__(self) -> None:
+        check_finite(self)
+        if not 0 <= self.max_bounces <= MAX_BOUNCES:
+            raise ValueError(f"max_bounces must lie in 0..{MAX_BOUNCES}, got {self.max_bounces}")
+        if self.ray_count < 1 or self.table_size < 16 or self.table_size & (self.table_size - 1):
+            raise ValueError("ray_count must be >= 1 and table_size a power of two >= 16")
+        if self.edge_width_m is not None and not self.edge_width_m >= 0:
+            raise ValueError(f"edge_width_m must be >= 0 (or None), got {self.edge_width_m}")
+
+    def edge_width_for(self, sonar: SonarConfig) -> float:
+        """The edge band [m] for `sonar`'s call and air (None resolved to half a wavelength)."""
+        if self.edge_width_m is not None:
+            return float(self.edge_width_m)
+        return 0.5 * (sonar.atmosphere.speed_of_sound / sonar.chirp.centre_frequency_hz)
+
+
+@dataclass(frozen=True, kw_only=True)
+class ProcessingConfig:
+    """The beamformer's settings, as on the eRTIS (see `beamform.energyscape`).
+
+    Attributes:
+        grid: Output range x azimuth grid.
+        speed_of_sound: Assumed for the steering delays and the range axis [m/s] (the sensor
+            assumes 343 m/s whatever the air).
+        elevation_deg: Elevation of the beams [deg]; a tuple gives one image per elevation.
+        lowpass_hz: Zero-phase low-pass of the envelope [Hz]; None: off.
+        normalise: None; "max" scales each ping to a peak of 1; "db": 20 log10 of that.
+    """
+
+    grid: PolarGrid = dataclasses.field(default_factory=PolarGrid)
+    speed_of_sound: float = 343.0
+    elevation_deg: float | tuple[float, ...] = 0.0
+    lowpass_hz: float | None = 1e3
+    normalise: Normalise = None
+
+    def __post_init__(self) -> None:
+        if self.grid is None or isinstance(self.grid, dict):  # default, or read back from JSON
+            object.__setattr__(self, "grid", PolarGrid(**(self.grid or {})))
+        if np.ndim(self.elevation_deg) == 0:
+            object.__setattr__(self, "elevation_deg", float(self.elevation_deg))
+        else:
+            object.__setattr__(self, "elevation_deg", tuple(float(e) for e in np.ravel(self.elevation_deg)))
+        check_finite(self)
+        if self.normalise not in NORMALISE:
+            raise ValueError(f"normalise must be one of {NORMALISE}, got {self.normalise!r}")
+        if not self.speed_of_sound > 0:
+            raise ValueError(f"speed_of_sound must be positive, got {self.speed_of_sound}")
+        if not np.all(np.abs(self.elevation_deg) <= 90) or np.size(self.elevation_deg) == 0:
+            raise ValueError("elevation_deg must be an angle or a non-empty sequence of angles in [-90, 90]")
+        if self.lowpass_hz is not None and not self.lowpass_hz > 0:
+            raise ValueError(f"lowpass_hz must be positive (or None), got {self.lowpass_hz}")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SimConfig:
+    """The whole simulated rig: the root of the configuration tree (defaults: Hokuyo UST-20LX,
+    eRTIS, 3 bounces with 20k rays, the eRTIS processing on the training grid)."""
+
+    lidar: LidarConfig = dataclasses.field(default_factory=LidarConfig.hokuyo_ust20lx)
+    sonar: SonarConfig = dataclasses.field(default_factory=lambda: SonarConfig.ertis())
+    tracer: TracerConfig = dataclasses.field(default_factory=TracerConfig)
+    processing: ProcessingConfig = dataclasses.field(default_factory=ProcessingConfig)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)

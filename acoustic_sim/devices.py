@@ -30,3 +30,13 @@ def check_device(name: str, *, allow_auto: bool = False) -> str:
     if index >= count:
         raise ValueError(f"device {name!r}: this machine has {count} CUDA GPU(s), cuda:0..cuda:{count - 1}")
     return name
+
+
+def quiet_warp(quiet: bool = True) -> None:
+    """Warp's start-up banner and per-module compile/load lines off (warnings and errors stay);
+    the one place the package sets Warp's logging."""
+    import warp as wp
+
+    if quiet:
+        wp.config.quiet = True
+        wp.config.log_level = wp.LOG_WARNING

@@ -1,235 +1,38 @@
 """Dataset generation: a suite -> episodes -> shard tasks -> HDF5 shards, resumable and parallel.
 
-`plan` deals a suite's episodes (robot drives, each with its own scene and seed) to shards;
-`run_task` simulates one shard and writes it; `generate` runs the tasks that are not finished
-yet (in this process, in local worker processes, or as Ray tasks), then writes each dataset's
-manifest and card. Everything an episode draws comes from its seed, so the same command on the
-same device gives identical arrays, and a rerun skips the shards that are already complete.
+`plan.plan` deals a suite's episodes (robot drives, each with its own scene and seed) to shards;
+`run_task` simulates one shard (`episode.simulate_episode` per episode) and writes it; `generate`
+runs the tasks that are not finished yet (in this process, in local worker processes, or as Ray
+tasks), then writes each dataset's manifest and card (`manifest`). Everything an episode draws
+comes from its seed, so the same command on the same device gives identical arrays, and a rerun
+skips the shards that are already complete.
 """
 
 from __future__ import annotations
 
 import contextlib
-import dataclasses
-import hashlib
 import json
-import math
 import multiprocessing
 import os
 import socket
 import threading
 import time
 import warnings
-import zlib
-from collections import Counter
 from concurrent.futures import ProcessPoolExecutor, as_completed
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 from tqdm.auto import tqdm
 
 from .dataset import FORMAT, FORMAT_VERSION, DatasetError, ShardFrames, read_attrs, verify_shard, write_shard
-from .devices import check_device
-from .suites import Physics, Suite
+from .devices import check_device, quiet_warp
+from .episode import simulate_episode
+from .manifest import shard_entry, write_manifest
+from .plan import ShardTask, plan
+from .suites import Physics, Suite, rig
 
-FRAMES_PER_SHARD = 250  # default shard size: ~20 MB; enough shards to keep several workers busy
 PLAN_FILE = "plan.json"
 LOCK_FILE = ".generate.lock"  # "pid host" of the run writing the folder
-
-
-@dataclass(frozen=True)
-class Episode:
-    """One robot drive: its scene, length and seed (the same in every variant)."""
-
-    index: int
-    scenario: int
-    scenario_name: str
-    builder: str
-    scene_params: dict
-    frames: int
-    seed: int
-
-
-@dataclass(frozen=True)
-class ShardTask:
-    """Everything a worker needs to write one shard (picklable, JSON-able)."""
-
-    path: str
-    variant: str
-    shard: int
-    plan_id: str
-    seed: int
-    suite: dict
-    physics: dict
-    episodes: tuple[Episode, ...]
-    keep_signals: bool = False
-    keep_arrivals: bool = False
-
-    @property
-    def frame_count(self) -> int:
-        return sum(e.frames for e in self.episodes)
-
-
-def episode_seed(seed: int, suite_name: str, index: int) -> int:
-    """Seed of episode `index`: independent streams per (seed, suite, episode)."""
-    entropy = [int(seed), zlib.crc32(suite_name.encode()), int(index)]
-    return int(np.random.SeedSequence(entropy).generate_state(1)[0] & 0x7FFFFFFF)
-
-
-def plan_episodes(suite: Suite, frames: int, seed: int) -> list[Episode]:
-    """Episodes of `suite.episode_frames` frames (the last one shorter) dealt to the scenarios by
-    weight, interleaved so every stretch of episodes mixes scenarios."""
-    count = math.ceil(frames / suite.episode_frames)
-    weights = np.array([s.weight for s in suite.scenarios], dtype=np.float64)
-    # Largest-remainder dealing in order: episode e goes to the scenario furthest behind its share.
-    dealt = np.zeros(len(weights))
-    episodes = []
-    for e in range(count):
-        k = int(np.argmax(weights / weights.sum() * (e + 1) - dealt))
-        dealt[k] += 1
-        scenario = suite.scenarios[k]
-        ep_seed = episode_seed(seed, suite.name, e)
-        params = scenario.scene_params(np.random.default_rng([ep_seed, 1]), ep_seed)
-        length = min(suite.episode_frames, frames - e * suite.episode_frames)
-        episodes.append(Episode(e, k, scenario.name, scenario.builder, params, length, ep_seed))
-    return episodes
-
-
-def plan(
-    suite: Suite,
-    out: str | Path,
-    *,
-    frames: int | None = None,
-    shards: int | None = None,
-    seed: int = 0,
-    keep_signals: bool = False,
-    keep_arrivals: bool = False,
-) -> list[ShardTask]:
-    """The shard tasks of a run: per variant, the episodes split into `shards` contiguous groups
-    (default: one per FRAMES_PER_SHARD frames; it does not depend on the worker count, so a run
-    can be resumed with other --workers)."""
-    frames = suite.frames if frames is None else int(frames)
-    if frames < 1:
-        raise ValueError(f"frames must be >= 1, got {frames}")
-    episodes = plan_episodes(suite, frames, seed)
-    shards = min(math.ceil(frames / FRAMES_PER_SHARD), len(episodes)) if shards is None else shards
-    if not 1 <= shards <= len(episodes):
-        raise ValueError(f"shards must lie in 1..{len(episodes)} (one episode at least per shard), got {shards}")
-    suite_json = suite.to_json()
-    key = {"suite": suite_json, "frames": frames, "shards": shards, "seed": seed, "format_version": FORMAT_VERSION}
-    key |= {"keep_signals": keep_signals, "keep_arrivals": keep_arrivals}
-    plan_id = hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()[:16]
-    bounds = np.linspace(0, len(episodes), shards + 1).round().astype(int)
-    tasks = []
-    for variant, physics in suite.variants.items():
-        folder = Path(out) / variant
-        for s in range(shards):
-            tasks.append(
-                ShardTask(
-                    path=str(folder / f"shard-{s:05d}.h5"),
-                    variant=variant,
-                    shard=s,
-                    plan_id=plan_id,
-                    seed=seed,
-                    suite=suite_json,
-                    physics=dataclasses.asdict(physics),
-                    episodes=tuple(episodes[bounds[s] : bounds[s + 1]]),
-                    keep_signals=keep_signals,
-                    keep_arrivals=keep_arrivals,
-                )
-            )
-    return tasks
-
-
-def episode_sonar_config(physics: Physics, rng: np.random.Generator):
-    """The simulated sensor of one episode: air temperature and channel mismatch drawn from `rng`
-    (always in the same order, so variants that differ elsewhere draw the same values)."""
-    from .config import AtmosphereConfig, SonarConfig
-
-    nominal = SonarConfig.ertis()
-    mics = nominal.microphone_count
-    snr_db = float(rng.uniform(*physics.snr_db))
-    temperature = float(rng.uniform(*physics.temperature_c))
-    position = rng.normal(0.0, 1.0, (mics, 3)) * physics.mic_position_sigma_m
-    gain = 10.0 ** (rng.normal(0.0, 1.0, mics) * physics.mic_gain_sigma_db / 20.0)
-    delay = np.abs(rng.normal(0.0, 1.0, mics)) * physics.mic_delay_sigma_s
-    mismatch = {}
-    if physics.mic_position_sigma_m > 0:
-        mismatch["microphones_m"] = tuple(map(tuple, np.asarray(nominal.microphones_m) + position))
-    if physics.mic_gain_sigma_db > 0:
-        mismatch["microphone_gain"] = tuple(gain)
-    if physics.mic_delay_sigma_s > 0:
-        mismatch["microphone_delay_s"] = tuple(delay)
-    config = dataclasses.replace(nominal, atmosphere=AtmosphereConfig(temperature_c=temperature), **mismatch)
-    return config, snr_db
-
-
-def simulate_episode(
-    episode: Episode, physics: Physics, suite: dict, *, device, keep_signals=False, keep_arrivals=False
-):
-    """Scene, drive, LiDAR and sonar of one episode -> (arrays, episode record for the shard)."""
-    import scenes
-
-    from .config import LidarConfig, PolarGrid, SonarConfig
-    from .lidar import Lidar, lidar_image
-    from .paths import Sonar
-
-    scene = scenes.BUILDERS[episode.builder](**episode.scene_params)
-    poses = scenes.trajectory(
-        scene, frames=episode.frames, dt=suite["dt_s"], speed=suite["speed_m_s"], seed=episode.seed
-    )
-    lidar_config = LidarConfig.hokuyo_ust20lx(
-        noise=physics.lidar_noise,
-        noise_m=physics.lidar_noise_m if physics.lidar_noise != "none" else 0.0,
-        dropout_probability=physics.lidar_dropout_probability,
-    )
-    ranges = Lidar(lidar_config, device=device).scan(scene, poses, seed=episode.seed)
-    sonar_config, snr_db = episode_sonar_config(physics, np.random.default_rng([episode.seed, 2]))
-    sonar = Sonar(
-        sonar_config,
-        max_bounces=physics.max_bounces,
-        ray_count=physics.ray_count,
-        scattering=physics.scattering,
-        edge_width_m=physics.edge_width_m,
-        device=device,
-    )
-    result = sonar.simulate(
-        scene,
-        poses,
-        noise=physics.sonar_noise,
-        snr_db=snr_db,
-        seed=episode.seed,
-        keep_signals=keep_signals,
-        processing_config=SonarConfig.ertis(),
-    )
-    arrays = {
-        "energyscape": result.energyscape,
-        "lidar_ranges": ranges,
-        "lidar_image": lidar_image(ranges, lidar_config, PolarGrid()),
-        "pose": poses,
-        "time": np.arange(episode.frames) * suite["dt_s"],
-        "signals": result.signals,
-    }
-    if keep_arrivals:
-        arrivals = sonar.trace(scene, poses)
-        arrays["arrivals"] = {
-            "frame": arrivals.pose_index,
-            "delay_s": arrivals.delay_s,
-            "direction": arrivals.direction,
-            "amplitude": arrivals.amplitude,
-            "order": arrivals.order,
-            "kind": arrivals.kind,
-            "point_m": arrivals.point_m,
-        }
-    record = dataclasses.asdict(episode) | {
-        "scene": scene.describe(),
-        "snr_db": snr_db,
-        "temperature_c": sonar_config.atmosphere.temperature_c,
-        "sonar_config": dataclasses.asdict(sonar_config) if sonar_config != SonarConfig.ertis() else None,
-        "lidar_config": dataclasses.asdict(lidar_config),
-    }
-    return arrays, record
 
 
 def run_task(task: ShardTask, device=None, on_frames=None) -> dict:
@@ -237,10 +40,8 @@ def run_task(task: ShardTask, device=None, on_frames=None) -> dict:
     import warp as wp
 
     from . import __version__
-    from .config import PolarGrid, SonarConfig
 
-    wp.config.quiet = True
-    wp.config.log_level = wp.LOG_WARNING
+    quiet_warp()
     device = str(wp.get_device(device))
     physics = Physics(**task.physics)
     frames, records = ShardFrames(), []
@@ -266,14 +67,10 @@ def run_task(task: ShardTask, device=None, on_frames=None) -> dict:
         records.append(record)
         if on_frames:
             on_frames(episode.frames)
-    grid = PolarGrid()
-    config = {
-        "suite": task.suite,
-        "variant": task.variant,
-        "physics": task.physics,
-        "sonar": dataclasses.asdict(SonarConfig.ertis()),
-        "processing": {"speed_of_sound": 343.0, "lowpass_hz": 1e3, "grid": dataclasses.asdict(grid)},
-    }
+    # The variant's rig as simulated (per-episode draws are in the episode records).
+    nominal = rig(physics, tuple(task.suite.get("settings", ())))
+    grid = nominal.processing.grid
+    config = {"suite": task.suite, "variant": task.variant, "physics": task.physics, "sim": nominal.to_dict()}
     attrs = {
         "suite": task.suite["name"],
         "variant": task.variant,
@@ -290,21 +87,6 @@ def run_task(task: ShardTask, device=None, on_frames=None) -> dict:
     Path(task.path).parent.mkdir(parents=True, exist_ok=True)
     write_shard(Path(task.path), frames, attrs=attrs, range_m=grid.range_m, azimuth_rad=grid.azimuth_rad)
     return shard_entry(task)
-
-
-def shard_entry(task: ShardTask) -> dict:
-    path = Path(task.path)
-    scenarios = Counter()
-    for e in task.episodes:
-        scenarios[e.scenario_name] += e.frames
-    return {
-        "file": path.name,
-        "frames": task.frame_count,
-        "episodes": [e.index for e in task.episodes],
-        "seeds": [e.seed for e in task.episodes],
-        "scenarios": dict(scenarios),
-        "bytes": path.stat().st_size,
-    }
 
 
 def is_complete(task: ShardTask) -> bool:
@@ -514,89 +296,3 @@ def _run_on_ray(tasks: list[ShardTask], address: str, gpu: bool, bar) -> None:
         for ref in ready:
             ray.get(ref)
             bar.update(pending.pop(ref).frame_count)
-
-
-def write_manifest(folder: Path, tasks: list[ShardTask], suite: Suite, meta: dict) -> Path:
-    """manifest.json (shards, scenarios, seeds, counts) and the dataset card of one variant."""
-    entries = [shard_entry(t) for t in tasks]
-    scenarios = Counter()
-    for e in entries:
-        scenarios.update(e["scenarios"])
-    variant = tasks[0].variant
-    manifest = {
-        "format": FORMAT,
-        "format_version": FORMAT_VERSION,
-        "plan_id": tasks[0].plan_id,
-        "suite": suite.name,
-        "variant": variant,
-        "description": suite.description,
-        "seed": meta["seed"],
-        "frames": sum(e["frames"] for e in entries),
-        "episodes": sum(len(e["episodes"]) for e in entries),
-        "scenarios": dict(scenarios),
-        "physics": tasks[0].physics,
-        "shards": entries,
-    }
-    path = folder / "manifest.json"
-    tmp = path.with_name("manifest.json.tmp")
-    tmp.write_text(json.dumps(manifest, indent=1))
-    tmp.replace(path)
-    write_card(folder, manifest)
-    return path
-
-
-def write_card(folder: Path, manifest: dict) -> None:
-    """README.md and card.png: what the dataset holds, how to read it, example frames."""
-    import h5py
-
-    from .config import PolarGrid
-    from .render import render_examples
-
-    examples, seen = [], set()
-    for entry in manifest["shards"]:
-        with h5py.File(folder / entry["file"], "r") as f:
-            names = json.loads(f.attrs["scenarios"])
-            scenario, episode = f["scenario"][:], f["episode"][:]
-            for i in np.unique(episode, return_index=True)[1]:
-                name = names[scenario[i]]
-                if name in seen or len(examples) == 4:
-                    continue
-                seen.add(name)
-                k = min(i + 5, len(episode) - 1) if episode[min(i + 5, len(episode) - 1)] == episode[i] else i
-                examples.append((f"{name}, frame {k}", f["energyscape"][k], f["lidar/image"][k]))
-    render_examples(examples, PolarGrid(), folder / "card.png")
-    title = manifest["suite"] + (f" / {manifest['variant']}" if manifest["variant"] else "")
-    rows = "\n".join(f"| {name} | {count:,} |" for name, count in manifest["scenarios"].items())
-    physics = "\n".join(f"| {k} | {v} |" for k, v in manifest["physics"].items())
-    text = f"""# Dataset: {title}
-
-{manifest["description"]}
-
-{manifest["frames"]:,} frames in {manifest["episodes"]} episodes (robot drives), {len(manifest["shards"])} shards,
-seed {manifest["seed"]}, {FORMAT} format version {FORMAT_VERSION}. Made by `python -m acoustic_sim generate`;
-rerunning the same command resumes or verifies it.
-
-![example frames: energyscape (dB) with the LiDAR label on top](card.png)
-
-| scenario | frames |
-|---|---|
-{rows}
-
-Sensor physics:
-
-| setting | value |
-|---|---|
-{physics}
-
-Each `shard-*.h5` holds `energyscape` (frame, range, azimuth) float16, `lidar/ranges`,
-`lidar/image` (the label), `pose`, `time`, `episode`, `scenario`, and the axes `range_m`,
-`azimuth_rad`; its attributes hold every config as JSON and one record per episode (scene,
-seed, SNR, temperature). Read it with h5py:
-
-```python
-import h5py
-with h5py.File("{manifest["shards"][0]["file"]}") as f:
-    energyscape, label = f["energyscape"][:10], f["lidar/image"][:10]
-```
-"""
-    (folder / "README.md").write_text(text)

@@ -17,19 +17,16 @@ from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
-from tqdm.auto import tqdm
 
 from scenes import Scene
 
 from .array import piston_directivity
-from .beamform import beamformer, energyscape
-from .config import SonarConfig
+from .config import SonarConfig, TracerConfig
 from .kernels import lidar as lidar_kernels
 from .kernels import paths as kernels
 from .lidar import check_pose_results, check_poses
 from .scene import warp_scene
-from .signals import EchoBuffer, ping_seeds, record
-from .signals import recorder as signals_recorder
+from .signals import EchoBuffer
 
 KIND_SPECULAR = 0
 KIND_SCATTERED = 1
@@ -86,76 +83,36 @@ def hemisphere_directions(count: int) -> np.ndarray:
     return np.c_[x, rho * np.cos(phi), rho * np.sin(phi)]
 
 
-class Sonar:
-    """Simulated in-air sonar: emitter, microphone array, call and processing.
+class PathTracer:
+    """Scene + poses -> echoes of one sonar's call, on a Warp device, batched over poses.
+
+    Holds only what every trace reuses: the rays' directions and energy shares and the emitter's
+    directivity table. Each `trace` builds (or reuses) the scene's BVH and is otherwise stateless.
 
     Args:
-        config: The sensor, e.g. `SonarConfig.ertis()`.
-        max_bounces: Secondary reflections after the first (0 = first-order echoes only, <= 10).
-        ray_count: Rays per ping used to discover reflection sequences (front hemisphere; a
-            baffled emitter radiates nothing backwards).
-        table_size: Slots per ping for the distinct reflection sequences the rays discover (power
-            of two). A ping that overflows it is traced again with twice the slots, up to twice
-            the most sequences its rays can find, so no echo is lost; a larger table only saves
-            those retries.
-        scattering: Trace scattered (diffuse) arrivals as well as specular ones.
-        edge_width_m: Band along sharp mesh edges (> 20 deg) that scatters everything it reflects,
-            a simple stand-in for edge diffraction; default half a wavelength at the call's centre
-            frequency; 0 turns edge echoes off.
+        sonar: Emitter position, directivity, call and air.
+        config: Rays, bounces, table size, scattering and edge band.
         device: Warp device.
     """
 
-    def __init__(
-        self,
-        config: SonarConfig,
-        *,
-        max_bounces: int = 3,
-        ray_count: int = 20_000,
-        table_size: int = 32768,
-        scattering: bool = True,
-        edge_width_m: float | None = None,
-        device=None,
-    ):
-        if not 0 <= max_bounces <= kernels.MAX_ORDER - 1:
-            raise ValueError(f"max_bounces must lie in 0..{kernels.MAX_ORDER - 1}, got {max_bounces}")
-        if ray_count < 1 or table_size < 16 or table_size & (table_size - 1):
-            raise ValueError("ray_count must be >= 1 and table_size a power of two >= 16")
+    def __init__(self, sonar: SonarConfig, config: TracerConfig, *, device=None):
+        self.sonar = sonar
         self.config = config
-        self.max_bounces = max_bounces
-        self.ray_count = ray_count
-        self.table_size = table_size
-        self.scattering = scattering
-        wavelength = config.atmosphere.speed_of_sound / self._centre_hz
-        self.edge_width_m = 0.5 * wavelength if edge_width_m is None else float(edge_width_m)
-        if self.edge_width_m < 0:
-            raise ValueError(f"edge_width_m must be >= 0, got {edge_width_m}")
+        self.edge_width_m = config.edge_width_for(sonar)
         self.device = wp.get_device(device)
-        directions = hemisphere_directions(ray_count)
+        centre_hz, c = sonar.chirp.centre_frequency_hz, sonar.atmosphere.speed_of_sound
+        directions = hemisphere_directions(config.ray_count)
         # Each ray carries its share of the half-space (2 pi sr), weighted by the emitter's power
         # directivity at the call's centre frequency.
         theta = np.arccos(np.clip(directions[:, 0], -1.0, 1.0))
-        power = (
-            piston_directivity(theta, self._centre_hz, config.emitter_radius_m, config.atmosphere.speed_of_sound) ** 2
-        )
-        self._ray_energy = wp.array((2 * np.pi / ray_count * power).astype(np.float32), dtype=float, device=self.device)
-        self._ray_dirs = wp.array(directions.astype(np.float32), dtype=wp.vec3, device=self.device)
+        power = piston_directivity(theta, centre_hz, sonar.emitter_radius_m, c) ** 2
+        ray_energy = (2 * np.pi / config.ray_count * power).astype(np.float32)
         cosine = np.linspace(0.0, 1.0, DIRECTIVITY_STEPS + 1)
-        pattern = piston_directivity(
-            np.arccos(cosine), self._centre_hz, config.emitter_radius_m, config.atmosphere.speed_of_sound
-        )
-        self._directivity = wp.array(pattern.astype(np.float32), dtype=float, device=self.device)
-
-    def record(self, arrivals: Arrivals, *, pose_count: int | None = None, **options) -> np.ndarray:
-        """Microphone signals (N, mics, samples) of traced pings; see `signals.record` for options."""
-        return record(arrivals, self.config, pose_count=pose_count, device=self.device, **options)
-
-    def energyscape(self, signals: np.ndarray, **options) -> np.ndarray:
-        """Energyscapes (N, R, A) of signals recorded with this sonar; see `beamform.energyscape`."""
-        return energyscape(signals, self.config, device=self.device, **options)
-
-    @property
-    def _centre_hz(self) -> float:
-        return 0.5 * (self.config.chirp.start_frequency_hz + self.config.chirp.stop_frequency_hz)
+        pattern = piston_directivity(np.arccos(cosine), centre_hz, sonar.emitter_radius_m, c)
+        with wp.ScopedDevice(self.device):
+            self._ray_energy = wp.array(ray_energy, dtype=float)
+            self._ray_dirs = wp.array(directions.astype(np.float32), dtype=wp.vec3)
+            self._directivity = wp.array(pattern.astype(np.float32), dtype=float)
 
     def trace(self, scene: Scene, poses: np.ndarray, *, batch: int = 64) -> Arrivals:
         """Echoes of one ping from each pose, specular and scattered (see the module docstring).
@@ -170,78 +127,26 @@ class Sonar:
         """
         poses = check_poses(poses)
         parts = []
-        for index, keep, echoes in self._traced(scene, poses, batch):
-            found = echoes.arrivals(self.config.atmosphere.speed_of_sound)
+        for index, keep, echoes in self.traced(scene, poses, batch):
+            found = echoes.arrivals(self.sonar.atmosphere.speed_of_sound)
             found = found.select(keep[found.pose_index])
             found.pose_index = index[found.pose_index]
             parts.append(found)
         found = concatenate(parts)
         return found.select(np.lexsort((found.order, found.delay_s, found.kind, found.pose_index)))
 
-    def simulate(
-        self,
-        scene: Scene,
-        poses: np.ndarray,
-        *,
-        noise: str = "none",
-        snr_db: float = 40.0,
-        seed: int = 0,
-        absorption: bool = True,
-        batch: int | None = None,
-        keep_signals: bool = False,
-        progress: bool = False,
-        processing_config: SonarConfig | None = None,
-        **processing,
-    ) -> SonarFrames:
-        """Trace, record and beamform every pose on the device, batch by batch (the fast path).
-
-        The same as `energyscape(record(trace(scene, poses)))` but without the host round trips.
-
-        Args:
-            scene, poses: As for `trace`.
-            noise, snr_db, seed, absorption: As for `signals.record`; ping i's noise comes
-                from (seed, i).
-            batch: Pings at once (default 256 on a GPU, 8 on the CPU).
-            keep_signals: Also return the microphone signals (N, mics, samples).
-            progress: Show a progress bar.
-            processing_config: The array geometry and call the beamformer assumes, if not the
-                simulated one (e.g. the nominal array while simulating a mismatched one).
-            **processing: Options of `beamform.energyscape` (grid, lowpass_hz, normalise, ...).
-        """
-        poses = check_poses(poses)
-        batch = batch or (256 if self.device.is_cuda else 8)
-        recorder = signals_recorder(self.config, absorption, str(self.device))
-        former = beamformer(
-            processing_config or self.config, samples=self.config.record_samples, device=self.device, **processing
-        )
-        images = np.empty((len(poses), *former.output_shape), dtype=np.float32)
-        kept = None
-        if keep_signals:
-            kept = np.empty((len(poses), self.config.microphone_count, self.config.record_samples), np.float32)
-        bar = tqdm(total=len(poses), unit="ping", disable=not progress, desc="sonar")
-        for index, keep, echoes in self._traced(scene, poses, batch):
-            # Rows left out (to be traced again) are recorded too, at no extra launch, and dropped.
-            seeds = ping_seeds(seed, index)
-            signals = recorder(echoes.buffers(), len(index), noise=noise, snr_db=snr_db, seeds=seeds)
-            out = former(signals)
-            images[index[keep]] = out.numpy().reshape(len(index), *former.output_shape)[keep]
-            if kept is not None:
-                kept[index[keep]] = signals.numpy()[keep]
-            bar.update(int(keep.sum()))
-        bar.close()
-        return SonarFrames(energyscape=images, signals=kept)
-
-    def _traced(self, scene: Scene, poses: np.ndarray, batch: int):
+    def traced(self, scene: Scene, poses: np.ndarray, batch: int):
         """Trace checked poses in batches; yields (pose indices, rows to keep, echoes on the device).
 
         A ping whose sequence table overflowed would miss echoes, and which ones would depend on
         thread order: its row is left out and the ping traced again with twice the slots (in
         groups that take no more memory than one batch), until it fits. Each ray adds at most
         one sequence per order, so a table twice that size always fits in practice."""
-        most = self.ray_count * (self.max_bounces + 1)
-        limit = max(self.table_size, 1 << (2 * most - 1).bit_length())
-        budget = batch * self.table_size  # slots a batch may hold
-        todo = [(np.arange(s, min(s + batch, len(poses))), self.table_size) for s in range(0, len(poses), batch)]
+        table_size = self.config.table_size
+        most = self.config.ray_count * (self.config.max_bounces + 1)
+        limit = max(table_size, 1 << (2 * most - 1).bit_length())
+        budget = batch * table_size  # slots a batch may hold
+        todo = [(np.arange(s, min(s + batch, len(poses))), table_size) for s in range(0, len(poses), batch)]
         while todo:
             index, size = todo.pop(0)
             echoes, dropped = self._trace_batch(scene, poses[index], size)
@@ -279,7 +184,8 @@ class Sonar:
             last_point = wp.empty((n, size), dtype=wp.vec3)
             image_table = wp.zeros((n, size), dtype=wp.uint64)
             image_rank = wp.full((n, size), 2**31 - 1, dtype=wp.int32)
-            capacity = self.ray_count * (self.max_bounces + 1) if self.scattering else 0
+            tracer = self.config
+            capacity = tracer.ray_count * (tracer.max_bounces + 1) if tracer.scattering else 0
             scattered = _ScatteredEchoes(
                 source=wp.empty((n, capacity), dtype=wp.vec3),
                 extra_length=wp.empty((n, capacity), dtype=float),
@@ -287,12 +193,12 @@ class Sonar:
                 order=wp.empty((n, capacity), dtype=wp.int32),
                 count=wp.zeros(n, dtype=wp.int32),
             )
-        emitter = wp.vec3(*self.config.emitter_m)
+        emitter = wp.vec3(*self.sonar.emitter_m)
         launch(lidar_kernels.pose_error, dim=n, inputs=[ws.mesh.id, pose_buf], outputs=[errors, behind])
         check_pose_results(errors.numpy(), behind.numpy())
         launch(
             kernels.discover_sequences,
-            dim=n * self.ray_count,
+            dim=n * tracer.ray_count,
             inputs=[
                 ws.mesh.id,
                 ws.face_plane,
@@ -300,14 +206,14 @@ class Sonar:
                 inverse_buf,
                 emitter,
                 self._ray_dirs,
-                self.max_bounces + 1,
+                tracer.max_bounces + 1,
                 ws.face_reflection,
                 ws.face_scattering,
                 ws.face_sharp_edges,
                 ws.face_altitudes,
                 self.edge_width_m,
                 self._ray_energy,
-                int(self.scattering),
+                int(tracer.scattering),
             ],
             outputs=[
                 key,
@@ -360,14 +266,6 @@ class Sonar:
             )
         traced = _TracedEchoes(specular=specular, scattered=scattered, ray_queries=ray_queries)
         return traced, overflow.numpy()
-
-
-@dataclass
-class SonarFrames:
-    """Output of `Sonar.simulate`: energyscapes (N, R, A) and, if kept, signals (N, mics, samples)."""
-
-    energyscape: np.ndarray
-    signals: np.ndarray | None = None
 
 
 @dataclass

@@ -18,7 +18,18 @@ import numpy as np
 
 import scenes
 
-from .config import ConfigError, check_finite
+from .config import (
+    NOISE_KINDS,
+    ConfigError,
+    LidarConfig,
+    NoiseKind,
+    ProcessingConfig,
+    SimConfig,
+    SonarConfig,
+    TracerConfig,
+    check_finite,
+)
+from .settings import apply_settings
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -55,8 +66,7 @@ class Scenario:
         out = dict(self.params)
         for key, spec in sorted(self.vary.items()):
             out[key] = _draw(rng, key, spec)
-        if self.builder != "box_room":
-            out["seed"] = seed
+        out["seed"] = seed
         return out
 
 
@@ -80,8 +90,11 @@ def _draw(rng: np.random.Generator, key: str, spec):
 class Physics:
     """Sensor physics of one variant. Ranges (low, high) are drawn per episode.
 
+    The first four fields are the variant's `TracerConfig` (checked by it: the same limits as a
+    `Sonar` built by hand); the others are drawn or applied per episode (`episode`).
+
     Attributes:
-        max_bounces: Specular bounces after the first reflection (0..10).
+        max_bounces: Specular bounces after the first reflection (0..MAX_BOUNCES).
         ray_count: Path-tracer rays per ping.
         scattering: Diffuse/edge echoes on or off.
         edge_width_m: Band along sharp edges that scatters everything; None = half a wavelength,
@@ -100,9 +113,9 @@ class Physics:
     ray_count: int = 20_000
     scattering: bool = True
     edge_width_m: float | None = None
-    sonar_noise: str = "gaussian"
+    sonar_noise: NoiseKind = "gaussian"
     snr_db: tuple[float, float] = (25.0, 35.0)
-    lidar_noise: str = "uniform"
+    lidar_noise: NoiseKind = "uniform"
     lidar_noise_m: float = 0.01
     lidar_dropout_probability: float = 0.0
     temperature_c: tuple[float, float] = (20.0, 20.0)
@@ -114,11 +127,18 @@ class Physics:
         object.__setattr__(self, "snr_db", _pair(self.snr_db, "snr_db"))
         object.__setattr__(self, "temperature_c", _pair(self.temperature_c, "temperature_c"))
         check_finite(self)
-        if not 0 <= self.max_bounces <= 10 or self.ray_count < 1:
-            raise ValueError("Physics needs max_bounces in 0..10 and ray_count >= 1")
+        self.tracer()  # refuses max_bounces outside 0..MAX_BOUNCES, ray_count < 1, edge_width_m < 0
+        for name in ("sonar_noise", "lidar_noise"):
+            if getattr(self, name) not in NOISE_KINDS:
+                raise ValueError(f"Physics.{name} must be one of {NOISE_KINDS}, got {getattr(self, name)!r}")
         sigmas = (self.mic_position_sigma_m, self.mic_gain_sigma_db, self.mic_delay_sigma_s, self.lidar_noise_m)
-        if min(sigmas) < 0 or (self.edge_width_m is not None and self.edge_width_m < 0):
-            raise ValueError("Physics: noise sizes, mismatch sigmas and edge_width_m must be >= 0")
+        if min(sigmas) < 0:
+            raise ValueError("Physics: noise sizes and mismatch sigmas must be >= 0")
+
+    def tracer(self) -> TracerConfig:
+        """The path tracer's settings of this variant."""
+        fields = ("max_bounces", "ray_count", "scattering", "edge_width_m")
+        return TracerConfig(**{name: getattr(self, name) for name in fields})
 
 
 def _pair(value, name: str) -> tuple[float, float]:
@@ -144,6 +164,8 @@ class Suite:
         episode_frames: Frames per robot drive (an episode); windows never cross episodes.
         dt_s: Time between frames [s] (the sonar rate).
         speed_m_s: Robot speed [m/s].
+        settings: `section.field=value` changes to every variant's rig (`rig`), applied after
+            its physics: e.g. "lidar=multibeam_64x1024" (a preset), "processing.grid.range_max_m=4".
     """
 
     name: str
@@ -154,9 +176,13 @@ class Suite:
     episode_frames: int = 100
     dt_s: float = 0.1
     speed_m_s: float = 0.3
+    settings: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         check_finite(self)
+        object.__setattr__(self, "settings", tuple(self.settings))
+        for physics in self.variants.values():
+            rig(physics, self.settings)  # refuses unknown or out-of-range settings now, not in a worker
         if not self.scenarios:
             raise ValueError(f"suite {self.name!r} has no scenarios")
         names = [s.name for s in self.scenarios]
@@ -176,7 +202,24 @@ class Suite:
             raise ValueError(f"suite {self.name!r}: frames, episode_frames >= 1, dt_s > 0, speed_m_s >= 0")
 
     def to_json(self) -> dict:
-        return dataclasses.asdict(self)
+        out = dataclasses.asdict(self)
+        if not out["settings"]:  # so that suites without settings keep the plan ids of earlier runs
+            del out["settings"]
+        return out
+
+
+def rig(physics: Physics, settings: tuple[str, ...] = ()) -> SimConfig:
+    """The rig a physics variant simulates before any per-episode draw: the Hokuyo with the
+    variant's range noise, the nominal eRTIS, the variant's tracer and the eRTIS processing, then
+    the suite's `settings`. The beamformer assumes this nominal array and its processing's speed
+    of sound whatever an episode draws (temperature, mismatch), as the real sensor does."""
+    lidar = LidarConfig.hokuyo_ust20lx(
+        noise=physics.lidar_noise,
+        noise_m=physics.lidar_noise_m if physics.lidar_noise != "none" else 0.0,
+        dropout_probability=physics.lidar_dropout_probability,
+    )
+    nominal = SimConfig(lidar=lidar, sonar=SonarConfig.ertis(), tracer=physics.tracer(), processing=ProcessingConfig())
+    return apply_settings(nominal, settings)
 
 
 def _scenario(name: str, builder: str, weight: float = 1.0, **params) -> Scenario:

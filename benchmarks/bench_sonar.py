@@ -99,7 +99,7 @@ def main(argv=None) -> dict:
         # Device side: the echoes stay on the GPU, as inside `Sonar.simulate`.
         # A ping that overflows its sequence table is traced again: the time includes that, the
         # query count only the kept traces (so queries/s errs low).
-        _, dt, parts = timed(lambda s=sonar: list(s._traced(scene, checked, pings)), args.repeats, device)
+        _, dt, parts = timed(lambda s=sonar: list(s.tracer.traced(scene, checked, pings)), args.repeats, device)
         queries = sum(int(echoes.ray_queries.numpy()[keep].sum()) for _, keep, echoes in parts)
         _, end_s, _ = timed(lambda s=sonar: s.simulate(scene, poses, batch=pings), args.repeats, device)
         res["trace"][bounces] = {

@@ -73,8 +73,11 @@ def box_room(
     wall: str | Material = "painted_wall",
     floor: str | Material = "floor",
     ceiling: str | Material = "painted_wall",
+    seed: int = 0,
 ) -> Scene:
-    """Empty shoebox room spanning (0, 0, 0) .. size [m], normals pointing inwards."""
+    """Empty shoebox room spanning (0, 0, 0) .. size [m], normals pointing inwards.
+
+    It draws nothing; `seed` is accepted so that every builder is called alike."""
     size = _check_size(size, (0.5, 0.5, 0.5))
     return assemble(_shell_parts(size, wall, floor, ceiling), name="box_room", params={"size": size.tolist()})
 

@@ -9,7 +9,8 @@ import pytest
 import acoustic_sim as sim
 import scenes
 from acoustic_sim.lidar import check_poses
-from acoustic_sim.paths import KIND_SCATTERED, KIND_SPECULAR, Sonar
+from acoustic_sim.paths import KIND_SCATTERED, KIND_SPECULAR
+from acoustic_sim.sonar import Sonar
 from scenes.scene import assemble, box_mesh
 
 SIZE = np.array([6.0, 4.0, 3.0])
@@ -126,7 +127,7 @@ def test_pings_that_overflow_the_sequence_table_are_traced_again_larger(device):
     small, large = (
         Sonar(OMNI, max_bounces=3, ray_count=5_000, table_size=t, scattering=False, device=device) for t in (16, 32768)
     )
-    _, dropped = small._trace_batch(room, check_poses(poses), 16)
+    _, dropped = small.tracer._trace_batch(room, check_poses(poses), 16)
     assert dropped[0] == dropped[2] == 0 and dropped[1] > 0
     with warnings.catch_warnings():
         warnings.simplefilter("error")

@@ -1,0 +1,91 @@
+"""One episode's simulation: its scene and drive, the sensors its physics variant draws, the LiDAR
+scan and the sonar frames. Everything comes from the episode's seed, so it is reproducible on
+its own (in any process, in any order)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .config import SonarConfig
+from .plan import Episode
+from .suites import Physics, rig
+
+
+def episode_sonar_config(physics: Physics, nominal: SonarConfig, rng: np.random.Generator) -> tuple[SonarConfig, float]:
+    """The simulated sensor of one episode and its SNR [dB]: the nominal sonar with air temperature
+    and channel mismatch drawn from `rng` (always in the same order, so variants that differ
+    elsewhere draw the same values)."""
+    mics = nominal.microphone_count
+    snr_db = float(rng.uniform(*physics.snr_db))
+    temperature = float(rng.uniform(*physics.temperature_c))
+    position = rng.normal(0.0, 1.0, (mics, 3)) * physics.mic_position_sigma_m
+    gain = 10.0 ** (rng.normal(0.0, 1.0, mics) * physics.mic_gain_sigma_db / 20.0)
+    delay = np.abs(rng.normal(0.0, 1.0, mics)) * physics.mic_delay_sigma_s
+    mismatch = {}
+    if physics.mic_position_sigma_m > 0:
+        mismatch["microphones_m"] = tuple(map(tuple, np.asarray(nominal.microphones_m) + position))
+    if physics.mic_gain_sigma_db > 0:
+        mismatch["microphone_gain"] = tuple(gain)
+    if physics.mic_delay_sigma_s > 0:
+        mismatch["microphone_delay_s"] = tuple(delay)
+    atmosphere = dataclasses.replace(nominal.atmosphere, temperature_c=temperature)
+    config = dataclasses.replace(nominal, atmosphere=atmosphere, **mismatch)
+    return config, snr_db
+
+
+def simulate_episode(
+    episode: Episode, physics: Physics, suite: dict, *, device, keep_signals=False, keep_arrivals=False
+) -> tuple[dict, dict]:
+    """Scene, drive, LiDAR and sonar of one episode -> (arrays, episode record for the shard)."""
+    import scenes
+
+    from .lidar import Lidar, lidar_image
+    from .sonar import Sonar
+
+    nominal = rig(physics, tuple(suite.get("settings", ())))
+    scene = scenes.BUILDERS[episode.builder](**episode.scene_params)
+    poses = scenes.trajectory(
+        scene, frames=episode.frames, dt=suite["dt_s"], speed=suite["speed_m_s"], seed=episode.seed
+    )
+    ranges = Lidar(nominal.lidar, device=device).scan(scene, poses, seed=episode.seed)
+    sonar_config, snr_db = episode_sonar_config(physics, nominal.sonar, np.random.default_rng([episode.seed, 2]))
+    sonar = Sonar(sonar_config, nominal.tracer, device=device)
+    result = sonar.simulate(
+        scene,
+        poses,
+        noise=physics.sonar_noise,
+        snr_db=snr_db,
+        seed=episode.seed,
+        keep_signals=keep_signals,
+        processing=nominal.processing,
+        assumed_array=nominal.sonar,
+    )
+    arrays = {
+        "energyscape": result.energyscape,
+        "lidar_ranges": ranges,
+        "lidar_image": lidar_image(ranges, nominal.lidar, nominal.processing.grid),
+        "pose": poses,
+        "time": np.arange(episode.frames) * suite["dt_s"],
+        "signals": result.signals,
+    }
+    if keep_arrivals:
+        arrivals = sonar.trace(scene, poses)
+        arrays["arrivals"] = {
+            "frame": arrivals.pose_index,
+            "delay_s": arrivals.delay_s,
+            "direction": arrivals.direction,
+            "amplitude": arrivals.amplitude,
+            "order": arrivals.order,
+            "kind": arrivals.kind,
+            "point_m": arrivals.point_m,
+        }
+    record = dataclasses.asdict(episode) | {
+        "scene": scene.describe(),
+        "snr_db": snr_db,
+        "temperature_c": sonar_config.atmosphere.temperature_c,
+        "sonar_config": dataclasses.asdict(sonar_config) if sonar_config != nominal.sonar else None,
+        "lidar_config": dataclasses.asdict(nominal.lidar),
+    }
+    return arrays, record

@@ -1,0 +1,116 @@
+"""What a finished dataset says about itself: manifest.json (shards, scenarios, seeds, counts),
+README.md (the dataset card) and card.png (example frames)."""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+from .dataset import FORMAT, FORMAT_VERSION
+from .plan import ShardTask
+from .suites import Physics, Suite, rig
+
+
+def shard_entry(task: ShardTask) -> dict:
+    path = Path(task.path)
+    scenarios = Counter()
+    for e in task.episodes:
+        scenarios[e.scenario_name] += e.frames
+    return {
+        "file": path.name,
+        "frames": task.frame_count,
+        "episodes": [e.index for e in task.episodes],
+        "seeds": [e.seed for e in task.episodes],
+        "scenarios": dict(scenarios),
+        "bytes": path.stat().st_size,
+    }
+
+
+def write_manifest(folder: Path, tasks: list[ShardTask], suite: Suite, meta: dict) -> Path:
+    """manifest.json (shards, scenarios, seeds, counts) and the dataset card of one variant."""
+    entries = [shard_entry(t) for t in tasks]
+    scenarios = Counter()
+    for e in entries:
+        scenarios.update(e["scenarios"])
+    variant = tasks[0].variant
+    manifest = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "plan_id": tasks[0].plan_id,
+        "suite": suite.name,
+        "variant": variant,
+        "description": suite.description,
+        "seed": meta["seed"],
+        "frames": sum(e["frames"] for e in entries),
+        "episodes": sum(len(e["episodes"]) for e in entries),
+        "scenarios": dict(scenarios),
+        "physics": tasks[0].physics,
+        "sim": rig(Physics(**tasks[0].physics), suite.settings).to_dict(),  # the rig before per-episode draws
+        "shards": entries,
+    }
+    path = folder / "manifest.json"
+    tmp = path.with_name("manifest.json.tmp")
+    tmp.write_text(json.dumps(manifest, indent=1))
+    tmp.replace(path)
+    write_card(folder, manifest)
+    return path
+
+
+def write_card(folder: Path, manifest: dict) -> None:
+    """README.md and card.png: what the dataset holds, how to read it, example frames."""
+    import h5py
+
+    from .config import PolarGrid
+    from .render import render_examples
+
+    examples, seen = [], set()
+    for entry in manifest["shards"]:
+        with h5py.File(folder / entry["file"], "r") as f:
+            names = json.loads(f.attrs["scenarios"])
+            scenario, episode = f["scenario"][:], f["episode"][:]
+            for i in np.unique(episode, return_index=True)[1]:
+                name = names[scenario[i]]
+                if name in seen or len(examples) == 4:
+                    continue
+                seen.add(name)
+                k = min(i + 5, len(episode) - 1) if episode[min(i + 5, len(episode) - 1)] == episode[i] else i
+                examples.append((f"{name}, frame {k}", f["energyscape"][k], f["lidar/image"][k]))
+    render_examples(examples, PolarGrid(), folder / "card.png")
+    title = manifest["suite"] + (f" / {manifest['variant']}" if manifest["variant"] else "")
+    rows = "\n".join(f"| {name} | {count:,} |" for name, count in manifest["scenarios"].items())
+    physics = "\n".join(f"| {k} | {v} |" for k, v in manifest["physics"].items())
+    text = f"""# Dataset: {title}
+
+{manifest["description"]}
+
+{manifest["frames"]:,} frames in {manifest["episodes"]} episodes (robot drives), {len(manifest["shards"])} shards,
+seed {manifest["seed"]}, {FORMAT} format version {FORMAT_VERSION}. Made by `python -m acoustic_sim generate`;
+rerunning the same command resumes or verifies it.
+
+![example frames: energyscape (dB) with the LiDAR label on top](card.png)
+
+| scenario | frames |
+|---|---|
+{rows}
+
+Sensor physics:
+
+| setting | value |
+|---|---|
+{physics}
+
+Each `shard-*.h5` holds `energyscape` (frame, range, azimuth) float16, `lidar/ranges`,
+`lidar/image` (the label), `pose`, `time`, `episode`, `scenario`, and the axes `range_m`,
+`azimuth_rad`; its attributes hold every config as JSON and one record per episode (scene,
+seed, SNR, temperature). Read it with h5py:
+
+```python
+import h5py
+with h5py.File("{manifest["shards"][0]["file"]}") as f:
+    energyscape, label = f["energyscape"][:10], f["lidar/image"][:10]
+```
+"""
+    (folder / "README.md").write_text(text)

@@ -1,0 +1,121 @@
+"""The simulated sonar: path tracer, recorder and beamformer composed into one sensor.
+
+Sonar.trace       scene + poses -> Arrivals           (paths.PathTracer)
+Sonar.record      Arrivals -> microphone signals      (signals.record)
+Sonar.energyscape signals -> energyscapes             (beamform.energyscape)
+Sonar.simulate    all three on the device, batch by batch, without host round trips
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from scenes import Scene
+
+from .beamform import beamformer, energyscape
+from .config import ProcessingConfig, SonarConfig, TracerConfig
+from .lidar import check_poses
+from .paths import Arrivals, PathTracer
+from .signals import ping_seeds, record
+from .signals import recorder as signals_recorder
+
+
+class Sonar:
+    """Simulated in-air sonar: emitter, microphone array, call, path tracer and processing.
+
+    Args:
+        config: The sensor, e.g. `SonarConfig.ertis()`.
+        tracer: How echoes are searched for (`TracerConfig`: bounces, rays, table size,
+            scattering, edge band); default `TracerConfig()`.
+        device: Warp device.
+        **tracer_settings: TracerConfig fields to change, e.g. `max_bounces=1`, `ray_count=5000`.
+    """
+
+    def __init__(self, config: SonarConfig, tracer: TracerConfig | None = None, *, device=None, **tracer_settings):
+        self.config = config
+        self.tracer = PathTracer(
+            config, dataclasses.replace(tracer or TracerConfig(), **tracer_settings), device=device
+        )
+        self.device = self.tracer.device
+
+    @property
+    def edge_width_m(self) -> float:
+        """The edge band the tracer uses [m] (TracerConfig.edge_width_m resolved for this call)."""
+        return self.tracer.edge_width_m
+
+    def trace(self, scene: Scene, poses: np.ndarray, *, batch: int = 64) -> Arrivals:
+        """Echoes of one ping from each pose; see `PathTracer.trace`."""
+        return self.tracer.trace(scene, poses, batch=batch)
+
+    def record(self, arrivals: Arrivals, *, pose_count: int | None = None, **options) -> np.ndarray:
+        """Microphone signals (N, mics, samples) of traced pings; see `signals.record` for options."""
+        return record(arrivals, self.config, pose_count=pose_count, device=self.device, **options)
+
+    def energyscape(self, signals: np.ndarray, processing: ProcessingConfig | None = None, **settings) -> np.ndarray:
+        """Energyscapes (N, R, A) of signals recorded with this sonar; see `beamform.energyscape`."""
+        return energyscape(signals, self.config, processing, device=self.device, **settings)
+
+    def simulate(
+        self,
+        scene: Scene,
+        poses: np.ndarray,
+        *,
+        noise: str = "none",
+        snr_db: float = 40.0,
+        seed: int = 0,
+        absorption: bool = True,
+        batch: int | None = None,
+        keep_signals: bool = False,
+        progress: bool = False,
+        processing: ProcessingConfig | None = None,
+        assumed_array: SonarConfig | None = None,
+    ) -> SonarFrames:
+        """Trace, record and beamform every pose on the device, batch by batch (the fast path).
+
+        The same as `energyscape(record(trace(scene, poses)))` but without the host round trips.
+
+        Args:
+            scene, poses: As for `trace`.
+            noise, snr_db, seed, absorption: As for `signals.record`; ping i's noise comes
+                from (seed, i).
+            batch: Pings at once (default 256 on a GPU, 8 on the CPU).
+            keep_signals: Also return the microphone signals (N, mics, samples).
+            progress: Show a progress bar.
+            processing: The beamformer's settings (`ProcessingConfig`); default the eRTIS's.
+            assumed_array: The array geometry and call the beamformer assumes, if not the
+                simulated one (e.g. the nominal array while simulating a mismatched one).
+        """
+        poses = check_poses(poses)
+        batch = batch or (256 if self.device.is_cuda else 8)
+        recorder = signals_recorder(self.config, absorption, str(self.device))
+        former = beamformer(
+            assumed_array or self.config, samples=self.config.record_samples, processing=processing, device=self.device
+        )
+        images = np.empty((len(poses), *former.output_shape), dtype=np.float32)
+        kept = None
+        if keep_signals:
+            kept = np.empty((len(poses), self.config.microphone_count, self.config.record_samples), np.float32)
+        bar = tqdm(total=len(poses), unit="ping", disable=not progress, desc="sonar")
+        for index, keep, echoes in self.tracer.traced(scene, poses, batch):
+            # Rows left out (to be traced again) are recorded too, at no extra launch, and dropped.
+            seeds = ping_seeds(seed, index)
+            signals = recorder(echoes.buffers(), len(index), noise=noise, snr_db=snr_db, seeds=seeds)
+            out = former(signals)
+            images[index[keep]] = out.numpy().reshape(len(index), *former.output_shape)[keep]
+            if kept is not None:
+                kept[index[keep]] = signals.numpy()[keep]
+            bar.update(int(keep.sum()))
+        bar.close()
+        return SonarFrames(energyscape=images, signals=kept)
+
+
+@dataclass
+class SonarFrames:
+    """Output of `Sonar.simulate`: energyscapes (N, R, A) and, if kept, signals (N, mics, samples)."""
+
+    energyscape: np.ndarray
+    signals: np.ndarray | None = None

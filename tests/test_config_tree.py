@@ -1,0 +1,126 @@
+"""The configuration tree: `section.field=value` settings, their refusals, and that the configs a
+run used are the ones its shards and manifest record (one pipeline, no hand-written copies)."""
+
+import dataclasses
+import json
+
+import h5py
+import numpy as np
+import pytest
+
+from acoustic_sim.beamform import energyscape
+from acoustic_sim.config import (
+    MAX_BOUNCES,
+    ConfigError,
+    LidarConfig,
+    PolarGrid,
+    ProcessingConfig,
+    SimConfig,
+    SonarConfig,
+    TracerConfig,
+)
+from acoustic_sim.kernels import paths as path_kernels
+from acoustic_sim.settings import apply_settings
+from acoustic_sim.suites import SUITES, Physics, rig
+
+
+def test_settings_reach_every_level_of_the_tree():
+    got = apply_settings(
+        SimConfig(),
+        [
+            "tracer.max_bounces=1",
+            "tracer.scattering=false",
+            "tracer.edge_width_m=none",
+            "processing.grid.range_max_m=4",
+            "processing.lowpass_hz=None",
+            "processing.normalise=db",
+            "processing.elevation_deg=[0, 10]",
+            "sonar.atmosphere.temperature_c=30",
+            "lidar.noise=gaussian",
+            "lidar.noise_m=0.02",
+        ],
+    )
+    assert got.tracer == TracerConfig(max_bounces=1, scattering=False)
+    assert got.processing.grid.range_max_m == 4.0 and got.processing.grid.range_count == 190
+    assert got.processing.lowpass_hz is None and got.processing.normalise == "db"
+    assert got.processing.elevation_deg == (0.0, 10.0)
+    assert got.sonar.atmosphere.temperature_c == 30.0 and got.sonar.microphones_m == SonarConfig.ertis().microphones_m
+    assert (got.lidar.noise, got.lidar.noise_m) == ("gaussian", 0.02)
+    assert apply_settings(SimConfig(), ["lidar=multibeam_64x1024"]).lidar == LidarConfig.multibeam_64x1024()
+    assert apply_settings(SimConfig(), []) == SimConfig()
+
+
+@pytest.mark.parametrize(
+    ("setting", "message"),
+    [
+        ("tracer.max_bounces=11", "0..10"),
+        ("tracer.max_bounces=1.5", "not a valid"),
+        ("tracer.table_size=1000", "power of two"),
+        ("tracer.ray_count=0", "ray_count"),
+        ("tracer.rays=5", "has no field 'rays'"),
+        ("processing.normalise=log", "not a valid"),
+        ("processing.speed_of_sound=nan", "finite"),
+        ("processing.grid.range_max_m=0.1", "range_min_m < range_max_m"),
+        ("processing.grid=1", "preset"),
+        ("lidar=velodyne", "hokuyo_ust20lx, multibeam_64x1024"),
+        ("lidar.noise=pink", "not a valid"),
+        ("tracer.max_bounces.x=1", "a value, not a section"),
+        ("tracer.max_bounces", "section.field=value"),
+        ("=3", "section.field=value"),
+    ],
+)
+def test_bad_settings_are_refused_by_name(setting, message):
+    with pytest.raises(ConfigError, match="--set") as err:
+        apply_settings(SimConfig(), [setting])
+    assert message in str(err.value)
+
+
+def test_limits_come_from_one_place():
+    """The tracer's kernels store MAX_BOUNCES + 1 planes per path, and the suite's physics takes
+    its limits from TracerConfig (a Sonar built by hand and a suite agree)."""
+    assert path_kernels.MAX_ORDER == MAX_BOUNCES + 1
+    Physics(max_bounces=MAX_BOUNCES)
+    for bad in ({"max_bounces": MAX_BOUNCES + 1}, {"ray_count": 0}, {"edge_width_m": -0.1}, {"sonar_noise": "pink"}):
+        with pytest.raises(ValueError):
+            Physics(**bad)
+    assert Physics(max_bounces=2, ray_count=500).tracer() == TracerConfig(max_bounces=2, ray_count=500)
+
+
+def test_edge_band_defaults_to_half_a_wavelength():
+    sonar = SonarConfig.ertis()
+    c, f = sonar.atmosphere.speed_of_sound, 0.5 * (50e3 + 25e3)
+    assert TracerConfig().edge_width_for(sonar) == pytest.approx(0.5 * c / f)
+    assert TracerConfig(edge_width_m=0.0).edge_width_for(sonar) == 0.0
+
+
+def test_processing_config_and_keywords_give_the_same_energyscape(device):
+    rng = np.random.default_rng(0)
+    config = SonarConfig.ertis()
+    signals = rng.normal(0.0, 1.0, (1, config.microphone_count, 2048))
+    grid = PolarGrid(range_max_m=1.5, azimuth_step_deg=5.0)
+    by_config = energyscape(signals, config, ProcessingConfig(grid=grid, lowpass_hz=None), device=device)
+    by_keywords = energyscape(signals, config, grid=grid, lowpass_hz=None, device=device)
+    np.testing.assert_array_equal(by_config, by_keywords)
+    assert by_config.shape == (1, *grid.shape)
+
+
+def test_suite_settings_are_simulated_and_recorded(tmp_path, device):
+    """A suite's settings change what is simulated (here the grid), enter the plan (another folder
+    is another run), and the shard and manifest record the rig as it was simulated."""
+    from acoustic_sim.generate import generate
+
+    base = dataclasses.replace(SUITES["tiny"], episode_frames=2, variants={"": Physics(ray_count=500)})
+    suite = dataclasses.replace(base, settings=("processing.grid.range_max_m=3", "processing.grid.azimuth_step_deg=2"))
+    generate(suite, tmp_path / "d", frames=2, seed=1, device=device, progress=False)
+    shard = next((tmp_path / "d").glob("shard-*.h5"))
+    want = rig(suite.variants[""], suite.settings)
+    with h5py.File(shard) as f:
+        assert f["energyscape"].shape == (2, *want.processing.grid.shape) == (2, 140, 91)
+        np.testing.assert_allclose(f["range_m"][:], want.processing.grid.range_m)
+        recorded = json.loads(f.attrs["config"])["sim"]
+    manifest = json.loads((tmp_path / "d" / "manifest.json").read_text())
+    assert recorded == manifest["sim"] == json.loads(json.dumps(want.to_dict()))
+    assert recorded["tracer"]["ray_count"] == 500
+    with pytest.raises(ConfigError, match="no field"):
+        dataclasses.replace(base, settings=("tracer.rayz=1",))
+    assert "settings" not in base.to_json() and suite.to_json()["settings"] == suite.settings
