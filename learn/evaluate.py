@@ -26,8 +26,9 @@ import torch
 
 from .checkpoint import load_checkpoint
 from .data import DataConfig, Frames, Windows, load_frames
-from .metrics import CALIBRATION_THRESHOLDS, EXTRA_TOLERANCES_M, image_metrics, scan_f1_sweep, tolerance_suffix
+from .metrics import image_metrics
 from .models import predict_image
+from .scan import CALIBRATION_THRESHOLDS, EXTRA_TOLERANCES_M, scan_f1_sweep, tolerance_suffix
 
 ECHO_PEAK_LEVEL = 0.75  # normalised input (40 dB floor): within 10 dB of the frame's peak
 BASELINE_THRESHOLD = 0.5  # baselines predict 0/1 images: any threshold in (0, 1] reads them alike

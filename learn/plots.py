@@ -81,10 +81,10 @@ def plot_curves(
 
 
 def _first_return(image: np.ndarray, range_m: np.ndarray, threshold: float) -> np.ndarray:
-    """The scan the metrics read (`learn.metrics.first_return_ranges`) of one (R, A) image: (A,) [m], inf = none."""
+    """The scan the metrics read (`learn.scan.first_return_ranges`) of one (R, A) image: (A,) [m], inf = none."""
     import torch
 
-    from .metrics import first_return_ranges
+    from .scan import first_return_ranges
 
     return first_return_ranges(torch.as_tensor(np.asarray(image))[None], range_m, threshold=threshold)[0].numpy()
 

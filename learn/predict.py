@@ -19,7 +19,7 @@ import torch
 from .checkpoint import load_checkpoint
 from .data import DataConfig, Frames, Windows, load_frames
 from .evaluate import check_grid, model_predictor, return_threshold
-from .metrics import first_return_ranges
+from .scan import first_return_ranges
 
 
 def _frames_from_array(path: Path, ckpt: dict) -> Frames:

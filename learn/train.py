@@ -8,7 +8,7 @@ and writes). Mixed precision (bfloat16 autocast) on GPUs. `--folds k` trains k m
 validated on a fold of whole episodes it never saw, and summarises them.
 
 Every epoch the model's return threshold is calibrated on the validation windows (the one of
-`learn.metrics.CALIBRATION_THRESHOLDS` with the best mean scan F1 at 0.10 m); the metrics of
+`learn.scan.CALIBRATION_THRESHOLDS` with the best mean scan F1 at 0.10 m); the metrics of
 that epoch are read at it, and the checkpoint stores it for evaluate, predict and export.
 """
 
