@@ -58,12 +58,12 @@ class PolarGrid:
     azimuth_min_deg + j * azimuth_step_deg (azimuth 0 ahead, positive to the left).
     """
 
-    range_min_m: float = 0.2
-    range_max_m: float = 5.0
-    range_bin_m: float = 0.02
-    azimuth_min_deg: float = -90.0
-    azimuth_max_deg: float = 90.0
-    azimuth_step_deg: float = 1.0
+    range_min_m: float = 0.2  # [m]
+    range_max_m: float = 5.0  # [m]
+    range_bin_m: float = 0.02  # [m]
+    azimuth_min_deg: float = -90.0  # [deg]
+    azimuth_max_deg: float = 90.0  # [deg]
+    azimuth_step_deg: float = 1.0  # [deg]
 
     def __post_init__(self) -> None:
         check_finite(self)
@@ -106,18 +106,18 @@ class LidarConfig:
     than `range_max_m` are misses (inf).
     """
 
-    azimuth_min_deg: float
-    azimuth_max_deg: float
-    azimuth_count: int
-    elevation_min_deg: float = 0.0
-    elevation_max_deg: float = 0.0
-    elevation_count: int = 1
-    range_min_m: float
-    range_max_m: float
-    rate_hz: float
+    azimuth_min_deg: float  # first beam [deg]
+    azimuth_max_deg: float  # last beam [deg]
+    azimuth_count: int  # beams per elevation
+    elevation_min_deg: float = 0.0  # [deg]
+    elevation_max_deg: float = 0.0  # [deg]
+    elevation_count: int = 1  # beams per azimuth (1: a planar scan)
+    range_min_m: float  # [m]
+    range_max_m: float  # [m]
+    rate_hz: float  # scans per second [Hz]
     noise: NoiseKind = "none"  # "gaussian" (std noise_m) or "uniform" (+-noise_m, as in the paper)
-    noise_m: float = 0.0
-    dropout_probability: float = 0.0
+    noise_m: float = 0.0  # [m]
+    dropout_probability: float = 0.0  # share of beams that return nothing, 0..1
 
     def __post_init__(self) -> None:
         check_finite(self)
@@ -200,12 +200,12 @@ class LidarConfig:
 class ChirpConfig:
     """The emitted call: an FM sweep with Hann tapers (see `air.chirp`)."""
 
-    start_frequency_hz: float = 50e3
-    stop_frequency_hz: float = 25e3
-    duration_s: float = 2.5e-3
-    sample_rate_hz: float = 450e3
-    sweep: Literal["hyperbolic", "linear"] = "hyperbolic"
-    taper_fraction: float = 0.1
+    start_frequency_hz: float = 50e3  # [Hz]
+    stop_frequency_hz: float = 25e3  # [Hz]
+    duration_s: float = 2.5e-3  # [s]
+    sample_rate_hz: float = 450e3  # of the microphones too [Hz]
+    sweep: Literal["hyperbolic", "linear"] = "hyperbolic"  # hyperbolic: linear in period
+    taper_fraction: float = 0.1  # share of the call in the Hann taper at each end, 0..0.5
 
     def __post_init__(self) -> None:
         check_finite(self)
@@ -236,9 +236,9 @@ class ChirpConfig:
 class AtmosphereConfig:
     """Air the sound travels through: sets the speed of sound and ISO 9613-1 absorption."""
 
-    temperature_c: float = 20.0
-    relative_humidity: float = 50.0
-    pressure_kpa: float = 101.325
+    temperature_c: float = 20.0  # [deg C]
+    relative_humidity: float = 50.0  # [%]
+    pressure_kpa: float = 101.325  # [kPa]
 
     def __post_init__(self) -> None:
         check_finite(self)
@@ -263,13 +263,13 @@ class SonarConfig:
 
     chirp: ChirpConfig = dataclasses.field(default_factory=ChirpConfig)
     atmosphere: AtmosphereConfig = dataclasses.field(default_factory=AtmosphereConfig)
-    microphones_m: tuple[tuple[float, float, float], ...] = ()
-    emitter_m: tuple[float, float, float] = (0.0, 0.0, 0.05)
-    emitter_radius_m: float = 0.005  # baffled piston model of the emitter's directivity
-    record_samples: int = 16384
+    microphones_m: tuple[tuple[float, float, float], ...] = ()  # [m], sensor frame
+    emitter_m: tuple[float, float, float] = (0.0, 0.0, 0.05)  # [m], sensor frame
+    emitter_radius_m: float = 0.005  # baffled piston model of the emitter's directivity [m]
+    record_samples: int = 16384  # samples per microphone and ping, at the call's sample rate
     # Channel mismatch of a real array (empty: ideal): linear gain and extra delay per microphone.
-    microphone_gain: tuple[float, ...] = ()
-    microphone_delay_s: tuple[float, ...] = ()
+    microphone_gain: tuple[float, ...] = ()  # linear, one per microphone
+    microphone_delay_s: tuple[float, ...] = ()  # extra delay per microphone [s]
 
     def __post_init__(self) -> None:
         check_finite(self)
