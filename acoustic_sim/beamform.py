@@ -136,7 +136,7 @@ class Beamformer:
                 inputs=[signals, samples, self._taps, wp.float64(self._cycles_per_output), self.decimation],
                 outputs=[spectra],
             )
-            wp.launch_tiled(self._fft, dim=[pings * mics], inputs=[spectra], block_dim=block)
+            wp.launch_tiled(self._fft, dim=[pings * mics], outputs=[spectra], block_dim=block)  # in place
             beams = wp.zeros((pings * self._looks, self.size), dtype=wp.vec2f)
             wp.launch(
                 self._beamform,
@@ -245,7 +245,8 @@ def energyscape(
     device = wp.get_device(device)
     former = beamformer(config, samples=signals.shape[2], processing=processing, call=call, device=device)
     out = np.empty((len(signals), *former.output_shape), dtype=np.float32)
-    for start in range(0, len(signals), batch):
-        chunk = wp.array(np.ascontiguousarray(signals[start : start + batch], dtype=np.float32), device=device)
-        out[start : start + len(chunk)] = former(chunk).numpy().reshape(len(chunk), *former.output_shape)
+    with wp.ScopedDevice(device):
+        for start in range(0, len(signals), batch):
+            chunk = wp.array(np.ascontiguousarray(signals[start : start + batch], dtype=np.float32))
+            out[start : start + len(chunk)] = former(chunk).numpy().reshape(len(chunk), *former.output_shape)
     return out

@@ -23,6 +23,8 @@ from .air import chirp, speed_of_sound
 
 NoiseKind = Literal["none", "gaussian", "uniform"]
 NOISE_KINDS: tuple[str, ...] = typing.get_args(NoiseKind)
+NOISE_CODES: dict[str, int] = {"none": 0, "gaussian": 1, "uniform": 2}
+"""Noise kind -> the integer code the kernels take (kernels.common.NOISE_NONE, ...; a test checks they agree)."""
 Normalise = Literal[None, "max", "db"]
 NORMALISE: tuple[str | None, ...] = typing.get_args(Normalise)
 MAX_BOUNCES = 10

@@ -11,9 +11,14 @@ import warp as wp
 
 from scenes import Scene
 
-from .config import NOISE_KINDS, LidarConfig, PolarGrid
+from .config import NOISE_CODES, LidarConfig, PolarGrid
 from .kernels import lidar as kernels
 from .scene import warn_if_far, warp_scene
+
+# A Lidar's k-th call draws its noise from seed (Lidar seed * SEED_STRIDE + k) mod SEED_MODULUS:
+# a prime stride keeps the sequences of nearby Lidar seeds apart; the modulus keeps seeds in int32.
+SEED_STRIDE = 1_000_003
+SEED_MODULUS = 2**31 - 1
 
 
 def check_poses(poses: np.ndarray) -> np.ndarray:
@@ -119,7 +124,7 @@ class Lidar:
         """
         poses = check_poses(poses)
         if seed is None:
-            seed = (self.seed * 1_000_003 + self._calls) % (2**31 - 1)
+            seed = (self.seed * SEED_STRIDE + self._calls) % SEED_MODULUS
             self._calls += 1
         ws = warp_scene(scene, self.device)
         staging, pose_buf, error_buf, behind_buf, range_out, face_out = self._buffers_for(len(poses))
@@ -140,7 +145,7 @@ class Lidar:
             launch(
                 kernels.lidar_noise,
                 dim=len(range_out),
-                inputs=[cfg.range_min_m, NOISE_KINDS.index(cfg.noise), cfg.noise_m, cfg.dropout_probability, int(seed)],
+                inputs=[cfg.range_min_m, NOISE_CODES[cfg.noise], cfg.noise_m, cfg.dropout_probability, int(seed)],
                 outputs=[range_out, face_out],
             )
         check_pose_results(error_buf.numpy(), behind_buf.numpy())  # waits for the launches above

@@ -183,7 +183,7 @@ class PathTracer:
             arrival_dir = wp.empty((n, size), dtype=wp.vec3)
             last_point = wp.empty((n, size), dtype=wp.vec3)
             image_table = wp.zeros((n, size), dtype=wp.uint64)
-            image_rank = wp.full((n, size), 2**31 - 1, dtype=wp.int32)
+            image_rank = wp.full((n, size), kernels.RANK_NONE, dtype=wp.int32)
             tracer = self.config
             capacity = tracer.ray_count * (tracer.max_bounces + 1) if tracer.scattering else 0
             scattered = _ScatteredEchoes(
@@ -217,10 +217,10 @@ class PathTracer:
             ],
             outputs=[
                 key,
+                scattered.count,
                 order,
                 planes,
                 overflow,
-                scattered.count,
                 scattered.source,
                 scattered.extra_length,
                 scattered.amplitude,
@@ -247,7 +247,12 @@ class PathTracer:
             ],
             outputs=[amplitude, image, arrival_dir, last_point, ray_queries],
         )
-        launch(kernels.claim_images, dim=(n, size), inputs=[amplitude, order, image, key, image_table, image_rank])
+        launch(
+            kernels.claim_images,
+            dim=(n, size),
+            inputs=[amplitude, order, image, key],
+            outputs=[image_table, image_rank],
+        )
         launch(
             kernels.drop_duplicate_images,
             dim=(n, size),

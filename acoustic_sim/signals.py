@@ -10,13 +10,16 @@ import numpy as np
 import warp as wp
 
 from .air import air_absorption_db_per_m
-from .config import NOISE_KINDS
+from .config import NOISE_CODES, NOISE_KINDS
 from .kernels import signals as kernels
 
 # Fractional-delay filter of a recorded echo: taps, and steps of the sample fraction between
 # the rows of its table.
 DELAY_TAPS = 8
 FRACTION_STEPS = 32
+# Smallest FFT of an absorption node [samples]: kernels.NODE_BLOCKS blocks of 1,024 samples (larger
+# for calls longer than half of it).
+NODE_FFT_MIN_SIZE = 4096
 
 
 def fractional_delay_table(config) -> np.ndarray:
@@ -98,11 +101,11 @@ class Recorder:
         chirp_cfg, atm = config.chirp, config.atmosphere
         fs, c = chirp_cfg.sample_rate_hz, atm.speed_of_sound
         call = config.chirp.samples()
-        size = 4096
+        size = NODE_FFT_MIN_SIZE
         while size // 2 < len(call) - 1:
             size *= 2
         self._size = size
-        self.block = size // 4
+        self.block = size // kernels.NODE_BLOCKS
         self.nodes = -(-config.record_samples // self.block) + 1
         freqs = np.abs(np.fft.fftfreq(size, 1.0 / fs))
         centre_hz = 0.5 * (chirp_cfg.start_frequency_hz + chirp_cfg.stop_frequency_hz)
@@ -183,7 +186,7 @@ class Recorder:
                 wp.launch(
                     kernels.add_noise,
                     dim=signals.shape,
-                    inputs=[peak, wp.array(seeds, dtype=wp.int32), 10.0 ** (-snr_db / 20.0), int(noise == "uniform")],
+                    inputs=[peak, wp.array(seeds, dtype=wp.int32), 10.0 ** (-snr_db / 20.0), NOISE_CODES[noise]],
                     outputs=[signals],
                 )
         return signals

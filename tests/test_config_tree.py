@@ -11,6 +11,8 @@ import pytest
 from acoustic_sim.beamform import energyscape
 from acoustic_sim.config import (
     MAX_BOUNCES,
+    NOISE_CODES,
+    NOISE_KINDS,
     ConfigError,
     LidarConfig,
     PolarGrid,
@@ -19,6 +21,7 @@ from acoustic_sim.config import (
     SonarConfig,
     TracerConfig,
 )
+from acoustic_sim.kernels import common as common_kernels
 from acoustic_sim.kernels import paths as path_kernels
 from acoustic_sim.settings import apply_settings
 from acoustic_sim.suites import SUITES, Physics, rig
@@ -84,6 +87,13 @@ def test_limits_come_from_one_place():
         with pytest.raises(ValueError):
             Physics(**bad)
     assert Physics(max_bounces=2, ray_count=500).tracer() == TracerConfig(max_bounces=2, ray_count=500)
+
+
+def test_noise_kinds_have_the_kernels_codes():
+    """Every noise kind the configs accept maps to the code the kernels compare with."""
+    assert set(NOISE_CODES) == set(NOISE_KINDS)
+    for kind, code in NOISE_CODES.items():
+        assert getattr(common_kernels, f"NOISE_{kind.upper()}") == code
 
 
 def test_edge_band_defaults_to_half_a_wavelength():

@@ -4,10 +4,11 @@ import functools
 
 import warp as wp
 
+from .common import complex_mul
 
-@wp.func
-def complex_mul(a: wp.vec2f, b: wp.vec2f) -> wp.vec2f:
-    return wp.vec2f(a[0] * b[0] - a[1] * b[1], a[0] * b[1] + a[1] * b[0])
+# Floor under the peak an image is divided by, and under a value before its logarithm: no 0 / 0
+# and no log(0) for an empty image (far below any float32 energy that matters; 10^-30 = -600 dB).
+NONZERO_FLOOR = wp.constant(1.0e-30)
 
 
 @wp.kernel(enable_backward=False)
@@ -47,11 +48,14 @@ def forward_fft(size: int):
     """Tiled in-place FFT of the rows of a (rows, size) vec2f array; launch_tiled(dim=[rows])."""
 
     @wp.kernel(enable_backward=False, module="unique")
-    def fft_rows(rows: wp.array2d[wp.vec2f]):
+    def fft_rows(
+        # in-out: each row is replaced by its FFT
+        rows_inout: wp.array2d[wp.vec2f],
+    ):
         i = wp.tid()
-        t = wp.tile_load(rows, shape=(1, size), offset=(i, 0))
+        t = wp.tile_load(rows_inout, shape=(1, size), offset=(i, 0))
         wp.tile_fft(t)
-        wp.tile_store(rows, t, offset=(i, 0))
+        wp.tile_store(rows_inout, t, offset=(i, 0))
 
     return fft_rows
 
@@ -66,7 +70,12 @@ def inverse_fft_magnitude(size: int):
         return wp.length(z)
 
     @wp.kernel(enable_backward=False, module="unique")
-    def ifft_rows(rows: wp.array2d[wp.vec2f], magnitude_out: wp.array2d[float]):
+    def ifft_rows(
+        # in
+        rows: wp.array2d[wp.vec2f],
+        # out
+        magnitude_out: wp.array2d[float],
+    ):
         i = wp.tid()
         t = wp.tile_load(rows, shape=(1, size), offset=(i, 0))
         wp.tile_ifft(t)
@@ -88,12 +97,14 @@ def delay_and_sum(mics: int):
 
     @wp.kernel(enable_backward=False, module="unique")
     def beamform(
+        # in
         spectra: wp.array2d[wp.vec2f],
         band_bin: wp.array[wp.int32],
         band_hz: wp.array[float],
         matched: wp.array[wp.vec2f],
         delays: wp.array2d[float],
         pings: int,
+        # out
         beams_out: wp.array2d[wp.vec2f],
     ):
         look, f = wp.tid()
@@ -159,17 +170,31 @@ def envelope_on_grid(
 
 
 @wp.kernel(enable_backward=False)
-def image_peak(images: wp.array3d[float], per_ping: int, peak_out: wp.array[float]):
+def image_peak(
+    # in
+    images: wp.array3d[float],
+    per_ping: int,
+    # out
+    peak_out: wp.array[float],
+):
     """peak_out[p] = max of images[p * per_ping .. (p + 1) * per_ping) (peak_out zeroed first)."""
     i, r, a = wp.tid()
     wp.atomic_max(peak_out, i // per_ping, images[i, r, a])
 
 
 @wp.kernel(enable_backward=False)
-def scale_images(peak: wp.array[float], per_ping: int, decibels: int, floor_db: float, images: wp.array3d[float]):
+def scale_images(
+    # in
+    peak: wp.array[float],
+    per_ping: int,
+    decibels: int,
+    floor_db: float,
+    # in-out: the images, scaled in place
+    images_inout: wp.array3d[float],
+):
     """Divide each ping's images by its peak; with `decibels`, 20 log10 of that, at least floor_db."""
     i, r, a = wp.tid()
-    value = images[i, r, a] / wp.max(peak[i // per_ping], 1.0e-30)
+    value = images_inout[i, r, a] / wp.max(peak[i // per_ping], NONZERO_FLOOR)
     if decibels != 0:
-        value = wp.max(20.0 * wp.log10(wp.max(value, 1.0e-30)), floor_db)
-    images[i, r, a] = value
+        value = wp.max(20.0 * wp.log10(wp.max(value, NONZERO_FLOOR)), floor_db)
+    images_inout[i, r, a] = value

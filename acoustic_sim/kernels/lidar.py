@@ -2,15 +2,12 @@
 
 import warp as wp
 
+from .common import FAR_RAY_M, NOISE_GAUSSIAN, NOISE_UNIFORM
+
 # Most see-through layers a beam passes before it is treated as a miss (glass panes have 2 faces).
-MAX_TRANSPARENT_FACES = 8
+MAX_TRANSPARENT_FACES = wp.constant(8)
 # Step past a see-through face [m]; small against the 1e-4 m range accuracy we test for.
-TRANSPARENT_STEP = 1.0e-5
-
-NOISE_NONE = 0
-NOISE_GAUSSIAN = 1
-NOISE_UNIFORM = 2
-
+TRANSPARENT_STEP = wp.constant(1.0e-5)
 
 # Largest deviation from a rigid transform that a pose may have (float32 round-off is ~1e-7).
 POSE_TOLERANCE = 1.0e-4
@@ -40,7 +37,7 @@ def pose_error(
         for side in range(2):
             d = wp.vec3(0.0)
             d[axis] = float(2 * side - 1)
-            hit = wp.mesh_query_ray(mesh, origin, d, 1.0e6)
+            hit = wp.mesh_query_ray(mesh, origin, d, FAR_RAY_M)
             if hit.result:
                 if hit.sign < 0.0:
                     back += 1
@@ -124,17 +121,18 @@ def lidar_noise(
     noise_m: float,
     dropout_probability: float,
     seed: int,
-    # in-out
-    range_io: wp.array[float],
-    face_io: wp.array[wp.int32],
+    # in-out: the scan's ranges and faces, changed in place
+    range_inout: wp.array[float],
+    face_inout: wp.array[wp.int32],
 ):
-    """Range noise and dropouts on returns, in place; one thread per flat (pose, beam) index.
+    """Range noise (`noise_kind`: NOISE_NONE, NOISE_GAUSSIAN or NOISE_UNIFORM, of standard deviation
+    or half-width noise_m [m]) and dropouts on returns, in place; one thread per flat (pose, beam) index.
 
     A separate pass: the RNG code in the scan kernel costs it ~13 % even when noise is off.
     Draws come from a counter-based RNG keyed on (seed, index).
     """
     i = wp.tid()
-    r = range_io[i]
+    r = range_inout[i]
     if r == wp.inf:
         return
     rng = wp.rand_init(seed, i)
@@ -145,5 +143,5 @@ def lidar_noise(
     r = wp.max(r, range_min)
     if wp.randf(rng) < dropout_probability:
         r = wp.inf
-        face_io[i] = -1
-    range_io[i] = r
+        face_inout[i] = -1
+    range_inout[i] = r

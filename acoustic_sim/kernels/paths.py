@@ -2,14 +2,21 @@
 
 import warp as wp
 
-MAX_ORDER = 11  # reflections per path: max_bounces <= 10 secondary bounces after the first
+from .common import FAR_RAY_M
+
+MAX_ORDER = wp.constant(11)  # reflections per path: max_bounces <= 10 secondary bounces after the first
 SequenceVec = wp.types.vector(length=MAX_ORDER, dtype=wp.int32)
-TABLE_PROBES = 32  # linear probes before an insertion into a pose's sequence table gives up
+TABLE_PROBES = wp.constant(32)  # linear probes before an insertion into a pose's sequence table gives up
 HASH_SEED = wp.constant(wp.uint64(14695981039346656037))  # FNV-1a 64-bit offset basis
 HASH_PRIME = wp.constant(wp.uint64(1099511628211))
-SURFACE_STEP = 1.0e-4  # [m] step off a surface before the next query
-PLANE_MATCH = 2.0e-3  # [m] how far a validation hit may lie from the image-source reflection point
-EDGE_PROBE = 1.0e-3  # [m] probe distance that checks an edge point lies on a face of a plane
+SURFACE_STEP = wp.constant(1.0e-4)  # [m] step off a surface before the next query
+PLANE_MATCH = wp.constant(2.0e-3)  # [m] how far a validation hit may lie from the image-source reflection point
+EDGE_PROBE = wp.constant(1.0e-3)  # [m] probe distance that checks an edge point lies on a face of a plane
+PARALLEL_LEG = wp.constant(1.0e-12)  # [m] |normal . leg| below which a leg runs along its plane: no reflection
+LEG_SLACK = wp.constant(1.0e-6)  # [fraction of the leg] how far before a leg's start its reflection may lie
+BAFFLE_SLACK = wp.constant(1.0e-6)  # [cosine] how far behind the emitter's baffle a path may leave it
+RANK_SHIFT = wp.constant(wp.uint64(33))  # [bits] a sequence's rank is its hash >> 33: 31 bits, an int32 >= 0
+RANK_NONE = 2**31 - 1  # image rank of an unclaimed slot, where the host starts them (int32 max: no rank is higher)
 
 
 @wp.func
@@ -31,15 +38,15 @@ def scattered_hit(
     order: int,
     p: int,
     capacity: int,
-    scatter_count: wp.array[wp.int32],
+    count_inout: wp.array[wp.int32],
     source_out: wp.array2d[wp.vec3],
     extra_out: wp.array2d[float],
     amplitude_out: wp.array2d[float],
     order_out: wp.array2d[wp.int32],
 ) -> int:
     """Diffuse rain: the Lambert-scattered share of a hit that reaches the receiver unoccluded,
-    appended to the ping's echoes (hit point in the sensor frame, path before it, amplitude).
-    Returns the number of ray queries made (0 or 1)."""
+    appended to the ping's echoes (hit point in the sensor frame, path before it, amplitude) at
+    slot count_inout[p], which it increments. Returns the number of ray queries made (0 or 1)."""
     if energy <= 0.0:
         return 0
     front = -normal * wp.sign(wp.dot(incoming, normal))  # normal on the side the ray came from
@@ -53,7 +60,7 @@ def scattered_hit(
     q = wp.mesh_query_ray(mesh, start, wp.normalize(receiver - start), wp.length(receiver - start))
     if q.result:
         return 1
-    slot = wp.atomic_add(scatter_count, p, 1)
+    slot = wp.atomic_add(count_inout, p, 1)
     if slot < capacity:
         source_out[p, slot] = wp.transform_point(inverse, hit)
         extra_out[p, slot] = travelled
@@ -92,12 +99,14 @@ def discover_sequences(
     edge_width: float,
     ray_energy: wp.array[float],
     scatter: int,
+    # in-out: a pose's sequence table (keys, 0 = empty slot) and count of scattered arrivals,
+    # read and claimed by atomics; both start at zero
+    table_key_inout: wp.array2d[wp.uint64],
+    scatter_count_inout: wp.array[wp.int32],
     # out
-    table_key: wp.array2d[wp.uint64],
-    table_order: wp.array2d[wp.int32],
-    table_planes: wp.array3d[wp.int32],
+    table_order_out: wp.array2d[wp.int32],
+    table_planes_out: wp.array3d[wp.int32],
     overflow_out: wp.array[wp.int32],
-    scatter_count: wp.array[wp.int32],
     scatter_source_out: wp.array2d[wp.vec3],
     scatter_extra_out: wp.array2d[float],
     scatter_amplitude_out: wp.array2d[float],
@@ -107,7 +116,8 @@ def discover_sequences(
     """One thread per (pose, ray); launch with dim=pose_count * ray_count.
 
     Follows the ray's specular bounces and records every prefix of its plane sequence (orders
-    1..max_order) once per pose in an open-addressing hash table keyed by the sequence hash.
+    1..max_order) once per pose in an open-addressing hash table keyed by the sequence hash;
+    insertions that find no free slot within TABLE_PROBES are counted in `overflow_out[pose]`.
     Rays leave the emitter (sensor frame position `emitter`) along `ray_dirs` (sensor frame),
     each carrying `ray_energy` (squared pressure at 1 m times its solid angle).
 
@@ -124,7 +134,7 @@ def discover_sequences(
     pose = poses[p]
     origin = wp.transform_point(pose, emitter)
     direction = wp.normalize(wp.transform_vector(pose, ray_dirs[r]))
-    mask = table_key.shape[1] - 1
+    mask = table_key_inout.shape[1] - 1
     planes = SequenceVec()
     key = HASH_SEED
     receiver = wp.transform_point(pose, wp.vec3(0.0))
@@ -134,7 +144,7 @@ def discover_sequences(
     inverse = inverse_poses[p]
     queries = int(0)
     for k in range(max_order):
-        q = wp.mesh_query_ray(mesh, origin, direction, 1.0e6)
+        q = wp.mesh_query_ray(mesh, origin, direction, FAR_RAY_M)
         queries += 1
         if not q.result:
             break
@@ -155,7 +165,7 @@ def discover_sequences(
                 k + 1,
                 p,
                 capacity,
-                scatter_count,
+                scatter_count_inout,
                 scatter_source_out,
                 scatter_extra_out,
                 scatter_amplitude_out,
@@ -168,11 +178,11 @@ def discover_sequences(
         slot = int(key & wp.uint64(mask))
         stored = int(0)
         for _probe in range(TABLE_PROBES):
-            old = wp.atomic_cas(table_key, p, slot, wp.uint64(0), key)
+            old = wp.atomic_cas(table_key_inout, p, slot, wp.uint64(0), key)
             if old == wp.uint64(0):
-                table_order[p, slot] = k + 1
+                table_order_out[p, slot] = k + 1
                 for j in range(k + 1):
-                    table_planes[p, slot, j] = planes[j]
+                    table_planes_out[p, slot, j] = planes[j]
                 stored = 1
                 break
             if old == key:
@@ -276,11 +286,11 @@ def validate_sequences(
         normal = plane_normal[plane]
         leg = target - x
         denom = wp.dot(normal, leg)
-        if wp.abs(denom) < 1.0e-12:
+        if wp.abs(denom) < PARALLEL_LEG:
             valid = 0
             break
         t = (plane_offset[plane] - wp.dot(normal, x)) / denom
-        if t < -1.0e-6 or t >= 1.0:
+        if t < -LEG_SLACK or t >= 1.0:
             valid = 0
             break
         point = x + leg * wp.max(t, 0.0)
@@ -326,7 +336,7 @@ def validate_sequences(
         q = wp.mesh_query_ray(mesh, x + direction * SURFACE_STEP, direction, distance - 2.0 * SURFACE_STEP)
         queries += 1
         # The emitter is baffled in the sensor's y-z plane: nothing leaves it backwards.
-        if not q.result and emit[0] >= -1.0e-6:
+        if not q.result and emit[0] >= -BAFFLE_SLACK:
             amplitude_out[p, s] = gain * lookup(directivity, emit[0]) / wp.length(image - receiver)
             image_out[p, s] = wp.transform_point(inverse, image)
             arrival_dir_out[p, s] = wp.normalize(wp.transform_vector(inverse, arrival))
@@ -334,7 +344,7 @@ def validate_sequences(
     wp.atomic_add(ray_queries_out, p, queries)
 
 
-IMAGE_GRID = 1.0e-4  # [m] image sources closer than this are one echo
+IMAGE_GRID = wp.constant(1.0e-4)  # [m] image sources closer than this are one echo
 
 
 @wp.func
@@ -367,19 +377,23 @@ def image_slot(image_table: wp.array2d[wp.uint64], p: int, key: wp.uint64, inser
 
 @wp.func
 def sequence_rank(key: wp.uint64) -> int:
-    return int(key >> wp.uint64(33))
+    return int(key >> RANK_SHIFT)
 
 
 @wp.kernel(enable_backward=False)
 def claim_images(
+    # in
     amplitude: wp.array2d[float],
     table_order: wp.array2d[wp.int32],
     image: wp.array2d[wp.vec3],
     table_key: wp.array2d[wp.uint64],
-    image_table: wp.array2d[wp.uint64],
-    image_rank: wp.array2d[wp.int32],
+    # in-out: a ping's image table (keys, 0 = empty slot, claimed by atomics), starts at zero
+    image_table_inout: wp.array2d[wp.uint64],
+    # out
+    image_rank_out: wp.array2d[wp.int32],
 ):
-    """Valid paths register their image source (rounded) per ping; the lowest sequence rank wins.
+    """Valid paths register their image source (rounded) per ping; the lowest sequence rank wins
+    (an atomic min into `image_rank_out`, which starts at RANK_NONE). dim = (pings, table size).
 
     Two orders of reflection in perpendicular planes give the same image source; where both
     validate, the path runs into the edge between the planes and is one echo, not two.
@@ -387,24 +401,27 @@ def claim_images(
     p, s = wp.tid()
     if amplitude[p, s] == 0.0:
         return
-    slot = image_slot(image_table, p, image_key(table_order[p, s], image[p, s]), 1)
+    slot = image_slot(image_table_inout, p, image_key(table_order[p, s], image[p, s]), 1)
     if slot >= 0:
-        wp.atomic_min(image_rank, p, slot, sequence_rank(table_key[p, s]))
+        wp.atomic_min(image_rank_out, p, slot, sequence_rank(table_key[p, s]))
 
 
 @wp.kernel(enable_backward=False)
 def drop_duplicate_images(
+    # in
     table_order: wp.array2d[wp.int32],
     image: wp.array2d[wp.vec3],
     table_key: wp.array2d[wp.uint64],
     image_table: wp.array2d[wp.uint64],
     image_rank: wp.array2d[wp.int32],
-    amplitude: wp.array2d[float],
+    # in-out: the paths' amplitudes, set to 0 where a path is dropped
+    amplitude_inout: wp.array2d[float],
 ):
-    """Silence every path whose image source another path with a lower rank claimed."""
+    """Silence every path whose image source another path with a lower rank claimed;
+    dim = (pings, table size)."""
     p, s = wp.tid()
-    if amplitude[p, s] == 0.0:
+    if amplitude_inout[p, s] == 0.0:
         return
     slot = image_slot(image_table, p, image_key(table_order[p, s], image[p, s]), 0)
     if slot >= 0 and image_rank[p, slot] < sequence_rank(table_key[p, s]):
-        amplitude[p, s] = 0.0
+        amplitude_inout[p, s] = 0.0

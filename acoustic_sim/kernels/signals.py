@@ -4,9 +4,14 @@ import functools
 
 import warp as wp
 
+from .common import NOISE_UNIFORM, complex_mul
+
 # Impulses are summed as 64-bit fixed point: integer atomics add in any order to the same bits,
 # so signals are reproducible on the GPU as well. 2^-32 resolution, range +-2^31.
-FIXED_POINT_SCALE = 4294967296.0
+FIXED_POINT_SCALE = wp.constant(4294967296.0)  # 2^32 [fixed-point units per unit amplitude]
+# An absorption node's FFT spans this many blocks (block B = FFT size / NODE_BLOCKS samples): one
+# block before the node, its impulses up to one block either side, and room for the call.
+NODE_BLOCKS = wp.constant(4)
 
 
 @wp.kernel(enable_backward=False)
@@ -59,10 +64,10 @@ def accumulate_echoes(
 def node_convolution(size: int):
     """Tiled kernel: the impulses around each absorption node, convolved with that node's filter.
 
-    Node k sits at sample k B (B = size / 4) and owns the impulses within B of it, weighted by a
-    hat (so each impulse is shared linearly between its two nodes); its filter is the call with
-    the air absorption of the path length at that time. Two microphones share one complex FFT
-    (real and imaginary parts stay apart: the filters are real in time). Launch
+    Node k sits at sample k B (B = size / NODE_BLOCKS) and owns the impulses within B of it,
+    weighted by a hat (so each impulse is shared linearly between its two nodes); its filter is
+    the call with the air absorption of the path length at that time. Two microphones share one
+    complex FFT (real and imaginary parts stay apart: the filters are real in time). Launch
     `wp.launch_tiled(dim=[pings * pairs, nodes])`; the results go to `overlap_nodes`.
     """
 
@@ -70,26 +75,24 @@ def node_convolution(size: int):
     def hat_pair(even: wp.int64, odd: wp.int64, hat: float) -> wp.vec2f:
         return wp.vec2f(float(even) * hat, float(odd) * hat)
 
-    @wp.func
-    def complex_product(a: wp.vec2f, b: wp.vec2f) -> wp.vec2f:
-        return wp.vec2f(a[0] * b[0] - a[1] * b[1], a[0] * b[1] + a[1] * b[0])
-
     @wp.kernel(enable_backward=False, module="unique")
     def convolve(
+        # in
         impulses: wp.array2d[wp.int64],
         hat: wp.array2d[float],
         node_filters: wp.array2d[wp.vec2f],
+        # out
         nodes_out: wp.array2d[wp.vec2f],
     ):
         pair, k = wp.tid()
-        quarter = size // 4
-        even = wp.tile_load(impulses, shape=(1, size), offset=(2 * pair, k * quarter))
-        odd = wp.tile_load(impulses, shape=(1, size), offset=(2 * pair + 1, k * quarter))
+        block = size // NODE_BLOCKS
+        even = wp.tile_load(impulses, shape=(1, size), offset=(2 * pair, k * block))
+        odd = wp.tile_load(impulses, shape=(1, size), offset=(2 * pair + 1, k * block))
         weights = wp.tile_load(hat, shape=(1, size), offset=(0, 0))
         x = wp.tile_map(hat_pair, even, odd, weights)
         wp.tile_fft(x)
         h = wp.tile_load(node_filters, shape=(1, size), offset=(k, 0))
-        y = wp.tile_map(complex_product, x, h)
+        y = wp.tile_map(complex_mul, x, h)
         wp.tile_ifft(y)
         wp.tile_store(nodes_out, y, offset=(pair * node_filters.shape[0] + k, 0))
 
@@ -97,18 +100,27 @@ def node_convolution(size: int):
 
 
 @wp.kernel(enable_backward=False)
-def overlap_nodes(nodes: wp.array2d[wp.vec2f], node_count: int, block: int, signals_out: wp.array3d[float]):
+def overlap_nodes(
+    # in
+    nodes: wp.array2d[wp.vec2f],
+    node_count: int,
+    block: int,
+    # out
+    signals_out: wp.array3d[float],
+):
     """signals[p, m, n] = sum of the node outputs covering sample n; dim = signals.shape.
 
-    Node k's output starts at sample (k - 1) * block and spans nodes.shape[1] samples; microphone
-    m is the real (even m) or imaginary (odd m) part of pair m // 2.
+    Node k's output starts at sample (k - 1) * block and spans nodes.shape[1] samples
+    (NODE_BLOCKS blocks); microphone m is the real (even m) or imaginary (odd m) part of pair m // 2.
     """
     p, m, n = wp.tid()
     pairs = (signals_out.shape[1] + 1) // 2
     row0 = (p * pairs + m // 2) * node_count
     j = n // block
     total = float(0.0)
-    for k in range(wp.max(j - 3, 0), wp.min(j + 2, node_count)):
+    # Node k covers blocks k - 1 .. k + NODE_BLOCKS - 2, so nodes j - NODE_BLOCKS + 2 .. j + 1
+    # reach block j (the loop starts one node early; the bounds check skips it).
+    for k in range(wp.max(j - (NODE_BLOCKS - 1), 0), wp.min(j + 2, node_count)):
         local = n - (k - 1) * block
         if local >= 0 and local < nodes.shape[1]:
             z = nodes[row0 + k, local]
@@ -117,7 +129,12 @@ def overlap_nodes(nodes: wp.array2d[wp.vec2f], node_count: int, block: int, sign
 
 
 @wp.kernel(enable_backward=False)
-def peak_magnitude(signals: wp.array3d[float], peak_out: wp.array[float]):
+def peak_magnitude(
+    # in
+    signals: wp.array3d[float],
+    # out
+    peak_out: wp.array[float],
+):
     """peak_out[p] = max |signals[p]| (peak_out zeroed first); dim = signals.shape."""
     p, m, n = wp.tid()
     wp.atomic_max(peak_out, p, wp.abs(signals[p, m, n]))
@@ -125,21 +142,24 @@ def peak_magnitude(signals: wp.array3d[float], peak_out: wp.array[float]):
 
 @wp.kernel(enable_backward=False)
 def add_noise(
+    # in
     peak: wp.array[float],
     seeds: wp.array[wp.int32],
     relative_std: float,
-    uniform: int,
-    signals: wp.array3d[float],
+    noise_kind: int,
+    # in-out: the signals the noise is added to
+    signals_inout: wp.array3d[float],
 ):
-    """White noise of standard deviation relative_std * peak[p], Gaussian or uniform; dim = signals.shape.
+    """White noise of standard deviation relative_std * peak[p], uniform for noise_kind
+    NOISE_UNIFORM, else Gaussian; dim = signals.shape.
 
     Each ping draws from its own seed, so a ping's noise does not depend on the batch it is in.
     """
     p, m, n = wp.tid()
-    state = wp.rand_init(seeds[p], m * signals.shape[2] + n)
+    state = wp.rand_init(seeds[p], m * signals_inout.shape[2] + n)
     std = relative_std * peak[p]
-    if uniform != 0:
-        value = std * wp.sqrt(3.0) * wp.randf(state, -1.0, 1.0)
+    if noise_kind == NOISE_UNIFORM:
+        value = std * wp.sqrt(3.0) * wp.randf(state, -1.0, 1.0)  # uniform on [-1, 1] has std 1 / sqrt(3)
     else:
         value = std * wp.randn(state)
-    signals[p, m, n] = signals[p, m, n] + value
+    signals_inout[p, m, n] = signals_inout[p, m, n] + value
