@@ -11,7 +11,6 @@ echo.
 
 from __future__ import annotations
 
-import functools
 import warnings
 from dataclasses import dataclass
 
@@ -86,8 +85,9 @@ def hemisphere_directions(count: int) -> np.ndarray:
 class PathTracer:
     """Scene + poses -> echoes of one sonar's call, on a Warp device, batched over poses.
 
-    Holds only what every trace reuses: the rays' directions and energy shares and the emitter's
-    directivity table. Each `trace` builds (or reuses) the scene's BVH and is otherwise stateless.
+    Holds only what every trace reuses: the rays' directions and energy shares, the emitter's
+    directivity table and the device buffers of a batch (allocated once per batch shape, like the
+    LiDAR's). Each `trace` builds (or reuses) the scene's BVH; no result depends on an earlier one.
 
     Args:
         sonar: Emitter position, directivity, call and air.
@@ -113,6 +113,7 @@ class PathTracer:
             self._ray_energy = wp.array(ray_energy, dtype=float)
             self._ray_dirs = wp.array(directions.astype(np.float32), dtype=wp.vec3)
             self._directivity = wp.array(pattern.astype(np.float32), dtype=float)
+        self._buffers: dict[tuple[int, int], _TraceBuffers] = {}  # (pings, table size) -> buffers
 
     def trace(self, scene: Scene, poses: np.ndarray, *, batch: int = 64) -> Arrivals:
         """Echoes of one ping from each pose, specular and scattered (see the module docstring).
@@ -138,6 +139,8 @@ class PathTracer:
     def traced(self, scene: Scene, poses: np.ndarray, batch: int):
         """Trace checked poses in batches; yields (pose indices, rows to keep, echoes on the device).
 
+        The echoes live in buffers that a later batch reuses: use each before asking for the next.
+
         A ping whose sequence table overflowed would miss echoes, and which ones would depend on
         thread order: its row is left out and the ping traced again with twice the slots (in
         groups that take no more memory than one batch), until it fits. Each ray adds at most
@@ -162,115 +165,156 @@ class PathTracer:
             if keep.any():
                 yield index, keep, echoes
 
+    def _buffers_for(self, n: int, size: int) -> _TraceBuffers:
+        """Device buffers of a batch of `n` pings with tables of `size`, reused across batches.
+
+        Only batches at the configured table size are cached, one shape at a time (a stream of
+        equal batches reuses memory): a batch's echoes live in these buffers until the next batch
+        of its shape is traced. Pings traced again with a larger table (rare) get buffers of their
+        own, so their echoes never share memory with any other batch's."""
+        key = (n, size)
+        if key in self._buffers:
+            return self._buffers[key]
+        tracer = self.config
+        capacity = tracer.ray_count * (tracer.max_bounces + 1) if tracer.scattering else 0
+        with wp.ScopedDevice(self.device):
+            buffers = _TraceBuffers(
+                poses=wp.empty(n, dtype=wp.mat44),
+                inverse_poses=wp.empty(n, dtype=wp.mat44),
+                errors=wp.empty(n, dtype=float),
+                behind=wp.empty(n, dtype=wp.int32),
+                key=wp.empty((n, size), dtype=wp.uint64),
+                planes=wp.empty((n, size, kernels.MAX_ORDER), dtype=wp.int32),
+                overflow=wp.empty(n, dtype=wp.int32),
+                ray_queries=wp.empty(n, dtype=wp.int32),
+                image_table=wp.empty((n, size), dtype=wp.uint64),
+                image_rank=wp.empty((n, size), dtype=wp.int32),
+                specular=_SpecularEchoes(  # source: image sources; order: the sequence table's orders
+                    source=wp.empty((n, size), dtype=wp.vec3),
+                    extra_length=wp.zeros((n, size), dtype=float),  # 0 for image sources; no kernel writes it
+                    amplitude=wp.empty((n, size), dtype=float),
+                    count=wp.full(n, size, dtype=wp.int32),  # every slot counts (amplitude 0: empty)
+                    order=wp.empty((n, size), dtype=wp.int32),
+                    direction=wp.empty((n, size), dtype=wp.vec3),
+                    point=wp.empty((n, size), dtype=wp.vec3),
+                ),
+                scattered=_ScatteredEchoes(
+                    source=wp.empty((n, capacity), dtype=wp.vec3),
+                    extra_length=wp.empty((n, capacity), dtype=float),
+                    amplitude=wp.empty((n, capacity), dtype=float),
+                    count=wp.empty(n, dtype=wp.int32),
+                    order=wp.empty((n, capacity), dtype=wp.int32),
+                ),
+            )
+        if size == tracer.table_size:
+            self._buffers.clear()
+            self._buffers[key] = buffers
+        return buffers
+
     def _trace_batch(self, scene: Scene, poses: np.ndarray, size: int) -> tuple[_TracedEchoes, np.ndarray]:
-        """Echoes of a batch of checked poses, left on the device, and per pose the count of
-        sequence insertions that found no slot in its table of `size`."""
+        """Echoes of a batch of checked poses, left on the device (in buffers that the next batch
+        of the same shape reuses), and per pose the count of sequence insertions that found no
+        slot in its table of `size`."""
         n = len(poses)
         ws = warp_scene(scene, self.device)
-        launch = functools.partial(wp.launch, device=self.device)
-        with wp.ScopedDevice(self.device):
-            pose_buf = wp.array(poses.astype(np.float32), dtype=wp.mat44)
-            inverse_buf = wp.array(np.linalg.inv(poses).astype(np.float32), dtype=wp.mat44)
-            errors = wp.empty(n, dtype=float)
-            behind = wp.empty(n, dtype=wp.int32)
-            key = wp.zeros((n, size), dtype=wp.uint64)
-            order = wp.zeros((n, size), dtype=wp.int32)
-            planes = wp.zeros((n, size, kernels.MAX_ORDER), dtype=wp.int32)
-            overflow = wp.zeros(n, dtype=wp.int32)
-            ray_queries = wp.zeros(n, dtype=wp.int32)
-            amplitude = wp.empty((n, size), dtype=float)
-            image = wp.empty((n, size), dtype=wp.vec3)
-            arrival_dir = wp.empty((n, size), dtype=wp.vec3)
-            last_point = wp.empty((n, size), dtype=wp.vec3)
-            image_table = wp.zeros((n, size), dtype=wp.uint64)
-            image_rank = wp.full((n, size), kernels.RANK_NONE, dtype=wp.int32)
-            tracer = self.config
-            capacity = tracer.ray_count * (tracer.max_bounces + 1) if tracer.scattering else 0
-            scattered = _ScatteredEchoes(
-                source=wp.empty((n, capacity), dtype=wp.vec3),
-                extra_length=wp.empty((n, capacity), dtype=float),
-                amplitude=wp.empty((n, capacity), dtype=float),
-                order=wp.empty((n, capacity), dtype=wp.int32),
-                count=wp.zeros(n, dtype=wp.int32),
-            )
+        tracer = self.config
+        b = self._buffers_for(n, size)
+        specular, scattered = b.specular, b.scattered
         emitter = wp.vec3(*self.sonar.emitter_m)
-        launch(lidar_kernels.pose_error, dim=n, inputs=[ws.mesh.id, pose_buf], outputs=[errors, behind])
-        check_pose_results(errors.numpy(), behind.numpy())
-        launch(
-            kernels.discover_sequences,
-            dim=n * tracer.ray_count,
-            inputs=[
-                ws.mesh.id,
-                ws.face_plane,
-                pose_buf,
-                inverse_buf,
-                emitter,
-                self._ray_dirs,
-                tracer.max_bounces + 1,
-                ws.face_reflection,
-                ws.face_scattering,
-                ws.face_sharp_edges,
-                ws.face_altitudes,
-                self.edge_width_m,
-                self._ray_energy,
-                int(tracer.scattering),
-            ],
-            outputs=[
-                key,
-                scattered.count,
-                order,
-                planes,
-                overflow,
-                scattered.source,
-                scattered.extra_length,
-                scattered.amplitude,
-                scattered.order,
-                ray_queries,
-            ],
-        )
-        launch(
-            kernels.validate_sequences,
-            dim=(n, size),
-            inputs=[
-                ws.mesh.id,
-                ws.face_plane,
-                ws.plane_normal,
-                ws.plane_offset,
-                ws.face_reflection,
-                ws.face_scattering,
-                pose_buf,
-                emitter,
-                key,
-                order,
-                planes,
-                self._directivity,
-            ],
-            outputs=[amplitude, image, arrival_dir, last_point, ray_queries],
-        )
-        launch(
-            kernels.claim_images,
-            dim=(n, size),
-            inputs=[amplitude, order, image, key],
-            outputs=[image_table, image_rank],
-        )
-        launch(
-            kernels.drop_duplicate_images,
-            dim=(n, size),
-            inputs=[order, image, key, image_table, image_rank],
-            outputs=[amplitude],
-        )
         with wp.ScopedDevice(self.device):
-            specular = _SpecularEchoes(
-                source=image,
-                extra_length=wp.zeros((n, size), dtype=float),
-                amplitude=amplitude,
-                count=wp.full(n, size, dtype=wp.int32),
-                order=order,
-                direction=arrival_dir,
-                point=last_point,
+            b.poses.assign(poses.astype(np.float32))
+            b.inverse_poses.assign(np.linalg.inv(poses).astype(np.float32))
+            # Tables and counters start at zero (ranks at RANK_NONE), as the kernels expect; every
+            # other array is read only where a kernel of this batch wrote it.
+            for table in (b.key, specular.order, b.planes, b.image_table, b.overflow, b.ray_queries, scattered.count):
+                table.zero_()
+            b.image_rank.fill_(kernels.RANK_NONE)
+            wp.launch(lidar_kernels.pose_error, dim=n, inputs=[ws.mesh.id, b.poses], outputs=[b.errors, b.behind])
+            check_pose_results(b.errors.numpy(), b.behind.numpy())
+            wp.launch(
+                kernels.discover_sequences,
+                dim=n * tracer.ray_count,
+                inputs=[
+                    ws.mesh.id,
+                    ws.face_plane,
+                    b.poses,
+                    b.inverse_poses,
+                    emitter,
+                    self._ray_dirs,
+                    tracer.max_bounces + 1,
+                    ws.face_reflection,
+                    ws.face_scattering,
+                    ws.face_sharp_edges,
+                    ws.face_altitudes,
+                    self.edge_width_m,
+                    self._ray_energy,
+                    int(tracer.scattering),
+                ],
+                outputs=[
+                    b.key,
+                    scattered.count,
+                    specular.order,
+                    b.planes,
+                    b.overflow,
+                    scattered.source,
+                    scattered.extra_length,
+                    scattered.amplitude,
+                    scattered.order,
+                    b.ray_queries,
+                ],
             )
-        traced = _TracedEchoes(specular=specular, scattered=scattered, ray_queries=ray_queries)
-        return traced, overflow.numpy()
+            wp.launch(
+                kernels.validate_sequences,
+                dim=(n, size),
+                inputs=[
+                    ws.mesh.id,
+                    ws.face_plane,
+                    ws.plane_normal,
+                    ws.plane_offset,
+                    ws.face_reflection,
+                    ws.face_scattering,
+                    b.poses,
+                    emitter,
+                    b.key,
+                    specular.order,
+                    b.planes,
+                    self._directivity,
+                ],
+                outputs=[specular.amplitude, specular.source, specular.direction, specular.point, b.ray_queries],
+            )
+            wp.launch(
+                kernels.claim_images,
+                dim=(n, size),
+                inputs=[specular.amplitude, specular.order, specular.source, b.key],
+                outputs=[b.image_table, b.image_rank],
+            )
+            wp.launch(
+                kernels.drop_duplicate_images,
+                dim=(n, size),
+                inputs=[specular.order, specular.source, b.key, b.image_table, b.image_rank],
+                outputs=[specular.amplitude],
+            )
+        traced = _TracedEchoes(specular=specular, scattered=scattered, ray_queries=b.ray_queries)
+        return traced, b.overflow.numpy().copy()
+
+
+@dataclass
+class _TraceBuffers:
+    """A batch's device arrays (see `PathTracer._buffers_for`): poses and their checks, the
+    sequence and image tables, counters, and the echoes found."""
+
+    poses: wp.array  # (pings,) mat44 sensor-to-world
+    inverse_poses: wp.array  # (pings,) mat44 world-to-sensor
+    errors: wp.array  # (pings,) float, pose_error
+    behind: wp.array  # (pings,) int32, pose_error
+    key: wp.array  # (pings, size) uint64 sequence hashes, 0 = empty slot
+    planes: wp.array  # (pings, size, MAX_ORDER) int32 plane sequence per slot
+    overflow: wp.array  # (pings,) int32 insertions that found no slot
+    ray_queries: wp.array  # (pings,) int32 BVH ray queries, all stages
+    image_table: wp.array  # (pings, size) uint64 image source hashes, 0 = empty slot
+    image_rank: wp.array  # (pings, size) int32 lowest sequence rank per image source
+    specular: _SpecularEchoes
+    scattered: _ScatteredEchoes
 
 
 @dataclass

@@ -101,7 +101,8 @@ class Sonar:
             kept = np.empty((len(poses), self.config.microphone_count, self.config.record_samples), np.float32)
         bar = tqdm(total=len(poses), unit="ping", disable=not progress, desc="sonar")
         for index, keep, echoes in self.tracer.traced(scene, poses, batch):
-            # Rows left out (to be traced again) are recorded too, at no extra launch, and dropped.
+            # The echoes are used up here, before the next batch reuses their buffers. Rows left out
+            # (to be traced again) are recorded too, at no extra launch, and dropped.
             seeds = ping_seeds(seed, index)
             signals = recorder(echoes.buffers(), len(index), noise=noise, snr_db=snr_db, seeds=seeds)
             out = former(signals)
