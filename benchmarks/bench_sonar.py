@@ -115,7 +115,9 @@ def main(argv=None) -> dict:
     _, host_s, arrivals = timed(lambda: sonar.trace(scene, poses), args.repeats, device)
     rec = recorder(sonar.config, True, str(device))
     former = Beamformer(sonar.config, samples=sonar.config.record_samples, device=device)
-    echoes = parts[0][2]  # the first traced batch of the 3-bounce run
+    # The first traced batch of the 3-bounce run. The tracer reuses its buffers, so they hold the
+    # latest trace of these same poses (by trace/simulate above): the same echoes.
+    echoes = parts[0][2]
     count = echoes.pose_count
     _, record_s, signals = timed(lambda: rec(echoes.buffers(), count), args.repeats, device)
     _, energy_s, _ = timed(lambda: former(signals), args.repeats, device)
