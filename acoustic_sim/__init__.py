@@ -13,8 +13,9 @@ from .config import (
     SonarConfig,
     TracerConfig,
 )
-from .lidar import Lidar, LidarScan, check_poses, lidar_image, ranges_to_points
+from .lidar import Lidar, LidarScan, lidar_image, ranges_to_points
 from .paths import Arrivals, PathTracer
+from .poses import check_poses
 from .scene import WarpScene, warp_scene
 from .sonar import Sonar, SonarFrames
 

@@ -23,7 +23,7 @@ from .array import piston_directivity
 from .config import SonarConfig, TracerConfig
 from .kernels import lidar as lidar_kernels
 from .kernels import paths as kernels
-from .lidar import check_pose_results, check_poses
+from .poses import check_pose_results, check_poses
 from .scene import warp_scene
 from .signals import EchoBuffer
 

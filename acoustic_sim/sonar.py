@@ -18,8 +18,8 @@ from scenes import Scene
 
 from .beamform import beamformer, energyscape
 from .config import ProcessingConfig, SonarConfig, TracerConfig
-from .lidar import check_poses
 from .paths import Arrivals, PathTracer
+from .poses import check_poses
 from .signals import ping_seeds, record
 from .signals import recorder as signals_recorder
 
