@@ -395,7 +395,7 @@ class SimConfig:
     eRTIS, 3 bounces with 20k rays, the eRTIS processing on the training grid)."""
 
     lidar: LidarConfig = dataclasses.field(default_factory=LidarConfig.hokuyo_ust20lx)
-    sonar: SonarConfig = dataclasses.field(default_factory=lambda: SonarConfig.ertis())
+    sonar: SonarConfig = dataclasses.field(default_factory=SonarConfig.ertis)
     tracer: TracerConfig = dataclasses.field(default_factory=TracerConfig)
     processing: ProcessingConfig = dataclasses.field(default_factory=ProcessingConfig)
 
