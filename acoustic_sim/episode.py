@@ -8,9 +8,9 @@ import dataclasses
 
 import numpy as np
 
-from .config import SonarConfig
+from .config import SimConfig, SonarConfig
 from .plan import Episode
-from .suites import Physics, rig
+from .suites import Physics
 
 
 def episode_sonar_config(physics: Physics, nominal: SonarConfig, rng: np.random.Generator) -> tuple[SonarConfig, float]:
@@ -36,15 +36,22 @@ def episode_sonar_config(physics: Physics, nominal: SonarConfig, rng: np.random.
 
 
 def simulate_episode(
-    episode: Episode, physics: Physics, suite: dict, *, device, keep_signals=False, keep_arrivals=False
+    episode: Episode,
+    physics: Physics,
+    nominal: SimConfig,
+    suite: dict,
+    *,
+    device,
+    keep_signals=False,
+    keep_arrivals=False,
 ) -> tuple[dict, dict]:
-    """Scene, drive, LiDAR and sonar of one episode -> (arrays, episode record for the shard)."""
+    """Scene, drive, LiDAR and sonar of one episode -> (arrays, episode record for the shard).
+    `nominal` is the variant's rig (`suites.rig`) before this episode's draws."""
     import scenes
 
     from .lidar import Lidar, lidar_image
     from .sonar import Sonar
 
-    nominal = rig(physics, tuple(suite.get("settings", ())))
     scene = scenes.BUILDERS[episode.builder](**episode.scene_params)
     poses = scenes.trajectory(
         scene, frames=episode.frames, dt=suite["dt_s"], speed=suite["speed_m_s"], seed=episode.seed

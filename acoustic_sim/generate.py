@@ -44,12 +44,14 @@ def run_task(task: ShardTask, device=None, on_frames=None) -> dict:
     quiet_warp()
     device = str(wp.get_device(device))
     physics = Physics(**task.physics)
+    nominal = rig(physics, tuple(task.suite.get("settings", ())))  # the variant's rig before per-episode draws
     frames, records = ShardFrames(), []
     offset = 0
     for episode in task.episodes:
         arrays, record = simulate_episode(
             episode,
             physics,
+            nominal,
             task.suite,
             device=device,
             keep_signals=task.keep_signals,
@@ -67,8 +69,6 @@ def run_task(task: ShardTask, device=None, on_frames=None) -> dict:
         records.append(record)
         if on_frames:
             on_frames(episode.frames)
-    # The variant's rig as simulated (per-episode draws are in the episode records).
-    nominal = rig(physics, tuple(task.suite.get("settings", ())))
     grid = nominal.processing.grid
     config = {"suite": task.suite, "variant": task.variant, "physics": task.physics, "sim": nominal.to_dict()}
     attrs = {
