@@ -18,7 +18,8 @@
 # warning) and with convolution/linear weights in bfloat16, the precision autocast computes them
 # in (batch-norm and bias tensors stay float32); `train` then resumes them. Naming RUNs (folder
 # names under WORKDIR/runs) packs only their checkpoints, so finished runs travel without theirs;
-# every run's history, reports and logs always travel.
+# every run's history, reports and logs always travel. A best.pt that is the same checkpoint as
+# last.pt (the last sub-epoch improved) travels once, as last.pt (the paper network's are 27 MB).
 #
 # The pretrained model shipped in learn/pretrained/ is polar_unet seed 0's best.pt without its
 # optimizer state (`python -c "from learn.checkpoint import strip_checkpoint; strip_checkpoint(A, B)"`).
@@ -94,6 +95,12 @@ for src in sorted(p for p in [*work.glob("runs/**/*"), *work.glob("logs/*")] if 
     dst = work / "packed" / src.relative_to(work)
     if src.suffix == ".pt" and keep and src.parent.name not in keep:
         continue
+    if src.name == "best.pt" and (src.parent / "last.pt").exists():
+        state = torch.load(src.parent / "last.pt", map_location="cpu", weights_only=True)["state"]
+        if state["epoch"] == state.get("best_epoch"):  # the same checkpoint: unpack copies it back
+            dst.parent.mkdir(parents=True, exist_ok=True)
+            (dst.parent / "best_is_last").touch()
+            continue
     dst.parent.mkdir(parents=True, exist_ok=True)
     if src.suffix != ".pt":
         dst.write_bytes(src.read_bytes())
@@ -110,6 +117,9 @@ unpack)
   src=$1
   mkdir -p "$W"
   cat "$src"/state.tgz.part* | tar -C "$W" -xzf -
+  for m in "$W"/runs/*/best_is_last; do
+    if [ -e "$m" ]; then cp "${m%/*}/last.pt" "${m%/*}/best.pt" && rm "$m"; fi
+  done
   ;;
 *)
   echo "usage: $0 gen|train|eval|pack|unpack WORKDIR [MODEL SEED...]" >&2
