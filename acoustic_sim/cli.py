@@ -7,6 +7,7 @@ import dataclasses
 import json
 import sys
 import time
+from pathlib import Path
 
 
 def _scene_from_args(args):
@@ -50,6 +51,7 @@ def _render(args) -> int:
     rig = apply_settings(SimConfig(), args.set or ())
     flags = {"noise": args.lidar_noise, "noise_m": args.lidar_noise_m}
     config = dataclasses.replace(rig.lidar, **{k: v for k, v in flags.items() if v is not None})
+    rig = dataclasses.replace(rig, lidar=config)
     with wp.ScopedDevice(args.device):
         ranges = Lidar(config, seed=args.seed).scan(scene, poses)
     grid = rig.processing.grid
@@ -59,11 +61,20 @@ def _render(args) -> int:
     out = render_lidar(
         scene, poses, ranges, config, lidar_image(ranges, config, grid), grid, args.out, frame=args.frame
     )
+    _write_render_config(out, rig, args)
     print(
         f"{scene!r}: {len(poses)} poses, {ranges.size} LiDAR rays on {args.device}; "
-        f"wrote {out} in {time.perf_counter() - t0:.1f} s"
+        f"wrote {out} and its settings in {Path(out).with_suffix('.json').name} in {time.perf_counter() - t0:.1f} s"
     )
     return 0
+
+
+def _write_render_config(picture, rig, args) -> None:
+    """The picture's full rig (asdict of the configs as used) and the command's options, as
+    PICTURE.json beside it, so a picture can be made again."""
+    options = {k: v for k, v in vars(args).items() if not callable(v)}
+    text = json.dumps({"picture": Path(picture).name, "options": options, "sim": rig.to_dict()}, indent=1)
+    Path(picture).with_suffix(".json").write_text(text)
 
 
 def _render_sonar(args, rig, scene, pose, lidar, t0) -> int:
@@ -79,9 +90,10 @@ def _render_sonar(args, rig, scene, pose, lidar, t0) -> int:
         signals = sonar.record(arrivals, pose_count=1, noise="gaussian", seed=args.seed)
         results.append((f"max_bounces={bounces}", arrivals.for_pose(0), sonar.energyscape(signals, rig.processing)[0]))
     out = render_sonar(scene, pose, results, lidar, rig.processing.grid, args.out)
+    _write_render_config(out, dataclasses.replace(rig, tracer=tracer), args)
     print(
         f"{scene!r}: sonar ping at frame {args.frame} with max_bounces {[r[0] for r in results]}; "
-        f"wrote {out} in {time.perf_counter() - t0:.1f} s"
+        f"wrote {out} and its settings in {Path(out).with_suffix('.json').name} in {time.perf_counter() - t0:.1f} s"
     )
     return 0
 

@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
+import typing
 
 
 def _configs(args):
@@ -27,8 +29,49 @@ def _configs(args):
         amp=not args.no_amp,
         max_minutes=args.max_minutes,
     )
-    model = ModelConfig(name=args.model, frames=args.frames, width=args.width)
-    return model, DataConfig(frames=args.frames, label=args.label), train
+    configs = {
+        "model": ModelConfig(name=args.model, frames=args.frames, width=args.width),
+        "data": DataConfig(frames=args.frames, label=args.label),
+        "train": train,
+    }
+    configs = apply_settings(configs, args.set or ())
+    if configs["model"].frames != configs["data"].frames:
+        raise ValueError("model.frames and data.frames must agree: set the window length with --frames")
+    return configs["model"], configs["data"], configs["train"]
+
+
+def apply_settings(configs: dict, settings) -> dict:
+    """`--set section.field=value` on the learner's configs (sections model, data, train; e.g.
+    train.pos_weight=5, data.floor_db=50). The value is read as the field's type, `none` for an
+    optional field; the config itself then checks it, so a refusal names the setting."""
+    configs = dict(configs)
+    for setting in settings:
+        name, sep, text = setting.partition("=")
+        section, dot, field = name.strip().partition(".")
+        if not sep or not dot or section not in configs:
+            raise ValueError(f"--set wants {'|'.join(configs)}.field=value, got {setting!r}")
+        config = configs[section]
+        kinds = typing.get_type_hints(type(config))
+        if field not in kinds:
+            raise ValueError(f"--set {setting!r}: {section} has no field {field!r}; it has {', '.join(kinds)}")
+        try:
+            configs[section] = dataclasses.replace(config, **{field: _read_as(text.strip(), kinds[field])})
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"--set {setting!r}: {err}") from None
+    return configs
+
+
+def _read_as(text: str, kind):
+    """`text` as a value of `kind`: bool, int, float, str, or one of them | None."""
+    options = [k for k in typing.get_args(kind) if k is not type(None)] or [kind]
+    if text.lower() == "none" and len(options) < len(typing.get_args(kind)):
+        return None
+    (kind,) = options
+    if kind is bool:
+        if text.lower() not in ("true", "false"):
+            raise ValueError(f"{text!r} is not true or false")
+        return text.lower() == "true"
+    return kind(text)  # int("1.5") and float("x") refuse with their own message
 
 
 def _train(args) -> int:
@@ -106,14 +149,15 @@ def _export(args) -> int:
 def _table2(args) -> int:
     from .studies import table2
 
-    _, _, config = _configs(args)
+    model, data, config = _configs(args)
     table2(
         args.train,
         args.test,
         args.out,
-        model=args.model,
-        width=args.width,
+        model=model.name,
+        width=model.width,
         train_config=config,
+        data_config=data,
         device=args.device,
         progress=not args.quiet,
     )
@@ -124,15 +168,16 @@ def _table2(args) -> int:
 def _sim2real(args) -> int:
     from .studies import sim2real
 
-    _, _, config = _configs(args)
+    model, data, config = _configs(args)
     sim2real(
         args.ablation,
         args.reality,
         args.out,
-        model=args.model,
-        width=args.width,
-        frames=args.frames,
+        model=model.name,
+        width=model.width,
+        frames=model.frames,
         train_config=config,
+        data_config=data,
         device=args.device,
         progress=not args.quiet,
     )
@@ -188,6 +233,12 @@ def _training_options(p) -> None:
     p.add_argument("--no-amp", action="store_true", help="no bfloat16 autocast on GPUs")
     p.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
     p.add_argument("--quiet", action="store_true", help="no progress bars (the per-epoch lines stay)")
+    p.add_argument(
+        "--set",
+        action="append",
+        metavar="SECTION.FIELD=VALUE",
+        help="any config field, after the options above (repeatable; e.g. train.pos_weight=5, data.floor_db=50)",
+    )
 
 
 def _threshold_option(p) -> None:

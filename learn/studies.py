@@ -26,6 +26,8 @@ TABLE2_CASES = ("minimal", "many", "noisy")
 FRAME_COUNTS = (1, 3, 5)
 SIM2REAL_KEYS = (("scan_f1", "scan F1"), ("beam_accuracy", "beam acc."), ("chamfer_m", "Chamfer [m]"), ("iou", "IoU"))
 
+DEFAULT_DATA = DataConfig()  # frozen: safe to share as a default
+
 
 def _variant_folder(root: Path, name: str) -> Path:
     folder = root / name
@@ -45,12 +47,14 @@ def table2(
     model: str = "polar_unet",
     width: int = 16,
     train_config: TrainConfig,
+    data_config: DataConfig = DEFAULT_DATA,
     device: str = "cpu",
     progress: bool = True,
 ) -> dict:
     """Models with K = 1, 3, 5 trained on `train_data`; then the K = 5 model fine-tuned on each
     Table 2 case's training episodes (`test_data`/minimal, many, noisy) at a tenth of the learning
-    rate. Every row is scored on the same held-out episodes of each case. Mean / std over windows."""
+    rate. Every row is scored on the same held-out episodes of each case. Mean / std over windows.
+    `data_config` gives the window settings other than K (label frame, input floor)."""
     out, test_root = Path(out), Path(test_data)
     frames = load_frames(train_data)
     cases = {c: load_frames(_variant_folder(test_root, c)) for c in TABLE2_CASES}
@@ -61,7 +65,7 @@ def table2(
             frames,
             run,
             model_config=ModelConfig(name=model, frames=k, width=width),
-            data_config=DataConfig(frames=k),
+            data_config=dataclasses.replace(data_config, frames=k),
             train_config=train_config,
             device=device,
             progress=progress,
@@ -73,7 +77,7 @@ def table2(
             cases[c],
             run,
             model_config=ModelConfig(name=model, frames=5, width=width),
-            data_config=DataConfig(frames=5),
+            data_config=dataclasses.replace(data_config, frames=5),
             train_config=dataclasses.replace(train_config, lr=train_config.lr / 10),
             device=device,
             progress=progress,
@@ -116,11 +120,13 @@ def sim2real(
     width: int = 16,
     frames: int = 5,
     train_config: TrainConfig,
+    data_config: DataConfig = DEFAULT_DATA,
     device: str = "cpu",
     progress: bool = True,
 ) -> dict:
     """One model per ablation variant (max_bounces 0, 1, 3), each scored on its own held-out
-    episodes (in-domain) and on every window of the reality suite."""
+    episodes (in-domain) and on every window of the reality suite. `data_config` gives the window
+    settings other than K, which is `frames`."""
     out, root = Path(out), Path(ablation)
     variants = sorted(p.name for p in root.iterdir() if p.is_dir() and any(p.glob("shard-*.h5")))
     if not variants:
@@ -133,7 +139,7 @@ def sim2real(
             _variant_folder(root, v),
             run,
             model_config=ModelConfig(name=model, frames=frames, width=width),
-            data_config=DataConfig(frames=frames),
+            data_config=dataclasses.replace(data_config, frames=frames),
             train_config=train_config,
             device=device,
             progress=progress,

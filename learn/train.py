@@ -161,8 +161,9 @@ def train(
 ) -> dict:
     """Train a model (or `folds` models) on a dataset folder; returns the summary of the run.
 
-    Writes into `out`: last.pt and best.pt (weights, optimizer, epoch, all configs, dataset
-    identity), history.csv and curves.png, summary.json. With folds > 1: out/fold_i/ each,
+    Writes into `out`: config.json (every setting and the dataset's identity, from the start),
+    last.pt and best.pt (weights, optimizer, epoch, all configs, dataset identity), history.csv
+    and curves.png, summary.json. With folds > 1: out/fold_i/ each,
     and folds.json/folds.md with mean and std over the folds. A folder that already holds
     checkpoints is continued (`resume`) or replaced (`overwrite`), never silently overwritten.
     """
@@ -290,6 +291,11 @@ def _train_one(
         "range_m": windows.frames.range_m.tolist(),
         "azimuth_rad": windows.frames.azimuth_rad.tolist(),
     }
+    if dist_info.main:  # the run explains itself from its first epoch on, also if it is stopped
+        run = {k: meta[k] for k in ("model_config", "data_config", "train_config", "dataset", "parameters")}
+        resumed = bool(resume and last.exists())
+        run |= {"device": str(dev), "resumed": resumed, "init_from": None if init_from is None else str(init_from)}
+        (out / "config.json").write_text(json.dumps(run, indent=1))
     rng = np.random.default_rng(config.seed + 1000 * state["epoch"])
     while state["epoch"] < config.epochs and state["stale"] < config.patience:
         epoch = state["epoch"]

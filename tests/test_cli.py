@@ -93,3 +93,16 @@ def test_generate_command_and_its_errors(tmp_path, device, capsys):
     assert "shards must lie in 1..1" in capsys.readouterr().err
     assert main(["generate", "--suite", "ablation", "--max-bounces", "2", "--out", str(tmp_path / "c")]) == 2
     assert "varies max_bounces" in capsys.readouterr().err
+
+
+def test_render_writes_its_settings_beside_the_picture(tmp_path, device):
+    """PICTURE.json holds the rig as used (a --set and a flag both reach it) and the options."""
+    import json
+
+    out = tmp_path / "view.png"
+    argv = ["render", "--scene", "box_room", "--frames", "5", "--device", device, "--out", str(out)]
+    assert main([*argv, "--set", "lidar.dropout_probability=0.25", "--lidar-noise-m", "0.01"]) == 0
+    written = json.loads(out.with_suffix(".json").read_text())
+    assert written["picture"] == "view.png" and written["options"]["scene"] == "box_room"
+    assert written["sim"]["lidar"]["dropout_probability"] == 0.25 and written["sim"]["lidar"]["noise_m"] == 0.01
+    assert set(written["sim"]) == {"lidar", "sonar", "tracer", "processing"}

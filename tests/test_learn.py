@@ -310,3 +310,44 @@ def test_pretrained_model_reads_walls_on_a_fresh_drive(tiny_dataset, tmp_path):
     f1 = {name: r["all"]["scan_f1"]["mean"] for name, r in report["results"].items()}
     assert report["split"] == "all" and report["thresholds"]["model"] == ckpt["threshold"]
     assert f1["model"] >= 0.8 and f1["model"] >= 2 * f1["echo peak"], f1
+
+
+@pytest.mark.filterwarnings("ignore:.*predicts no return")  # one epoch: the model may not place walls yet
+def test_set_reaches_fields_no_option_names_and_the_run_records_them(tiny_dataset, tmp_path):
+    """`learn train --set` changes fields without an option of their own; config.json, written
+    before the first epoch, records every setting of the run."""
+    from learn.cli import main
+
+    run = tmp_path / "run"
+    argv = ["train", "--data", str(tiny_dataset), "--out", str(run), "--frames", "3", "--width", "4", "--epochs", "1"]
+    argv += ["--batch-size", "4", "--loss", "bce", "--val-fraction", "0.5", "--max-val-windows", "8", "--quiet"]
+    argv += ["--set", "train.pos_weight=5", "--set", "data.floor_db=50", "--set", "train.max_val_windows=none"]
+    assert main(argv) == 0
+    written = json.loads((run / "config.json").read_text())
+    assert written["train_config"]["pos_weight"] == 5.0 and written["train_config"]["max_val_windows"] is None
+    assert written["data_config"] == {"frames": 3, "label": "middle", "floor_db": 50.0}
+    assert written["model_config"] == {"name": "polar_unet", "frames": 3, "width": 4}
+    assert written["dataset"]["plan_id"] == load_frames(tiny_dataset).info["plan_id"] and not written["resumed"]
+
+
+@pytest.mark.parametrize(
+    "setting, message",
+    [
+        ("train.lr", "--set wants model|data|train.field=value"),
+        ("optim.lr=1", "--set wants model|data|train.field=value"),
+        ("train.speed=1", "train has no field 'speed'"),
+        ("train.epochs=1.5", "invalid literal for int"),
+        ("train.amp=maybe", "'maybe' is not true or false"),
+        ("train.epochs=none", "invalid literal for int"),
+        ("train.loss=hinge", "loss must be one of"),
+        ("data.label=first", "label must be one of"),
+        ("model.frames=3", "must agree: set the window length with --frames"),
+    ],
+)
+def test_bad_learner_settings_are_refused_by_name(setting, message, capsys):
+    from learn.cli import main
+
+    assert main(["train", "--data", "nowhere", "--out", "nowhere", "--set", setting]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and message in err
+    assert setting in err or "must agree" in message
