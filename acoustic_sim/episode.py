@@ -57,8 +57,9 @@ def simulate_episode(
         scene, frames=episode.frames, dt=suite["dt_s"], speed=suite["speed_m_s"], seed=episode.seed
     )
     ranges = Lidar(nominal.lidar, device=device).scan(scene, poses, seed=episode.seed)
-    sonar_config, snr_db = episode_sonar_config(physics, nominal.sonar, np.random.default_rng([episode.seed, 2]))
-    sonar = Sonar(sonar_config, nominal.tracer, device=device)
+    drawn, draws = physics.draw(nominal, np.random.default_rng([episode.seed, 3]))
+    sonar_config, snr_db = episode_sonar_config(physics, drawn.sonar, np.random.default_rng([episode.seed, 2]))
+    sonar = Sonar(sonar_config, drawn.tracer, device=device)
     result = sonar.simulate(
         scene,
         poses,
@@ -95,4 +96,6 @@ def simulate_episode(
         "sonar_config": dataclasses.asdict(sonar_config) if sonar_config != nominal.sonar else None,
         "lidar_config": dataclasses.asdict(nominal.lidar),
     }
+    if draws:  # only then: records of variants without draws stay as they were
+        record |= {"draws": draws, "tracer_config": dataclasses.asdict(drawn.tracer)}
     return arrays, record

@@ -4,7 +4,6 @@ its id tells whether a folder on disk belongs to the same run."""
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import json
 import math
@@ -115,7 +114,7 @@ def plan(
                     plan_id=plan_id,
                     seed=seed,
                     suite=suite_json,
-                    physics=dataclasses.asdict(physics),
+                    physics=physics.to_json(),
                     episodes=tuple(episodes[bounds[s] : bounds[s + 1]]),
                     keep_signals=keep_signals,
                     keep_arrivals=keep_arrivals,

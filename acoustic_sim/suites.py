@@ -86,12 +86,26 @@ def _draw(rng: np.random.Generator, key: str, spec):
     return float(rng.uniform(low, high))
 
 
+VARYING_SECTIONS = ("sonar", "tracer")
+"""Rig sections `Physics.vary` may draw per episode; the LiDAR and the processing fix a dataset's
+arrays and grids (the LiDAR's noise has its own Physics fields)."""
+
+DRAWN_FIELDS = {
+    "sonar.atmosphere.temperature_c": "temperature_c",
+    "sonar.microphones_m": "mic_position_sigma_m",
+    "sonar.microphone_gain": "mic_gain_sigma_db",
+    "sonar.microphone_delay_s": "mic_delay_sigma_s",
+}
+"""Rig fields that Physics fields of their own draw per episode: `vary` refuses them."""
+
+
 @dataclass(frozen=True, kw_only=True)
 class Physics:
     """Sensor physics of one variant. Ranges (low, high) are drawn per episode.
 
     The first four fields are the variant's `TracerConfig` (checked by it: the same limits as a
-    `Sonar` built by hand); the others are drawn or applied per episode (`episode`).
+    `Sonar` built by hand); the others are drawn or applied per episode (`episode`). `vary`
+    reaches any other field of the sonar and the tracer.
 
     Attributes:
         max_bounces: Specular bounces after the first reflection (0..MAX_BOUNCES).
@@ -107,6 +121,13 @@ class Physics:
         temperature_c: Air temperature per episode [C]; the beamformer always assumes 343 m/s.
         mic_position_sigma_m, mic_gain_sigma_db, mic_delay_sigma_s: Channel mismatch of the
             simulated array per episode (the beamformer assumes the nominal array).
+        vary: Rig fields drawn per episode, by dotted path under `sonar` or `tracer`, each as
+            [low, high] (integers if both ends are), {"choice": [...]} or, for a sequence field,
+            a list of those and fixed numbers: e.g. {"sonar.emitter_radius_m": [0.0, 0.02],
+            "tracer.max_bounces": [1, 6]}; a drawn tracer field replaces the Physics field of
+            that name for the episode. Limits are the configs' own: both ends of every range
+            (every choice) are checked when the variant is made. Drawn values are recorded per
+            episode.
     """
 
     max_bounces: int = 3
@@ -122,6 +143,7 @@ class Physics:
     mic_position_sigma_m: float = 0.0
     mic_gain_sigma_db: float = 0.0
     mic_delay_sigma_s: float = 0.0
+    vary: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "snr_db", _pair(self.snr_db, "snr_db"))
@@ -134,11 +156,49 @@ class Physics:
         sigmas = (self.mic_position_sigma_m, self.mic_gain_sigma_db, self.mic_delay_sigma_s, self.lidar_noise_m)
         if min(sigmas) < 0:
             raise ValueError("Physics: noise sizes and mismatch sigmas must be >= 0")
+        nominal = rig(self)
+        for key, spec in self.vary.items():
+            if key in DRAWN_FIELDS:
+                raise ValueError(f"Physics.vary {key!r}: Physics.{DRAWN_FIELDS[key]} draws it")
+            if key.split(".")[0] not in VARYING_SECTIONS or "." not in key:
+                raise ValueError(f"Physics.vary {key!r}: only fields under {' or '.join(VARYING_SECTIONS)} vary")
+            _draw(np.random.default_rng(0), key, spec)  # validates the spec
+            for end in _extremes(spec):
+                _drawn_rig(nominal, {key: end})  # refuses a value its config refuses, naming the key
+
+    def draw(self, nominal: SimConfig, rng: np.random.Generator) -> tuple[SimConfig, dict]:
+        """`nominal` with this variant's `vary` drawn from `rng` (keys in sorted order) ->
+        (the episode's rig, the drawn values)."""
+        draws = {key: _draw(rng, key, self.vary[key]) for key in sorted(self.vary)}
+        return _drawn_rig(nominal, draws), draws
+
+    def to_json(self) -> dict:
+        out = dataclasses.asdict(self)
+        if not out["vary"]:  # so that variants without draws keep the plan ids of earlier runs
+            del out["vary"]
+        return out
 
     def tracer(self) -> TracerConfig:
         """The path tracer's settings of this variant."""
         fields = ("max_bounces", "ray_count", "scattering", "edge_width_m")
         return TracerConfig(**{name: getattr(self, name) for name in fields})
+
+
+def _drawn_rig(nominal: SimConfig, values: dict) -> SimConfig:
+    try:
+        return apply_settings(nominal, [f"{key}={json.dumps(value)}" for key, value in values.items()])
+    except ConfigError as err:
+        raise ConfigError(f"Physics.vary: {err}") from None
+
+
+def _extremes(spec) -> list:
+    """The values a `vary` spec can reach at its ends: both ends of a range, every choice."""
+    if isinstance(spec, dict):
+        return list(spec.get("choice") or [])
+    if isinstance(spec, list | tuple) and any(isinstance(s, list | tuple | dict) for s in spec):
+        ends = [_extremes(s) if isinstance(s, list | tuple | dict) else [s] for s in spec]
+        return [[e[0] for e in ends], [e[-1] for e in ends]]
+    return list(spec)
 
 
 def _pair(value, name: str) -> tuple[float, float]:
@@ -202,7 +262,7 @@ class Suite:
             raise ValueError(f"suite {self.name!r}: frames, episode_frames >= 1, dt_s > 0, speed_m_s >= 0")
 
     def to_json(self) -> dict:
-        out = dataclasses.asdict(self)
+        out = dataclasses.asdict(self) | {"variants": {k: p.to_json() for k, p in self.variants.items()}}
         if not out["settings"]:  # so that suites without settings keep the plan ids of earlier runs
             del out["settings"]
         return out

@@ -134,3 +134,50 @@ def test_suite_settings_are_simulated_and_recorded(tmp_path, device):
     with pytest.raises(ConfigError, match="no field"):
         dataclasses.replace(base, settings=("tracer.rayz=1",))
     assert "settings" not in base.to_json() and suite.to_json()["settings"] == suite.settings
+
+
+def test_physics_vary_draws_rig_fields_per_episode_and_records_them(tmp_path, device):
+    """`Physics.vary` draws sonar and tracer fields per episode from its own stream (reproducible,
+    within range), the episode is simulated with them (a drawn max_bounces of 0 gives the arrays
+    of a variant with max_bounces 0) and its record holds them; variants without draws keep
+    their plan ids."""
+    from acoustic_sim.generate import generate
+
+    vary = {"tracer.max_bounces": [0, 2], "sonar.emitter_radius_m": [0.001, 0.02]}
+    physics = Physics(ray_count=500, vary=vary)
+    draws = [physics.draw(rig(physics), np.random.default_rng([s, 3])) for s in range(20)]
+    assert {d["tracer.max_bounces"] for _, d in draws} == {0, 1, 2}
+    assert all(0.001 <= d["sonar.emitter_radius_m"] <= 0.02 for _, d in draws)
+    drawn, again = physics.draw(rig(physics), np.random.default_rng([7, 3]))
+    assert again == draws[7][1] and drawn.tracer.max_bounces == again["tracer.max_bounces"]
+    assert drawn.sonar.emitter_radius_m == again["sonar.emitter_radius_m"]
+    assert "vary" not in Physics().to_json() and physics.to_json()["vary"] == vary
+
+    def shard(physics, name):
+        suite = dataclasses.replace(SUITES["tiny"], episode_frames=2, variants={"": physics})
+        generate(suite, tmp_path / name, frames=2, seed=1, device=device, progress=False)
+        with h5py.File(next((tmp_path / name).glob("shard-*.h5"))) as f:
+            return f["energyscape"][()], json.loads(f.attrs["episodes"])[0]
+
+    flat, _ = shard(Physics(ray_count=500, max_bounces=0), "flat")
+    deep, _ = shard(Physics(ray_count=500, max_bounces=3), "deep")
+    drawn_flat, record = shard(Physics(ray_count=500, max_bounces=3, vary={"tracer.max_bounces": {"choice": [0]}}), "v")
+    np.testing.assert_array_equal(drawn_flat, flat)
+    assert not np.array_equal(deep, flat)  # so the comparison above can fail
+    assert record["draws"] == {"tracer.max_bounces": 0} and record["tracer_config"]["max_bounces"] == 0
+
+
+@pytest.mark.parametrize(
+    "vary, message",
+    [
+        ({"tracer.max_bounces": [1, 99]}, "Physics.vary: --set 'tracer.max_bounces=99'"),
+        ({"sonar.emitter_radius_m": {"choice": [0.01, 0.0]}}, "emitter_radius_m must be positive"),
+        ({"processing.lowpass_hz": [500.0, 2000.0]}, "only fields under sonar or tracer vary"),
+        ({"sonar.atmosphere.temperature_c": [0.0, 30.0]}, "Physics.temperature_c draws it"),
+        ({"sonar.emitter_radius": [0.001, 0.01]}, "has no field 'emitter_radius'"),
+        ({"tracer.ray_count": [100, 50]}, r"expected \[low, high\]"),
+    ],
+)
+def test_bad_physics_ranges_are_refused_when_the_variant_is_made(vary, message):
+    with pytest.raises(ValueError, match=message):
+        Physics(vary=vary)
