@@ -9,8 +9,8 @@ import dataclasses
 import numpy as np
 
 from .config import SimConfig, SonarConfig
+from .physics import Physics
 from .plan import Episode
-from .suites import Physics
 
 
 def episode_sonar_config(physics: Physics, nominal: SonarConfig, rng: np.random.Generator) -> tuple[SonarConfig, float]:

@@ -28,8 +28,9 @@ from .dataset import FORMAT, FORMAT_VERSION, DatasetError, ShardFrames, read_att
 from .devices import check_device, quiet_warp
 from .episode import simulate_episode
 from .manifest import shard_entry, write_manifest
+from .physics import Physics, rig
 from .plan import ShardTask, plan
-from .suites import Physics, Suite, rig
+from .suites import Suite
 
 PLAN_FILE = "plan.json"
 LOCK_FILE = ".generate.lock"  # "pid host" of the run writing the folder

@@ -10,8 +10,9 @@ from pathlib import Path
 import numpy as np
 
 from .dataset import FORMAT, FORMAT_VERSION
+from .physics import Physics, rig
 from .plan import ShardTask
-from .suites import Physics, Suite, rig
+from .suites import Suite
 
 
 def shard_entry(task: ShardTask) -> dict:
