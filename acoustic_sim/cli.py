@@ -105,6 +105,8 @@ def _generate(args) -> int:
     from .generate import generate
     from .suites import load_suite
 
+    if args.suite == "crossengine":
+        return _generate_crossengine(args)
     suite = load_suite(args.suite)
     if args.max_bounces is not None:
         if len({p.max_bounces for p in suite.variants.values()}) > 1:
@@ -130,6 +132,28 @@ def _generate(args) -> int:
         f"{summary['suite']}: {summary['frames']:,} frames in {summary['shards']} shards under {summary['out']} "
         f"({summary['shards_written']} written, {summary['shards_skipped']} already complete) in "
         f"{summary['seconds']:.1f} s, {summary['frames_per_s']:,.1f} frames/s on {', '.join(summary['devices'])}"
+    )
+    return 0
+
+
+def _generate_crossengine(args) -> int:
+    from .crossengine import generate_crossengine
+
+    own = {"--max-bounces": args.max_bounces, "--set": args.set, "--shards": args.shards, "--signals": args.signals}
+    own |= {"--arrivals": args.arrivals, "--ray-address": args.ray_address}
+    if given := [k for k, v in own.items() if v not in (None, False)]:
+        raise ValueError(f"the crossengine test set is another engine's: {', '.join(given)} does not apply to it")
+    summary = generate_crossengine(
+        args.out,
+        frames=args.frames or 1000,
+        seed=args.seed,
+        device=args.device,
+        workers=args.workers,
+        progress=not args.quiet,
+    )
+    print(
+        f"crossengine: {summary['frames']:,} frames in {summary['shards']} shards under {summary['out']} "
+        f"({summary['shards_written']} written) in {summary['seconds']:.1f} s on {', '.join(summary['devices'])}"
     )
     return 0
 
@@ -200,9 +224,14 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
         description="Simulate a suite of scenarios (scenes, robot drives, LiDAR and sonar) into HDF5 shards, "
         "with manifest.json and a dataset card (README.md, card.png) per dataset. Rerunning the same command "
-        "skips finished shards. Suites: " + "; ".join(f"{name}: {suite.description}" for name, suite in SUITES.items()),
+        "skips finished shards. Suites: "
+        + "; ".join(f"{name}: {suite.description}" for name, suite in SUITES.items())
+        + "; crossengine: a test set from another engine (pyroomacoustics' image sources in empty L, T, U, "
+        "junction and hall rooms; 1,000 frames by default; scoring only).",
     )
-    gen.add_argument("--suite", required=True, help=f"one of {sorted(SUITES)}, or a .toml/.json suite file")
+    gen.add_argument(
+        "--suite", required=True, help=f"one of {sorted(SUITES)}, crossengine, or a suite file (.toml/.json)"
+    )
     gen.add_argument("--out", required=True, help="output folder")
     gen.add_argument("--frames", type=int, default=None, help="frames per variant (default: the suite's)")
     gen.add_argument("--shards", type=int, default=None, help="shards per variant (default: one per 250 frames)")

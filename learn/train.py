@@ -174,6 +174,8 @@ def train(
     if dev.type == "cpu":
         torch.set_flush_denormal(True)  # denormal gradients make CPU steps many times slower
     frames = data if isinstance(data, Frames) else load_frames(data)
+    if frames.info.get("suite") == "crossengine":
+        raise ValueError(f"{frames.info['folder']} is the crossengine test set: score models on it, never train on it")
     windows = Windows(frames, data_config, dev)
     groups = windows.episode if train_config.split_by == "episode" else windows.scenario
     out = Path(out)
