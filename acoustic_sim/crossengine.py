@@ -19,15 +19,15 @@ from pathlib import Path
 
 import numpy as np
 
+from scenes import FLOOR_PLANS, floor_plan, polygon_room
+
 from .config import LidarConfig, ProcessingConfig, SonarConfig
 
-FLOOR_PLANS = ("l_room", "t_room", "u_room", "junction", "hall")
 IMAGE_ORDER = 4  # reflections per path: walls, floor and ceiling alike
 SAMPLE_RATE_HZ = 450_000  # pyroomacoustics wants an integer rate
 SPEED_M_S = 0.3  # our robot's speed, as in every suite
 DT_S = 0.1
 EPISODE_FRAMES = 100
-WALL_THICKNESS_M = 0.05  # of the walls the drive planner sees; the echoes come from the plan itself
 ENGINE = "pyroomacoustics image sources"
 
 
@@ -63,50 +63,6 @@ class Room:
     ceiling_reflection: float
     sensor_height_m: float
     snr_db: float
-
-
-def floor_plan(plan: str, rng: np.random.Generator) -> np.ndarray:
-    """A random floor plan of the family `plan`: counter-clockwise corners (N, 2) [m], at least
-    ~1.6 m wide everywhere, so a robot with 0.35 m clearance can drive through it."""
-    u = rng.uniform
-    if plan == "l_room":
-        w, h = u(5.0, 9.0), u(4.0, 8.0)
-        nw, nh = w * u(0.35, 0.6), h * u(0.35, 0.6)
-        xy = [(0, 0), (w, 0), (w, h - nh), (w - nw, h - nh), (w - nw, h), (0, h)]
-    elif plan == "t_room":
-        w, bar, stem, length = u(7.0, 11.0), u(2.0, 3.0), u(2.0, 3.5), u(3.0, 5.0)
-        x0 = (w - stem) / 2
-        xy = [(x0, 0), (x0 + stem, 0), (x0 + stem, length), (w, length), (w, length + bar), (0, length + bar)]
-        xy += [(0, length), (x0, length)]
-    elif plan == "u_room":
-        w, h, arm = u(7.0, 10.0), u(5.0, 8.0), u(2.0, 3.0)
-        depth = h * u(0.4, 0.65)
-        xy = [(0, 0), (w, 0), (w, h), (w - arm, h), (w - arm, h - depth), (arm, h - depth), (arm, h), (0, h)]
-    elif plan == "junction":  # two corridors crossing, arms of random length
-        width = u(1.6, 2.6)
-        west, east, south, north = (u(3.0, 6.0) for _ in range(4))
-        a, b = west, west + width  # x extent of the north-south corridor
-        c, d = south, south + width  # y extent of the east-west corridor
-        xy = [(a, 0), (b, 0), (b, c), (b + east, c), (b + east, d), (b, d), (b, d + north), (a, d + north)]
-        xy += [(a, d), (0, d), (0, c), (a, c)]
-    elif plan == "hall":  # an irregular star-shaped polygon: no two walls parallel by design
-        count = int(rng.integers(5, 8))
-        angle = np.sort(u(0.0, 2 * np.pi, count)) + np.linspace(0.0, 0.4, count)
-        radius = u(3.0, 5.0, count)
-        xy = np.stack([radius * np.cos(angle), radius * np.sin(angle)], axis=1)
-        if not _simple_and_wide(xy):
-            return floor_plan(plan, rng)
-    else:
-        raise ValueError(f"unknown floor plan {plan!r}; use one of {FLOOR_PLANS}")
-    xy = np.asarray(xy, dtype=np.float64)
-    return xy - xy.min(axis=0) + WALL_THICKNESS_M  # so the drive planner's scene shares these coordinates
-
-
-def _simple_and_wide(xy: np.ndarray) -> bool:
-    """Counter-clockwise, every corner convex or gentle, every wall longer than 1.5 m."""
-    edges = np.roll(xy, -1, axis=0) - xy
-    cross = edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1] - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
-    return bool((cross > 0).all() and (np.linalg.norm(edges, axis=1) > 1.5).all())
 
 
 def draw_room(plan: str, rng: np.random.Generator) -> Room:
@@ -180,12 +136,8 @@ def record_ping(room: Room, pose: np.ndarray, sonar: SonarConfig, rng: np.random
 
 
 def planner_scene(room: Room):
-    """Our scene of the room's walls, for the drive planner alone (the echoes never see it)."""
-    import scenes
-
-    points = " ".join(f"{x:.4f},{-y:.4f}" for x, y in room.corners)  # SVG's y points down
-    svg = f'<svg xmlns="http://www.w3.org/2000/svg"><polygon points="{points}"/></svg>'
-    return scenes.from_svg(svg, scale=1.0, wall_height=room.height_m, wall_thickness=WALL_THICKNESS_M, ceiling=False)
+    """Our scene of the room, for the drive planner alone (the echoes never see it)."""
+    return polygon_room(room.plan, corners=np.asarray(room.corners), height=room.height_m)
 
 
 def simulate_episode(index: int, frames: int, seed: int, device: str) -> tuple[dict, dict]:

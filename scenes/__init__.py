@@ -4,6 +4,7 @@ Pure numpy/trimesh: no simulation code lives here.
 """
 
 from .builders import box_room, corridor, from_mesh, office, random_world
+from .floor_plans import FLOOR_PLANS, floor_plan, polygon_room
 from .materials import MATERIALS, Material, material
 from .scene import Scene, SceneError
 from .svg import from_svg
@@ -14,10 +15,12 @@ BUILDERS = {
     "corridor": corridor,
     "office": office,
     "random_world": random_world,
+    "polygon_room": polygon_room,
 }
 
 __all__ = [
     "BUILDERS",
+    "FLOOR_PLANS",
     "MATERIALS",
     "FreeSpace",
     "Material",
@@ -25,11 +28,13 @@ __all__ = [
     "SceneError",
     "box_room",
     "corridor",
+    "floor_plan",
     "free_space",
     "from_mesh",
     "from_svg",
     "material",
     "office",
+    "polygon_room",
     "pose",
     "poses",
     "random_world",
