@@ -13,6 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
+import scenes
+
 from .dataset import FORMAT_VERSION
 from .suites import Suite
 
@@ -99,6 +101,7 @@ def plan(
         raise ValueError(f"shards must lie in 1..{len(episodes)} (one episode at least per shard), got {shards}")
     suite_json = suite.to_json()
     key = {"suite": suite_json, "frames": frames, "shards": shards, "seed": seed, "format_version": FORMAT_VERSION}
+    key["scenes_revision"] = scenes.REVISION
     key |= {"keep_signals": keep_signals, "keep_arrivals": keep_arrivals}
     plan_id = hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()[:16]
     bounds = np.linspace(0, len(episodes), shards + 1).round().astype(int)

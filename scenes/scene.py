@@ -166,8 +166,10 @@ def room_shell(size: Sequence[float], *, origin: Sequence[float] = (0.0, 0.0, 0.
     The room spans origin .. origin + size [m].
     """
     size = np.asarray(size, dtype=np.float64)
-    shell = box_mesh(np.asarray(origin) + size / 2, size)
-    shell.invert()  # normals point into the room
+    box = box_mesh(np.asarray(origin) + size / 2, size)
+    # Normals into the room: a new mesh with reversed faces. (Trimesh.invert keeps face normals
+    # cached from before, which once put the floor's material on the ceiling and back.)
+    shell = trimesh.Trimesh(box.vertices, box.faces[:, ::-1], process=False)
     normals = shell.face_normals
     pick = {
         "floor": normals[:, 2] > 0.5,

@@ -188,3 +188,44 @@ def test_svg_with_non_finite_coordinates_is_refused(shape, tmp_path):
     path.write_text(f'<svg xmlns="http://www.w3.org/2000/svg" width="100" height="100">{rect}{shape}</svg>')
     with pytest.raises(SceneError, match="non-finite"):
         scenes.from_svg(path, scale=0.05)
+
+
+@pytest.mark.parametrize("build", [scenes.box_room, scenes.corridor, scenes.office, scenes.random_world])
+def test_floor_material_lies_on_the_floor_and_ceiling_material_on_top(build):
+    """Each shell material where it belongs: the floor's faces at the lowest point facing up,
+    the ceiling's at the top facing down (once swapped by normals cached across Trimesh.invert)."""
+    scene = build(seed=0)
+    names = np.array([m.name for m in scene.materials])[scene.face_material]
+    floor = names == "floor"
+    assert floor.any() and np.allclose(scene.mesh.triangles_center[floor, 2], scene.floor_z)
+    assert (scene.mesh.face_normals[floor, 2] > 0.99).all()
+    top = scene.mesh.bounds[1, 2]
+    ceiling = np.isclose(scene.mesh.triangles_center[:, 2], top) & (scene.mesh.face_normals[:, 2] < -0.99)
+    expected = {"box_room": "painted_wall", "random_world": "painted_wall"}.get(scene.name, "ceiling_tile")
+    assert ceiling.any() and set(names[ceiling]) == {expected}
+
+
+def test_surface_classes_and_their_acoustics():
+    """Walls, floor, ceiling and objects take their own reflection and scattering; the LiDAR's
+    view of each material and the geometry stay as they were."""
+    from scenes.surfaces import SURFACE_CLASSES, surface_classes, with_surfaces
+
+    office = scenes.office(seed=0)
+    classes = surface_classes(office)
+    counts = {name: int((classes == i).sum()) for i, name in enumerate(SURFACE_CLASSES)}
+    assert counts["floor"] == counts["ceiling"] == 2 and counts["walls"] >= 8 and counts["objects"] > 100
+    drawn = {"walls": {"reflection": 0.6, "scattering": 0.4}, "floor": {"reflection": 0.5}, "objects": {}}
+    changed = with_surfaces(office, drawn)
+    reflection = changed.material_table("acoustic_reflection")
+    scattering = changed.material_table("acoustic_scattering")
+    assert (reflection[classes == 0] == 0.6).all() and (scattering[classes == 0] == 0.4).all()
+    assert (reflection[classes == 1] == 0.5).all()
+    before = office.material_table("acoustic_scattering")
+    np.testing.assert_array_equal(scattering[classes != 0], before[classes != 0])
+    lidar = changed.material_table("lidar_reflectivity")
+    np.testing.assert_array_equal(lidar, office.material_table("lidar_reflectivity"))
+    assert changed.mesh is office.mesh and changed.params["surfaces"] == drawn
+    with pytest.raises(ValueError, match="unknown surface classes"):
+        with_surfaces(office, {"roof": {"reflection": 0.5}})
+    open_room = scenes.polygon_room("u_room", ceiling=None)
+    assert (surface_classes(open_room) != SURFACE_CLASSES.index("ceiling")).all()
