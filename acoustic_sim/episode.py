@@ -8,9 +8,12 @@ import dataclasses
 
 import numpy as np
 
+from scenes.surfaces import with_surfaces
+
 from .config import SimConfig, SonarConfig
 from .physics import Physics
 from .plan import Episode
+from .suites import episode_drive
 
 
 def episode_sonar_config(physics: Physics, nominal: SonarConfig, rng: np.random.Generator) -> tuple[SonarConfig, float]:
@@ -53,8 +56,18 @@ def simulate_episode(
     from .sonar import Sonar
 
     scene = scenes.BUILDERS[episode.builder](**episode.scene_params)
+    drive = episode_drive(suite, episode.seed)
+    acoustics = physics.draw_surfaces(np.random.default_rng([episode.seed, 4]))
+    if acoustics:
+        scene = with_surfaces(scene, acoustics)
     poses = scenes.trajectory(
-        scene, frames=episode.frames, dt=suite["dt_s"], speed=suite["speed_m_s"], seed=episode.seed
+        scene,
+        frames=episode.frames,
+        dt=suite["dt_s"],
+        speed=drive["speed_m_s"],
+        sensor_height=drive["sensor_height_m"],
+        turn_rate=drive["turn_rate_rad_s"],
+        seed=episode.seed,
     )
     ranges = Lidar(nominal.lidar, device=device).scan(scene, poses, seed=episode.seed)
     drawn, draws = physics.draw(nominal, np.random.default_rng([episode.seed, 3]))
@@ -98,4 +111,8 @@ def simulate_episode(
     }
     if draws:  # only then: records of variants without draws stay as they were
         record |= {"draws": draws, "tracer_config": dataclasses.asdict(drawn.tracer)}
+    if acoustics:
+        record["surfaces"] = acoustics
+    if any(isinstance(suite.get(name), list | tuple) for name in drive):
+        record["drive"] = drive
     return arrays, record

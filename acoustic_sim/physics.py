@@ -10,6 +10,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from scenes.surfaces import SURFACE_CLASSES
+
 from .config import (
     NOISE_KINDS,
     ConfigError,
@@ -82,6 +84,9 @@ class Physics:
             that name for the episode. Limits are the configs' own: both ends of every range
             (every choice) are checked when the variant is made. Drawn values are recorded per
             episode.
+        surfaces: Acoustics of each surface class drawn per episode, as energy fractions in
+            0..1: {"walls": {"reflection": [0.5, 0.99], "scattering": [0.0, 0.5]}, "floor": ...,
+            "ceiling": ..., "objects": ...}; `scenes.surfaces` says which faces a class holds.
     """
 
     max_bounces: int = 3
@@ -98,6 +103,7 @@ class Physics:
     mic_gain_sigma_db: float = 0.0
     mic_delay_sigma_s: float = 0.0
     vary: dict = field(default_factory=dict)
+    surfaces: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "snr_db", _pair(self.snr_db, "snr_db"))
@@ -119,6 +125,16 @@ class Physics:
             draw_value(np.random.default_rng(0), key, spec)  # validates the spec
             for end in _extremes(spec):
                 _drawn_rig(nominal, {key: end})  # refuses a value its config refuses, naming the key
+        for surface, acoustics in self.surfaces.items():
+            if surface not in SURFACE_CLASSES or not set(acoustics) <= {"reflection", "scattering"}:
+                raise ValueError(
+                    f"Physics.surfaces {surface!r}: classes are {SURFACE_CLASSES}, each with reflection "
+                    f"and/or scattering ranges, got {acoustics!r}"
+                )
+            for name, spec in acoustics.items():
+                draw_value(np.random.default_rng(0), f"surfaces.{surface}.{name}", spec)
+                if not all(0.0 <= end <= 1.0 for end in _extremes(spec)):
+                    raise ValueError(f"Physics.surfaces {surface}.{name}: energy fractions lie in 0..1, got {spec}")
 
     def draw(self, nominal: SimConfig, rng: np.random.Generator) -> tuple[SimConfig, dict]:
         """`nominal` with this variant's `vary` drawn from `rng` (keys in sorted order) ->
@@ -126,10 +142,18 @@ class Physics:
         draws = {key: draw_value(rng, key, self.vary[key]) for key in sorted(self.vary)}
         return _drawn_rig(nominal, draws), draws
 
+    def draw_surfaces(self, rng: np.random.Generator) -> dict:
+        """One episode's acoustics per surface class, drawn from `rng` in sorted order."""
+        return {
+            surface: {name: draw_value(rng, name, spec) for name, spec in sorted(self.surfaces[surface].items())}
+            for surface in sorted(self.surfaces)
+        }
+
     def to_json(self) -> dict:
         out = dataclasses.asdict(self)
-        if not out["vary"]:  # so that variants without draws keep the plan ids of earlier runs
-            del out["vary"]
+        for name in ("vary", "surfaces"):  # left out when empty: shards of variants without them stay lean
+            if not out[name]:
+                del out[name]
         return out
 
     def tracer(self) -> TracerConfig:

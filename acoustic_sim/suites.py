@@ -17,9 +17,13 @@ from pathlib import Path
 import numpy as np
 
 import scenes
+from scenes.surfaces import SURFACE_CLASSES
 
 from .config import check_finite
 from .physics import Physics, draw_value, rig
+
+DRIVE = {"speed_m_s": 0.3, "sensor_height_m": 0.3, "turn_rate_rad_s": 1.0}
+"""A suite's drive settings and their defaults."""
 
 __all__ = ["SUITES", "Physics", "Scenario", "Suite", "load_suite", "rig"]  # Physics and rig live in physics.py
 
@@ -76,6 +80,9 @@ class Suite:
         episode_frames: Frames per robot drive (an episode); windows never cross episodes.
         dt_s: Time between frames [s] (the sonar rate).
         speed_m_s: Robot speed [m/s].
+        sensor_height_m: Sensor height above the floor [m].
+        turn_rate_rad_s: Fastest turn on the spot [rad/s].
+            These three may each be [low, high], drawn per episode (the same for every variant).
         settings: `section.field=value` changes to every variant's rig (`rig`), applied after
             its physics: e.g. "lidar=multibeam_64x1024" (a preset), "processing.grid.range_max_m=4".
     """
@@ -87,7 +94,9 @@ class Suite:
     frames: int = 300
     episode_frames: int = 100
     dt_s: float = 0.1
-    speed_m_s: float = 0.3
+    speed_m_s: float | list[float] = 0.3
+    sensor_height_m: float | list[float] = DRIVE["sensor_height_m"]
+    turn_rate_rad_s: float | list[float] = DRIVE["turn_rate_rad_s"]
     settings: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
@@ -110,14 +119,34 @@ class Suite:
                     f"suite {self.name!r}: variant name {variant!r} must be letters, digits, '_', '-' or '.' "
                     "(not starting with '.'): it names a folder under --out"
                 )
-        if self.frames < 1 or self.episode_frames < 1 or not self.dt_s > 0 or self.speed_m_s < 0:
-            raise ValueError(f"suite {self.name!r}: frames, episode_frames >= 1, dt_s > 0, speed_m_s >= 0")
+        if self.frames < 1 or self.episode_frames < 1 or not self.dt_s > 0:
+            raise ValueError(f"suite {self.name!r}: frames, episode_frames >= 1, dt_s > 0")
+        for name, low in (("speed_m_s", 0.0), ("sensor_height_m", 0.0), ("turn_rate_rad_s", 1e-3)):
+            spec = getattr(self, name)
+            ends = [spec, spec] if np.ndim(spec) == 0 else spec
+            draw_value(np.random.default_rng(0), f"suite {self.name!r} {name}", list(ends))  # a number or [low, high]
+            if min(ends) < low:
+                raise ValueError(f"suite {self.name!r}: {name} must be >= {low}, got {spec}")
 
     def to_json(self) -> dict:
         out = dataclasses.asdict(self) | {"variants": {k: p.to_json() for k, p in self.variants.items()}}
+        for name, default in DRIVE.items():  # left out at their defaults, as suites before them had
+            if out[name] == default:
+                del out[name]
         if not out["settings"]:  # so that suites without settings keep the plan ids of earlier runs
             del out["settings"]
         return out
+
+
+def episode_drive(suite: dict, seed: int) -> dict:
+    """Speed, sensor height and turn rate of one episode's drive: the suite's, drawn where it gives
+    [low, high] (from the episode's seed, so every variant drives alike)."""
+    rng = np.random.default_rng([seed, 5])
+    drive = {}
+    for name, default in DRIVE.items():
+        spec = suite.get(name, default)
+        drive[name] = draw_value(rng, name, spec) if isinstance(spec, list | tuple) else spec
+    return drive
 
 
 def _scenario(name: str, builder: str, weight: float = 1.0, **params) -> Scenario:
@@ -148,8 +177,36 @@ PAPER_SCENARIOS = (
 # every suite draws its own).
 REALITY_SCENARIOS = (
     _scenario("corridor_long", "corridor", reflectors="many", length=[20.0, 30.0], width=[2.2, 3.0]),
-    _scenario("office_large", "office", clutter={"choice": ["medium", "high"]}, size=[[9.0, 12.0], [7.0, 9.0], 3.0]),
+    _scenario("office_large", "office", clutter={"choice": ["medium", "high"]}, size=[[10.0, 12.0], [8.0, 9.0], 3.0]),
     _scenario("random_mixed", "random_world", size=[[9.0, 11.0], [9.0, 11.0], 2.8], object_scale=[0.7, 1.3]),
+)
+
+# Empty rooms with polygon floor plans, floor to ceiling 2.2-5 m, a fifth of them open to the sky.
+POLYGON_SCENARIOS = tuple(
+    _scenario(
+        f"empty_{plan}",
+        "polygon_room",
+        plan=plan,
+        height=[2.2, 5.0],
+        ceiling={"choice": ["ceiling_tile"] * 4 + [None]},
+    )
+    for plan in scenes.FLOOR_PLANS
+)
+
+# Everything about the sensor and the surfaces that a real deployment could differ in, drawn per
+# episode: emitter directivity (piston radius 1-20 mm) and offset, what walls, floor, ceiling and
+# objects reflect and scatter, air temperature, SNR, microphone mismatch, LiDAR noise.
+RANDOMISED_PHYSICS = dict(
+    snr_db=(10.0, 35.0),
+    temperature_c=(0.0, 35.0),
+    mic_position_sigma_m=3e-4,
+    mic_gain_sigma_db=1.0,
+    mic_delay_sigma_s=2e-6,
+    lidar_noise="gaussian",
+    lidar_noise_m=0.012,
+    lidar_dropout_probability=0.01,
+    vary={"sonar.emitter_radius_m": [0.001, 0.02], "sonar.emitter_m": [[-0.03, 0.03], [-0.03, 0.03], [0.0, 0.08]]},
+    surfaces={c: {"reflection": [0.5, 0.99], "scattering": [0.0, 0.5]} for c in SURFACE_CLASSES},
 )
 
 SUITES: dict[str, Suite] = {
@@ -205,6 +262,25 @@ SUITES: dict[str, Suite] = {
                 )
             },
             frames=1_500,
+        ),
+        Suite(
+            name="randomised",
+            description="Randomised physics for sim-to-real: the paper's cluttered scenarios and empty L, T, U, "
+            "junction and hall rooms (2.2-5 m high, some open), with emitter directivity and offset, per-class "
+            "wall/floor/ceiling/object reflection and scattering, air, SNR, microphone mismatch, sensor height "
+            "(0.15-0.6 m), speed and turn rate drawn per episode; rendered with max_bounces 0, 1 and 3, and "
+            "1-6 drawn per episode.",
+            scenarios=(*PAPER_SCENARIOS, *(dataclasses.replace(s, weight=1.2) for s in POLYGON_SCENARIOS)),
+            variants={
+                **{f"bounces_{b}": Physics(max_bounces=b, **RANDOMISED_PHYSICS) for b in (0, 1, 3)},
+                "bounces_1to6": Physics(
+                    **RANDOMISED_PHYSICS | {"vary": RANDOMISED_PHYSICS["vary"] | {"tracer.max_bounces": [1, 6]}}
+                ),
+            },
+            frames=12_500,
+            speed_m_s=[0.2, 0.5],
+            sensor_height_m=[0.15, 0.6],
+            turn_rate_rad_s=[0.5, 1.5],
         ),
         Suite(
             name="tiny",
