@@ -33,16 +33,17 @@ def _configs(args):
         "model": ModelConfig(name=args.model, frames=args.frames, width=args.width),
         "data": DataConfig(frames=args.frames, label=args.label),
         "train": train,
+        "augment": train.augment,
     }
     configs = apply_settings(configs, args.set or ())
     if configs["model"].frames != configs["data"].frames:
         raise ValueError("model.frames and data.frames must agree: set the window length with --frames")
-    return configs["model"], configs["data"], configs["train"]
+    return configs["model"], configs["data"], dataclasses.replace(configs["train"], augment=configs["augment"])
 
 
 def apply_settings(configs: dict, settings) -> dict:
-    """`--set section.field=value` on the learner's configs (sections model, data, train; e.g.
-    train.pos_weight=5, data.floor_db=50). The value is read as the field's type, `none` for an
+    """`--set section.field=value` on the learner's configs (sections model, data, train, augment;
+    e.g. train.pos_weight=5, data.floor_db=50, augment.mirror=0.5). The value is read as the field's type, `none` for an
     optional field; the config itself then checks it, so a refusal names the setting."""
     configs = dict(configs)
     for setting in settings:
@@ -237,7 +238,8 @@ def _training_options(p) -> None:
         "--set",
         action="append",
         metavar="SECTION.FIELD=VALUE",
-        help="any config field, after the options above (repeatable; e.g. train.pos_weight=5, data.floor_db=50)",
+        help="any config field, after the options above (repeatable; e.g. train.pos_weight=5, data.floor_db=50, "
+        "augment.mirror=0.5, augment.floor_jitter_db=10, augment.range_tilt_db=6, augment.band_masks=2)",
     )
 
 

@@ -163,8 +163,9 @@ def load_frames(folder: str | Path) -> Frames:
     return Frames(energyscape, label, episode, scenario, names, grid[0], grid[1], info)
 
 
-def normalise(energyscape: torch.Tensor, floor_db: float) -> torch.Tensor:
-    """Energyscapes (..., R, A) -> dB below each image's peak, floored at -floor_db, in [0, 1]."""
+def normalise(energyscape: torch.Tensor, floor_db: float | torch.Tensor) -> torch.Tensor:
+    """Energyscapes (..., R, A) -> dB below each image's peak, floored at -floor_db, in [0, 1]
+    (`floor_db` may be a tensor that broadcasts: one floor per window)."""
     e = energyscape.float().clamp_min(0.0)
     peak = e.amax(dim=(-2, -1), keepdim=True).clamp_min(1e-12)
     db = 20.0 * torch.log10((e / peak).clamp_min(10.0 ** (-floor_db / 20.0)))
@@ -219,11 +220,14 @@ class Windows:
         return len(self.starts)
 
     def batch(self, indices) -> tuple[torch.Tensor, torch.Tensor]:
+        energy, y = self.raw(indices)
+        return normalise(energy, self.config.floor_db)[:, None], y[:, None]
+
+    def raw(self, indices) -> tuple[torch.Tensor, torch.Tensor]:
+        """Energyscapes as stored (B, K, R, A) and labels (B, R, A), before normalisation."""
         index = torch.as_tensor(indices, device=self.device, dtype=torch.int64)
         start = self._starts[index]
-        x = normalise(self._energyscape[start[:, None] + self._offsets], self.config.floor_db)
-        y = self._label[start + self.config.label_offset].float()
-        return x[:, None], y[:, None]
+        return self._energyscape[start[:, None] + self._offsets], self._label[start + self.config.label_offset].float()
 
 
 def split_groups(groups: np.ndarray, folds: int, *, seed: int = 0) -> np.ndarray:

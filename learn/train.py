@@ -21,7 +21,7 @@ import math
 import os
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +29,7 @@ import torch
 import torch.nn.functional as F
 from tqdm.auto import tqdm
 
+from .augment import AugmentConfig, augmented_batch
 from .checkpoint import check_compatible, save_checkpoint
 from .data import FORMAT_VERSION, DataConfig, Frames, Windows, load_frames, split_groups, torch_device, validation_split
 from .evaluate import calibrate_threshold, model_predictor, score
@@ -58,6 +59,7 @@ class TrainConfig:
         amp: bfloat16 autocast on GPUs.
         max_minutes: Time budget: no new epoch starts once this many minutes have passed since
             the run (or its resumption) began.
+        augment: Training-time augmentation (`learn.augment`; off by default).
     """
 
     epochs: int = 15
@@ -74,6 +76,7 @@ class TrainConfig:
     max_val_windows: int | None = 2000
     amp: bool = True
     max_minutes: float | None = None
+    augment: AugmentConfig = field(default_factory=AugmentConfig)
 
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
@@ -299,6 +302,7 @@ def _train_one(
         run |= {"device": str(dev), "resumed": resumed, "init_from": None if init_from is None else str(init_from)}
         (out / "config.json").write_text(json.dumps(run, indent=1))
     rng = np.random.default_rng(config.seed + 1000 * state["epoch"])
+    draws = torch.Generator(device=dev)  # augmentation draws, reseeded every epoch like the order
     while state["epoch"] < config.epochs and state["stale"] < config.patience:
         epoch = state["epoch"]
         model.train()
@@ -310,8 +314,13 @@ def _train_one(
         steps = math.ceil(len(order) / config.batch_size)
         bar = tqdm(total=len(order), desc=f"epoch {epoch + 1}", unit="win", disable=not (progress and dist_info.main))
         t0, total = time.perf_counter(), 0.0
+        draws.manual_seed(config.seed + 1000 * epoch + dist_info.rank)
         for s in range(steps):
-            x, y = windows.batch(order[s * config.batch_size : (s + 1) * config.batch_size])
+            chunk = order[s * config.batch_size : (s + 1) * config.batch_size]
+            if config.augment.active:
+                x, y = augmented_batch(windows, chunk, config.augment, draws)
+            else:
+                x, y = windows.batch(chunk)
             with torch.autocast("cuda", dtype=torch.bfloat16, enabled=use_amp):
                 loss = loss_fn(model, x, y, config)
             if not torch.isfinite(loss):  # one sync per step; NaN would silently end with no best.pt

@@ -333,8 +333,8 @@ def test_set_reaches_fields_no_option_names_and_the_run_records_them(tiny_datase
 @pytest.mark.parametrize(
     "setting, message",
     [
-        ("train.lr", "--set wants model|data|train.field=value"),
-        ("optim.lr=1", "--set wants model|data|train.field=value"),
+        ("train.lr", "--set wants model|data|train|augment.field=value"),
+        ("optim.lr=1", "--set wants model|data|train|augment.field=value"),
         ("train.speed=1", "train has no field 'speed'"),
         ("train.epochs=1.5", "invalid literal for int"),
         ("train.amp=maybe", "'maybe' is not true or false"),
@@ -351,3 +351,46 @@ def test_bad_learner_settings_are_refused_by_name(setting, message, capsys):
     err = capsys.readouterr().err
     assert err.startswith("error: ") and message in err
     assert setting in err or "must agree" in message
+
+
+def test_augmentations_change_training_windows_as_stated(tiny_dataset):
+    """Off: the plain batch. Mirror: input and label flipped together. Floor jitter, range tilt
+    and band masks: other inputs in [0, 1], the label untouched, the same draws from the same seed."""
+    from learn.augment import AugmentConfig, augmented_batch
+
+    windows = Windows(load_frames(tiny_dataset), DATA)
+    x, y = windows.batch([0, 1, 2])
+
+    def draw(config, seed=0):
+        return augmented_batch(windows, [0, 1, 2], config, torch.Generator().manual_seed(seed))
+
+    plain = draw(AugmentConfig())
+    torch.testing.assert_close(plain[0], x)
+    torch.testing.assert_close(plain[1], y)
+    mirrored = draw(AugmentConfig(mirror=1.0))
+    torch.testing.assert_close(mirrored[0], x.flip(-1))
+    torch.testing.assert_close(mirrored[1], y.flip(-1))
+    assert not torch.equal(x, x.flip(-1)) and not torch.equal(y, y.flip(-1))  # so the comparison can fail
+    for config in (AugmentConfig(floor_jitter_db=10.0), AugmentConfig(range_tilt_db=6.0), AugmentConfig(band_masks=3)):
+        changed, label = draw(config)
+        assert changed.min() >= 0 and changed.max() <= 1 and not torch.equal(changed, x)
+        torch.testing.assert_close(label, y)
+        torch.testing.assert_close(draw(config)[0], changed)
+        assert not torch.equal(draw(config, seed=1)[0], changed)
+    masked, _ = draw(AugmentConfig(band_masks=3))
+    assert ((masked == 0).all(dim=-1).sum() > (x == 0).all(dim=-1).sum()).item()  # whole rows at the floor
+    with pytest.raises(ValueError, match="probability"):
+        AugmentConfig(mirror=1.5)
+
+
+@pytest.mark.filterwarnings("ignore:.*predicts no return")
+def test_training_with_augmentation_records_it(tiny_dataset, tmp_path):
+    from learn.cli import main
+
+    run = tmp_path / "run"
+    argv = ["train", "--data", str(tiny_dataset), "--out", str(run), "--frames", "3", "--width", "4", "--epochs", "1"]
+    argv += ["--batch-size", "4", "--loss", "bce", "--val-fraction", "0.5", "--max-val-windows", "8", "--quiet"]
+    assert main([*argv, "--set", "augment.mirror=0.5", "--set", "augment.band_masks=2"]) == 0
+    augment = json.loads((run / "config.json").read_text())["train_config"]["augment"]
+    assert augment == {"mirror": 0.5, "floor_jitter_db": 0.0, "range_tilt_db": 0.0, "band_masks": 2}
+    assert load_checkpoint(run / "best.pt")[1]["train_config"]["augment"]["mirror"] == 0.5

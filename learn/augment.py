@@ -1,0 +1,73 @@
+"""Training-time changes to windows, so a model trained on one simulator reads walls off echoes of
+another: azimuth mirroring (input and label together), a jittered dB floor, a gain tilted over
+range, and masked range bands. Drawn per window from a seeded generator; never applied to
+validation or test windows."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+
+from .data import Windows, normalise
+
+
+@dataclass(frozen=True, kw_only=True)
+class AugmentConfig:
+    """What `augmented_batch` changes (all off by default; stored with every checkpoint).
+
+    Attributes:
+        mirror: Probability of mirroring a window and its label in azimuth (the grid is
+            symmetric about straight ahead).
+        floor_jitter_db: The input's dB floor drawn per window in floor_db +- this [dB].
+        range_tilt_db: A gain linear in range, drawn per window between -this and +this [dB] at
+            the far end of the grid (0 dB at the near end): spreading and absorption differ
+            between engines and sensors.
+        band_masks: Range bands per window (each up to a tenth of the grid) set to the floor.
+    """
+
+    mirror: float = 0.0
+    floor_jitter_db: float = 0.0
+    range_tilt_db: float = 0.0
+    band_masks: int = 0
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.mirror <= 1.0:
+            raise ValueError(f"augment.mirror is a probability in 0..1, got {self.mirror}")
+        values = (self.floor_jitter_db, self.range_tilt_db, self.band_masks)
+        if min(values) < 0 or not all(math.isfinite(v) for v in values):
+            raise ValueError(f"augment sizes must be finite and >= 0, got {values}")
+
+    @property
+    def active(self) -> bool:
+        return bool(self.mirror or self.floor_jitter_db or self.range_tilt_db or self.band_masks)
+
+
+def augmented_batch(
+    windows: Windows, indices, config: AugmentConfig, generator: torch.Generator
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """`windows.batch(indices)` with this window's draws applied: x (B, 1, K, R, A) in [0, 1], y."""
+    energy, y = windows.raw(indices)  # (B, K, R, A) linear, (B, R, A)
+    b, _, r, _ = energy.shape
+    dev = energy.device
+
+    def uniform(*shape):
+        return torch.rand(*shape, generator=generator, device=dev)
+
+    if config.range_tilt_db:
+        tilt = (2 * uniform(b, 1, 1, 1) - 1) * config.range_tilt_db * torch.linspace(0, 1, r, device=dev)[:, None]
+        energy = energy * 10.0 ** (tilt / 20.0)
+    floor = windows.config.floor_db + (2 * uniform(b, 1, 1, 1) - 1) * config.floor_jitter_db
+    x = normalise(energy, floor.clamp_min(1.0))
+    if config.band_masks:
+        rows = torch.arange(r, device=dev)
+        for _ in range(config.band_masks):
+            start = uniform(b, 1, 1, 1) * r
+            width = uniform(b, 1, 1, 1) * (r / 10)
+            x = torch.where((rows[:, None] >= start) & (rows[:, None] < start + width), 0.0, x)
+    if config.mirror:
+        flip = uniform(b) < config.mirror
+        x = torch.where(flip[:, None, None, None], x.flip(-1), x)
+        y = torch.where(flip[:, None, None], y.flip(-1), y)
+    return x[:, None], y[:, None]
