@@ -172,7 +172,7 @@ def _sim2real(args) -> int:
     model, data, config = _configs(args)
     sim2real(
         args.ablation,
-        args.reality,
+        {"reality": args.reality, **_named_folders(args.test or [])},
         args.out,
         model=model.name,
         width=model.width,
@@ -184,6 +184,16 @@ def _sim2real(args) -> int:
     )
     print(f"wrote {args.out}/sim2real.md")
     return 0
+
+
+def _named_folders(items: list[str]) -> dict:
+    named = {}
+    for item in items:
+        name, sep, folder = item.partition("=")
+        if not sep or not name or not folder or name in named or name == "reality":
+            raise ValueError(f"--test wants NAME=FOLDER with a new name (not reality), got {item!r}")
+        named[name] = folder
+    return named
 
 
 def _sim2real_summary(args) -> int:
@@ -302,10 +312,23 @@ def build_parser() -> argparse.ArgumentParser:
     _training_options(p)
     p.set_defaults(handler=_table2)
     p = sub.add_parser(
-        "sim2real", help="train per ablation variant, score on the reality suite", formatter_class=fmt, parents=[common]
+        "sim2real",
+        help="train per bounce variant, score on reality and other test sets",
+        formatter_class=fmt,
+        parents=[common],
     )
-    p.add_argument("--ablation", required=True, help="ablation suite folder (bounces_0/, bounces_1/, bounces_3/)")
+    p.add_argument(
+        "--ablation",
+        required=True,
+        help="training suite with bounce variants: ablation or randomised (bounces_0/, bounces_1/, ...)",
+    )
     p.add_argument("--reality", required=True, help="reality suite folder")
+    p.add_argument(
+        "--test",
+        action="append",
+        metavar="NAME=FOLDER",
+        help="another test set to score every model on, e.g. crossengine=data/crossengine (repeatable)",
+    )
     p.add_argument("--out", required=True)
     _training_options(p)
     p.set_defaults(handler=_sim2real)

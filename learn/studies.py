@@ -27,6 +27,7 @@ FRAME_COUNTS = (1, 3, 5)
 SIM2REAL_KEYS = (("scan_f1", "scan F1"), ("beam_accuracy", "beam acc."), ("chamfer_m", "Chamfer [m]"), ("iou", "IoU"))
 
 DEFAULT_DATA = DataConfig()  # frozen: safe to share as a default
+ECHO_PEAK = "_echo_peak"  # a sim2real table's key for the baseline on a test set: "reality_echo_peak"
 
 
 def _variant_folder(root: Path, name: str) -> Path:
@@ -124,14 +125,19 @@ def sim2real(
     device: str = "cpu",
     progress: bool = True,
 ) -> dict:
-    """One model per ablation variant (max_bounces 0, 1, 3), each scored on its own held-out
-    episodes (in-domain) and on every window of the reality suite. `data_config` gives the window
-    settings other than K, which is `frames`."""
+    """One model per variant of a training suite with bounce variants (`ablation`, `randomised`:
+    max_bounces 0, 1, 3, ...), each scored on its own held-out episodes (in-domain) and on every
+    window of each test set, beside the echo-peak baseline there. `reality` is one folder (named
+    "reality") or {name: folder}, e.g. {"reality": ..., "crossengine": ...}. `data_config` gives
+    the window settings other than K, which is `frames`."""
     out, root = Path(out), Path(ablation)
     variants = sorted(p.name for p in root.iterdir() if p.is_dir() and any(p.glob("shard-*.h5")))
     if not variants:
         raise ValueError(f"{root} holds no variant folders with shards (expected bounces_0, bounces_1, ...)")
-    real = load_frames(reality)
+    tests = {"reality": reality} if isinstance(reality, str | Path) else dict(reality)
+    if not tests or "in_domain" in tests or any(name.endswith(ECHO_PEAK) for name in tests):
+        raise ValueError(f"name the test sets (not in_domain or ...{ECHO_PEAK}), got {list(tests)}")
+    test_frames = {name: load_frames(folder) for name, folder in tests.items()}
     table = {}
     for v in variants:
         run = out / v
@@ -148,22 +154,24 @@ def sim2real(
         own = evaluate(
             run / "best.pt", _variant_folder(root, v), run / "in_domain", device=device, split="val", timing=False
         )
-        far = evaluate(run / "best.pt", real, run / "reality", device=device, split="all", timing=False)
-        table[v] = {
-            "in_domain": own["results"]["model"]["all"],
-            "reality": far["results"]["model"]["all"],
-            "reality_echo_peak": far["results"]["echo peak"]["all"],
-        }
-    header = (
-        f"Training data `{ablation}`, held-out 'reality' data `{reality}`. Mean over windows (std in metrics.json)."
-    )
+        table[v] = {"in_domain": own["results"]["model"]["all"]}
+        for name, test in test_frames.items():
+            far = evaluate(run / "best.pt", test, run / name, device=device, split="all", timing=False)
+            table[v] |= {name: far["results"]["model"]["all"], name + ECHO_PEAK: far["results"]["echo peak"]["all"]}
+    sets = ", ".join(f"{name} `{folder}`" for name, folder in tests.items())
+    header = f"Training data `{ablation}`; test sets: {sets}. Mean over windows (std in metrics.json)."
     _write_sim2real(
         table,
         out,
-        f"Sim-to-real: {model} (K = {frames}) trained per multipath setting, scored on the reality suite",
+        f"Sim-to-real: {model} (K = {frames}) trained per multipath setting, scored on {', '.join(tests)}",
         header,
     )
     return table
+
+
+def _test_sets(table: dict) -> list[str]:
+    first = next(iter(table.values()))
+    return [k for k in first if k != "in_domain" and not k.endswith(ECHO_PEAK)]
 
 
 def sim2real_summary(runs: list[str | Path], out: str | Path) -> dict:
@@ -181,29 +189,27 @@ def sim2real_summary(runs: list[str | Path], out: str | Path) -> dict:
         values = [t[v][where][key]["mean"] for t in tables]
         return {"mean": float(np.mean(values)), "std": float(np.std(values)), "runs": values}
 
-    wheres = ("in_domain", "reality", "reality_echo_peak")
+    tests = _test_sets(tables[0])
+    wheres = ("in_domain", *tests, *(t + ECHO_PEAK for t in tests))
     summary = {v: {w: {k: across(v, w, k) for k, _ in SIM2REAL_KEYS} for w in wheres} for v in variants}
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     names = ", ".join(f"`{Path(r).name}`" for r in runs)
     header = f"Mean and std over {len(runs)} runs ({names}); each run's value is its mean over windows."
     _write_sim2real(summary, out, f"Sim-to-real over {len(runs)} runs", header, errorbars=True)
-    scores = {v: np.array(summary[v]["reality"]["scan_f1"]["runs"]) for v in variants}
     run_names = " | ".join(Path(r).name for r in runs)
-    per_run = [
-        "",
-        "Reality scan F1 of each run:",
-        "",
-        f"| trained on | {run_names} |",
-        "|---" * (1 + len(runs)) + "|",
-    ]
-    per_run += [f"| {v} | " + " | ".join(f"{x:.4f}" for x in scores[v]) + " |" for v in variants]
-    # Paired per run (same scenes and seed), so scene difficulty cancels out of the difference.
-    first = variants[0]
-    per_run += [
-        f"| {v} minus {first} | " + " | ".join(f"{x:+.4f}" for x in scores[v] - scores[first]) + " |"
-        for v in variants[1:]
-    ]
+    per_run = []
+    for test in tests:
+        scores = {v: np.array(summary[v][test]["scan_f1"]["runs"]) for v in variants}
+        per_run += ["", f"{test} scan F1 of each run:", "", f"| trained on | {run_names} |"]
+        per_run += ["|---" * (1 + len(runs)) + "|"]
+        per_run += [f"| {v} | " + " | ".join(f"{x:.4f}" for x in scores[v]) + " |" for v in variants]
+        # Paired per run (same scenes and seed), so scene difficulty cancels out of the difference.
+        first = variants[0]
+        per_run += [
+            f"| {v} minus {first} | " + " | ".join(f"{x:+.4f}" for x in scores[v] - scores[first]) + " |"
+            for v in variants[1:]
+        ]
     with open(out / "sim2real.md", "a") as f:
         f.write("\n".join(per_run) + "\n")
     return summary
@@ -213,19 +219,22 @@ def _write_sim2real(table: dict, out: Path, title: str, header: str, errorbars: 
     def cell(stats: dict) -> str:
         return f"{stats['mean']:.3f} ± {stats['std']:.3f}" if errorbars else f"{stats['mean']:.4f}"
 
+    wheres = ["in_domain", *_test_sets(table)]
+    columns = [(k, w) for k, _ in SIM2REAL_KEYS for w in wheres]
     lines = [
         f"# {title}",
         "",
         header,
         "",
-        "| trained on | " + " | ".join(f"{label} in-domain | {label} reality" for _, label in SIM2REAL_KEYS) + " |",
-        "|---" * (1 + 2 * len(SIM2REAL_KEYS)) + "|",
+        "| trained on | " + " | ".join(f"{label} {w.replace('_', '-')}" for _, label in SIM2REAL_KEYS for w in wheres),
+        "|---" * (1 + len(columns)) + "|",
     ]
+    lines[-2] += " |"
     for v, r in table.items():
-        cells = [f"{cell(r['in_domain'][k])} | {cell(r['reality'][k])}" for k, _ in SIM2REAL_KEYS]
-        lines.append(f"| {v} | " + " | ".join(cells) + " |")
-    base = next(iter(table.values()))["reality_echo_peak"]
-    lines.append("| echo-peak baseline | " + " | ".join(f"- | {cell(base[k])}" for k, _ in SIM2REAL_KEYS) + " |")
+        lines.append(f"| {v} | " + " | ".join(cell(r[w][k]) for k, w in columns) + " |")
+    first = next(iter(table.values()))
+    baseline = [("-" if w == "in_domain" else cell(first[w + ECHO_PEAK][k])) for k, w in columns]
+    lines.append("| echo-peak baseline | " + " | ".join(baseline) + " |")
     (out / "sim2real.md").write_text("\n".join(lines) + "\n")
     (out / "sim2real.json").write_text(json.dumps(table, indent=1))
     _plot_sim2real(table, out / "sim2real.png", errorbars)
@@ -240,11 +249,14 @@ def _plot_sim2real(table: dict, path: Path, errorbars: bool) -> None:
     fig, axes = plt.subplots(1, len(SIM2REAL_KEYS), figsize=(4 * len(SIM2REAL_KEYS), 3.4))
     names = list(table)
     x = np.arange(len(names))
+    wheres = ["in_domain", *_test_sets(table)]
+    width = 0.8 / len(wheres)
     for ax, (k, label) in zip(axes, SIM2REAL_KEYS, strict=True):
-        for shift, where in ((-0.2, "in_domain"), (0.2, "reality")):
+        for i, where in enumerate(wheres):
             stats = [table[n][where][k] for n in names]
             spread = [s["std"] for s in stats] if errorbars else None
-            ax.bar(x + shift, [s["mean"] for s in stats], 0.4, yerr=spread, capsize=3, label=where.replace("_", "-"))
+            shift = (i - (len(wheres) - 1) / 2) * width
+            ax.bar(x + shift, [s["mean"] for s in stats], width, yerr=spread, capsize=3, label=where.replace("_", "-"))
         ax.set_xticks(x, names)
         ax.set_title(label)
         ax.grid(axis="y", alpha=0.3)

@@ -394,3 +394,25 @@ def test_training_with_augmentation_records_it(tiny_dataset, tmp_path):
     augment = json.loads((run / "config.json").read_text())["train_config"]["augment"]
     assert augment == {"mirror": 0.5, "floor_jitter_db": 0.0, "range_tilt_db": 0.0, "band_masks": 2}
     assert load_checkpoint(run / "best.pt")[1]["train_config"]["augment"]["mirror"] == 0.5
+
+
+@pytest.mark.filterwarnings("ignore:.*predicts no return")
+def test_sim2real_scores_every_named_test_set_beside_its_echo_peak(tiny_dataset, tmp_path, capsys):
+    """Each test set gets its own model and echo-peak columns, report folder and paired table."""
+    from learn.cli import main
+
+    ablation = tmp_path / "ablation"
+    (ablation / "bounces_0").mkdir(parents=True)
+    for shard in tiny_dataset.glob("*"):
+        (ablation / "bounces_0" / shard.name).symlink_to(shard)
+    argv = ["sim2real", "--ablation", str(ablation), "--reality", str(tiny_dataset), "--frames", "3", "--width", "4"]
+    argv += ["--epochs", "1", "--batch-size", "4", "--loss", "bce", "--val-fraction", "0.5", "--quiet"]
+    assert main([*argv, "--test", f"crossengine={tiny_dataset}", "--out", str(tmp_path / "s")]) == 0
+    table = json.loads((tmp_path / "s" / "sim2real.json").read_text())["bounces_0"]
+    assert list(table) == ["in_domain", "reality", "reality_echo_peak", "crossengine", "crossengine_echo_peak"]
+    report = json.loads((tmp_path / "s" / "bounces_0" / "crossengine" / "metrics.json").read_text())
+    assert _same(table["crossengine_echo_peak"], report["results"]["echo peak"]["all"])
+    header = (tmp_path / "s" / "sim2real.md").read_text().splitlines()[4]
+    assert "scan F1 in-domain | scan F1 reality | scan F1 crossengine" in header
+    assert main([*argv, "--test", "reality=x", "--out", str(tmp_path / "t")]) == 2
+    assert "--test wants NAME=FOLDER" in capsys.readouterr().err
