@@ -23,6 +23,8 @@
 #
 # The pretrained model shipped in learn/pretrained/ is polar_unet seed 0's best.pt without its
 # optimizer state (`python -c "from learn.checkpoint import strip_checkpoint; strip_checkpoint(A, B)"`).
+# Each training process holds the whole dataset on the GPU (~8-9 GB with 60,000 frames): nine side
+# by side ran an 80 GB H100 out of memory; keep to seven at most.
 # Environment: K (window length, 5; runs of other K are named MODEL_kK_seedS), FRAMES (60000),
 # MINUTES (time budget per call and run), DEVICE (cuda), GEN_DEVICE,
 # TRAIN_OPTS (more `learn train` options, e.g. --channels-last).
