@@ -128,6 +128,10 @@ def _generate(args) -> int:
         keep_arrivals=args.arrivals,
         progress=not args.quiet,
     )
+    return _report(summary)
+
+
+def _report(summary: dict) -> int:
     print(
         f"{summary['suite']}: {summary['frames']:,} frames in {summary['shards']} shards under {summary['out']} "
         f"({summary['shards_written']} written, {summary['shards_skipped']} already complete) in "
@@ -151,11 +155,7 @@ def _generate_crossengine(args) -> int:
         workers=args.workers,
         progress=not args.quiet,
     )
-    print(
-        f"crossengine: {summary['frames']:,} frames in {summary['shards']} shards under {summary['out']} "
-        f"({summary['shards_written']} written) in {summary['seconds']:.1f} s on {', '.join(summary['devices'])}"
-    )
-    return 0
+    return _report(summary)
 
 
 SET_HELP = (
