@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import multiprocessing
 import time
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
@@ -220,7 +221,8 @@ def generate_crossengine(
             todo.append(i)
         bar = tqdm(total=frames, initial=frames - sum(lengths[i] for i in todo), unit="frame", disable=not progress)
         bar.set_description("crossengine")
-        with ProcessPoolExecutor(workers) as pool:
+        context = multiprocessing.get_context("spawn")  # the parent has started Warp (and CUDA): never fork it
+        with ProcessPoolExecutor(workers, mp_context=context) as pool:
             jobs = {i: pool.submit(simulate_episode, i, lengths[i], seed, device) for i in todo}
             for i, job in jobs.items():
                 arrays, record = job.result()
