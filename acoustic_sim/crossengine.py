@@ -20,13 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
-from scenes import FLOOR_PLANS, floor_plan, polygon_room
+from scenes import FLOOR_PLANS, floor_plan, polygon_room, trajectory
 
 from .config import LidarConfig, ProcessingConfig, SonarConfig
+from .suites import DRIVE
 
 IMAGE_ORDER = 4  # reflections per path: walls, floor and ceiling alike
 SAMPLE_RATE_HZ = 450_000  # pyroomacoustics wants an integer rate
-SPEED_M_S = 0.3  # our robot's speed, as in every suite
+SPEED_M_S = DRIVE["speed_m_s"]  # our robot's speed, as in every suite with one speed
 DT_S = 0.1
 EPISODE_FRAMES = 100
 ENGINE = "pyroomacoustics image sources"
@@ -143,15 +144,13 @@ def planner_scene(room: Room):
 
 def simulate_episode(index: int, frames: int, seed: int, device: str) -> tuple[dict, dict]:
     """Episode `index` of the test set: its room, drive, recordings, energyscapes and LiDAR truth."""
-    import scenes
-
     from .beamform import energyscape
     from .lidar import lidar_image
 
     episode_seed = int(np.random.default_rng([seed, index]).integers(2**31 - 1))
     rng = np.random.default_rng(episode_seed)
     room = draw_room(FLOOR_PLANS[index % len(FLOOR_PLANS)], rng)
-    poses = scenes.trajectory(
+    poses = trajectory(
         planner_scene(room),
         frames=frames,
         dt=DT_S,

@@ -116,7 +116,7 @@ class Physics:
         sigmas = (self.mic_position_sigma_m, self.mic_gain_sigma_db, self.mic_delay_sigma_s, self.lidar_noise_m)
         if min(sigmas) < 0:
             raise ValueError("Physics: noise sizes and mismatch sigmas must be >= 0")
-        nominal = rig(self)
+        nominal = rig(self) if self.vary else None
         for key, spec in self.vary.items():
             if key in DRAWN_FIELDS:
                 raise ValueError(f"Physics.vary {key!r}: Physics.{DRAWN_FIELDS[key]} draws it")
