@@ -101,10 +101,21 @@ def loss_fn(model, x: torch.Tensor, y: torch.Tensor, config: TrainConfig) -> tor
     if config.loss == "bce":
         if kind != "logits":
             raise ValueError("loss 'bce' needs a model that outputs logits (not the paper network)")
-        weight = torch.tensor(config.pos_weight, device=out.device)
+        weight = torch.full((), config.pos_weight, device=out.device)  # a fill, not a host upload
         return F.binary_cross_entropy_with_logits(out.float(), y, pos_weight=weight)
     image = torch.sigmoid(out) if kind == "logits" else out
     return F.mse_loss(image.float(), y)
+
+
+CHECK_EVERY = 50  # training steps between reads of the summed loss (each read waits for the GPU)
+
+
+def _check_finite(total: torch.Tensor, epoch: int, step: int) -> None:
+    if not torch.isfinite(total):
+        raise FloatingPointError(
+            f"the training loss became {float(total)} in epoch {epoch + 1} by step {step + 1}: "
+            "lower --lr or check the data"
+        )
 
 
 def _unwrap(model):
@@ -312,32 +323,31 @@ def _train_one(
         per_rank = len(order) // dist_info.world
         order = order[dist_info.rank * per_rank : (dist_info.rank + 1) * per_rank]
         steps = math.ceil(len(order) / config.batch_size)
+        # Indices go to the device once per epoch and the loss is summed there: a host read per step
+        # (a print, a NaN check, an upload) would make the CPU wait for the GPU before every launch.
+        order_on_device = torch.as_tensor(order, device=dev)
         bar = tqdm(total=len(order), desc=f"epoch {epoch + 1}", unit="win", disable=not (progress and dist_info.main))
-        t0, total = time.perf_counter(), 0.0
+        t0, total = time.perf_counter(), torch.zeros((), device=dev)
         draws.manual_seed(config.seed + 1000 * epoch + dist_info.rank)
         for s in range(steps):
-            chunk = order[s * config.batch_size : (s + 1) * config.batch_size]
+            chunk = order_on_device[s * config.batch_size : (s + 1) * config.batch_size]
             if config.augment.active:
                 x, y = augmented_batch(windows, chunk, config.augment, draws)
             else:
                 x, y = windows.batch(chunk)
             with torch.autocast("cuda", dtype=torch.bfloat16, enabled=use_amp):
                 loss = loss_fn(model, x, y, config)
-            if not torch.isfinite(loss):  # one sync per step; NaN would silently end with no best.pt
-                raise FloatingPointError(
-                    f"the training loss became {float(loss.detach())} at epoch {epoch + 1}, step {s + 1}: "
-                    "lower --lr or check the data"
-                )
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
-            total += float(loss.detach()) * len(x)
+            total += loss.detach() * len(chunk)
             state["step"] += 1
-            bar.update(len(x))
-            bar.set_postfix(loss=f"{float(loss.detach()):.4g}")
-        if dev.type == "cuda":
-            torch.cuda.synchronize(dev)
-        train_s = time.perf_counter() - t0
+            bar.update(len(chunk))
+            if (s + 1) % CHECK_EVERY == 0 or s + 1 == steps:
+                _check_finite(total, epoch, s)  # NaN would silently end with no best.pt
+                bar.set_postfix(loss=f"{float(total) / min((s + 1) * config.batch_size, len(order)):.4g}")
+        train_s = time.perf_counter() - t0  # _check_finite has waited for the last step
+        total = float(total)
         bar.close()
         stop = torch.zeros(1, device=dev)
         if dist_info.main:
