@@ -113,6 +113,12 @@ def _generate(args) -> int:
             raise ValueError(f"suite {suite.name!r} varies max_bounces across its variants; drop --max-bounces")
         variants = {k: dataclasses.replace(p, max_bounces=args.max_bounces) for k, p in suite.variants.items()}
         suite = dataclasses.replace(suite, variants=variants)
+    if args.variants:
+        names = [v.strip() for v in args.variants.split(",")]
+        unknown = [v for v in names if v not in suite.variants]
+        if unknown or len(set(names)) != len(names):
+            raise ValueError(f"--variants: suite {suite.name!r} has variants {list(suite.variants)}, got {names}")
+        suite = dataclasses.replace(suite, variants={v: suite.variants[v] for v in names})
     if args.set:
         suite = dataclasses.replace(suite, settings=suite.settings + tuple(args.set))
     summary = generate(
@@ -236,6 +242,7 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--frames", type=int, default=None, help="frames per variant (default: the suite's)")
     gen.add_argument("--shards", type=int, default=None, help="shards per variant (default: one per 250 frames)")
     gen.add_argument("--max-bounces", type=int, default=None, help="override the suite's secondary bounces")
+    gen.add_argument("--variants", default=None, help="only these variants, comma-separated (e.g. bounces_0,bounces_3)")
     gen.add_argument(
         "--set", action="append", metavar="SECTION.FIELD=VALUE", help=SET_HELP + " (after each variant's physics)"
     )

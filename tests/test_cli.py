@@ -93,6 +93,14 @@ def test_generate_command_and_its_errors(tmp_path, device, capsys):
     assert "shards must lie in 1..1" in capsys.readouterr().err
     assert main(["generate", "--suite", "ablation", "--max-bounces", "2", "--out", str(tmp_path / "c")]) == 2
     assert "varies max_bounces" in capsys.readouterr().err
+    assert main(["generate", "--suite", "ablation", "--variants", "bounces_9", "--out", str(tmp_path / "d")]) == 2
+    assert "has variants ['bounces_0', 'bounces_1', 'bounces_3']" in capsys.readouterr().err
+
+
+def test_generate_only_the_named_variants(tmp_path, device):
+    args = ["generate", "--suite", "ablation", "--variants", "bounces_1", "--frames", "2", "--out", str(tmp_path)]
+    assert main([*args, "--device", device, "--quiet"]) == 0
+    assert [p.name for p in tmp_path.iterdir() if p.is_dir()] == ["bounces_1"]
 
 
 def test_render_writes_its_settings_beside_the_picture(tmp_path, device):
