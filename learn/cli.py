@@ -181,6 +181,7 @@ def _sim2real(args) -> int:
         data_config=data,
         device=args.device,
         progress=not args.quiet,
+        score_only=args.score_only,
     )
     print(f"wrote {args.out}/sim2real.md")
     return 0
@@ -328,6 +329,11 @@ def build_parser() -> argparse.ArgumentParser:
         action="append",
         metavar="NAME=FOLDER",
         help="another test set to score every model on, e.g. crossengine=data/crossengine (repeatable)",
+    )
+    p.add_argument(
+        "--score-only",
+        action="store_true",
+        help="train nothing: score the runs already in OUT/VARIANT (trained by `learn train`)",
     )
     p.add_argument("--out", required=True)
     _training_options(p)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -124,12 +125,17 @@ def sim2real(
     data_config: DataConfig = DEFAULT_DATA,
     device: str = "cpu",
     progress: bool = True,
+    score_only: bool = False,
 ) -> dict:
     """One model per variant of a training suite with bounce variants (`ablation`, `randomised`:
     max_bounces 0, 1, 3, ...), each scored on its own held-out episodes (in-domain) and on every
     window of each test set, beside the echo-peak baseline there. `reality` is one folder (named
     "reality") or {name: folder}, e.g. {"reality": ..., "crossengine": ...}. `data_config` gives
-    the window settings other than K, which is `frames`."""
+    the window settings other than K, which is `frames`.
+
+    `score_only`: train nothing; score the runs already in `out/VARIANT` (e.g. trained side by side
+    by `learn train` on a GPU, as benchmarks/sim2real_study.sh does), whose checkpoints name their
+    own model and settings."""
     out, root = Path(out), Path(ablation)
     variants = sorted(p.name for p in root.iterdir() if p.is_dir() and any(p.glob("shard-*.h5")))
     if not variants:
@@ -141,16 +147,19 @@ def sim2real(
     table = {}
     for v in variants:
         run = out / v
-        train(
-            _variant_folder(root, v),
-            run,
-            model_config=ModelConfig(name=model, frames=frames, width=width),
-            data_config=dataclasses.replace(data_config, frames=frames),
-            train_config=train_config,
-            device=device,
-            progress=progress,
-            resume=True,
-        )
+        if score_only:
+            model, frames = _trained_model(run)
+        else:
+            train(
+                _variant_folder(root, v),
+                run,
+                model_config=ModelConfig(name=model, frames=frames, width=width),
+                data_config=dataclasses.replace(data_config, frames=frames),
+                train_config=train_config,
+                device=device,
+                progress=progress,
+                resume=True,
+            )
         own = evaluate(
             run / "best.pt", _variant_folder(root, v), run / "in_domain", device=device, split="val", timing=False
         )
@@ -167,6 +176,22 @@ def sim2real(
         header,
     )
     return table
+
+
+def _trained_model(run: Path) -> tuple[str, int]:
+    """(model name, K) of a run to score, refused when it has no best.pt; a run whose training has
+    not stopped (neither early stopping nor its epoch limit) is scored with a warning."""
+    if not (run / "best.pt").is_file():
+        raise ValueError(f"{run} has no best.pt to score: train it first (learn train --out {run} ...)")
+    last = torch.load(run / "last.pt", map_location="cpu", weights_only=True)
+    state, config = last["state"], last["train_config"]
+    if state["stale"] < config["patience"] and state["epoch"] < config["epochs"]:
+        warnings.warn(
+            f"{run}: training has not stopped (epoch {state['epoch']}, {state['stale']} without gain of "
+            f"{config['patience']}); scoring its best.pt so far",
+            stacklevel=3,
+        )
+    return last["model_config"]["name"], last["model_config"]["frames"]
 
 
 def _test_sets(table: dict) -> list[str]:

@@ -264,6 +264,18 @@ def test_sim2real_table_matches_its_reports_and_summarises_runs(tiny_dataset, tm
         in (runs[1] / "sim2real.md").read_text()
     )
 
+    rescored = sim2real(ablation, tiny_dataset, runs[1], score_only=True, train_config=config, progress=False)
+    assert _same(rescored, table)  # score_only reads the trained runs and scores them alike
+    with pytest.raises(ValueError, match=r"no best\.pt to score"):
+        sim2real(ablation, tiny_dataset, tmp_path / "none", score_only=True, train_config=config, progress=False)
+    cut = dataclasses.replace(config, epochs=3, max_minutes=1e-6)  # stops on its budget after epoch 1
+    for v in ("bounces_0", "bounces_3"):
+        model, data = ModelConfig(width=4, frames=3), DataConfig(frames=3)
+        run = tmp_path / "cut" / v
+        train(ablation / v, run, model_config=model, data_config=data, train_config=cut, progress=False)
+    with pytest.warns(UserWarning, match="training has not stopped"):
+        sim2real(ablation, tiny_dataset, tmp_path / "cut", score_only=True, train_config=config, progress=False)
+
     summary = sim2real_summary(runs, tmp_path / "summary")
     per_run = [json.loads((r / "sim2real.json").read_text())["bounces_3"]["reality"]["iou"]["mean"] for r in runs]
     assert summary["bounces_3"]["reality"]["iou"]["mean"] == pytest.approx(np.mean(per_run))
