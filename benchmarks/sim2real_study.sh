@@ -1,0 +1,81 @@
+#!/usr/bin/env bash
+# The multipath sim-to-real study on one GPU: our polar UNet trained on `ablation` (the paper's
+# scenarios) and on `randomised` (randomised physics, empty polygon rooms as well), each rendered
+# with 0, 1 and 3 secondary bounces (FRAMES per variant, 50,000 by default), seeds 0-2, until
+# validation scan F1 (0.10 m) stops improving; then scored on held-out episodes of its own
+# variant, on `reality` and on `crossengine` (another engine's image sources, which no model
+# trains, stops or calibrates on) beside the echo-peak baseline, with paired per-seed differences.
+# Phases, so each fits one 10-minute call of the GPU machine; `train` resumes from last.pt:
+#
+#   bash benchmarks/sim2real_study.sh gen   WORKDIR ablation|randomised|tests
+#   bash benchmarks/sim2real_study.sh train WORKDIR SUITE SEED...      # every variant of each seed, side by side
+#   bash benchmarks/sim2real_study.sh score WORKDIR SUITE SEED...      # learn sim2real --score-only, then the summary
+#   bash benchmarks/learner_converged.sh pack|unpack WORKDIR ...       # carry the runs to the next machine
+#
+# `tests` makes `reality` (its 1,500 frames) and 1,000 `crossengine` frames on the CPU cores (needs
+# pyroomacoustics). The training recipe is the converged K = 5 one of learner_converged.sh (BCE,
+# Adam 1e-3, batch 16, sub-epochs of 12,000 windows, 2,000 validation windows, patience 4). Each
+# training process holds its dataset on the GPU (~6.5 GB at 50,000 frames): run at most seven at
+# once on an 80 GB H100 (e.g. two seeds of one suite per call); the GPU is shared by time slices,
+# so fewer processes do not train fewer windows in all.
+# Environment: FRAMES (50000), MINUTES (budget per call and run, 8), DEVICE (cuda), GEN_DEVICE,
+# WORKERS (generation processes, 8), TRAIN_OPTS (more `learn train` options, e.g. --set augment.mirror=0.5).
+set -euo pipefail
+phase=$1 W=$2
+shift 2
+export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
+D=$W/data
+VARIANTS=bounces_0,bounces_1,bounces_3
+mkdir -p "$W/logs" "$W/runs"
+case $phase in
+gen)
+  what=$1
+  GEN=(--workers "${WORKERS:-8}" --device "${GEN_DEVICE:-cuda:0}" --seed 0 --quiet)
+  case $what in
+  ablation | randomised)
+    python -m acoustic_sim generate --suite "$what" --variants "$VARIANTS" --frames "${FRAMES:-50000}" \
+      --out "$D/$what" "${GEN[@]}"
+    ;;
+  tests)
+    python -m acoustic_sim generate --suite reality --out "$D/reality" "${GEN[@]}"
+    python -m acoustic_sim generate --suite crossengine --frames "${CROSS_FRAMES:-1000}" --out "$D/crossengine" \
+      --workers "${CROSS_WORKERS:-14}" --device cpu --seed 0 --quiet
+    ;;
+  *)
+    echo "gen what? ablation, randomised or tests, got $what" >&2
+    exit 2
+    ;;
+  esac
+  ;;
+train)
+  suite=$1
+  shift
+  for s in "$@"; do
+    for v in ${VARIANTS//,/ }; do
+      python -m learn train --data "$D/$suite/$v" --out "$W/runs/sim2real_${suite}_seed$s/$v" --model polar_unet \
+        --frames 5 --seed "$s" --loss bce --lr 1e-3 --batch-size 16 ${TRAIN_OPTS:-} --epochs "${EPOCHS:-100}" \
+        --patience "${PATIENCE:-4}" --max-train-windows 12000 --max-val-windows 2000 --max-minutes "${MINUTES:-8}" \
+        --resume --device "${DEVICE:-cuda}" --quiet >> "$W/logs/${suite}_${v}_seed$s.log" 2>&1 &
+    done
+  done
+  wait
+  ;;
+score)
+  suite=$1
+  shift
+  runs=()
+  for s in "$@"; do
+    run=$W/runs/sim2real_${suite}_seed$s
+    python -m learn sim2real --ablation "$D/$suite" --reality "$D/reality" --test "crossengine=$D/crossengine" \
+      --out "$run" --score-only --device "${DEVICE:-cuda}" --quiet >> "$W/logs/score_${suite}_seed$s.log" 2>&1
+    runs+=("$run")
+  done
+  if [ ${#runs[@]} -ge 2 ]; then
+    python -m learn sim2real-summary "${runs[@]}" --out "$W/runs/sim2real_${suite}_summary"
+  fi
+  ;;
+*)
+  echo "usage: $0 gen|train|score WORKDIR ..." >&2
+  exit 2
+  ;;
+esac
