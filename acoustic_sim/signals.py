@@ -257,3 +257,55 @@ def record(
         [echo_buffer(arrivals, count, device)], count, noise=noise, snr_db=snr_db, seeds=ping_seeds(seed, range(count))
     )
     return signals.numpy().copy()
+
+
+PDM_BIT_ORDERS = ("lsb", "msb")
+
+
+def pdm_to_pcm(
+    raw: np.ndarray,
+    *,
+    channels: int = 32,
+    pdm_rate_hz: float = 4.5e6,
+    decimation: int = 10,
+    cutoff_hz: float = 100e3,
+    taps: int = 501,
+    bit_order: str = "lsb",
+) -> np.ndarray:
+    """Decode 1-bit PDM microphone streams (as an eRTIS streams them) to PCM: float32 (channels, S // decimation).
+
+    `raw` holds one word of `channels` bits per PDM sample, as unsigned integers (e.g. uint32 for
+    32 channels) or as their little-endian bytes; bit i of a word is channel i ("lsb") or
+    channel channels - 1 - i ("msb"). Each channel's bits become +-1, pass a linear-phase FIR
+    low-pass (Hamming window, `taps` taps, -6 dB at `cutoff_hz`; the eRTIS passes 100 kHz) and
+    are kept every `decimation`-th sample (4.5 MHz / 10 = 450 kHz), aligned so that output
+    sample j is the signal at PDM sample j * decimation. A full-scale sine comes out with
+    amplitude ~1.
+    """
+    from scipy.signal import firwin, upfirdn
+
+    if channels < 1 or channels % 8:
+        raise ValueError(f"channels must be a positive multiple of 8 (whole bytes per word), got {channels}")
+    if bit_order not in PDM_BIT_ORDERS:
+        raise ValueError(f"bit_order must be one of {PDM_BIT_ORDERS}, got {bit_order!r}")
+    if decimation < 1 or not 0 < cutoff_hz < pdm_rate_hz / (2 * decimation) * 1.0001:
+        raise ValueError(
+            f"need decimation >= 1 and 0 < cutoff_hz <= the output Nyquist frequency "
+            f"{pdm_rate_hz / (2 * decimation):.0f} Hz, got {decimation} and {cutoff_hz}"
+        )
+    if taps % 2 == 0 or (taps - 1) // 2 % decimation:
+        raise ValueError(f"taps must be odd with (taps - 1) / 2 a multiple of decimation {decimation}, got {taps}")
+    raw = np.asarray(raw)
+    if raw.dtype.kind != "u":
+        raise ValueError(f"raw PDM must be unsigned integers (words or bytes), got dtype {raw.dtype}")
+    octets = np.ascontiguousarray(raw).astype(raw.dtype.newbyteorder("<"), copy=False).view(np.uint8)
+    if octets.size % (channels // 8):
+        raise ValueError(f"{octets.size} bytes are not whole words of {channels} bits")
+    bits = np.unpackbits(octets.reshape(-1, channels // 8), axis=1, bitorder="little")  # (S, channels)
+    if bit_order == "msb":
+        bits = bits[:, ::-1]
+    samples = len(bits)
+    filt = firwin(taps, cutoff_hz, fs=pdm_rate_hz).astype(np.float32)
+    pcm = upfirdn(filt, 2.0 * bits.T.astype(np.float32) - 1.0, down=decimation, axis=1)
+    delay = (taps - 1) // 2 // decimation  # the FIR's group delay in output samples
+    return np.ascontiguousarray(pcm[:, delay : delay + samples // decimation], dtype=np.float32)

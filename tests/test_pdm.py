@@ -1,0 +1,72 @@
+"""The PDM decoder against a known call put through an independent sigma-delta modulator."""
+
+import numpy as np
+import pytest
+from scipy.signal import resample_poly
+
+from acoustic_sim.config import ChirpConfig
+from acoustic_sim.signals import pdm_to_pcm
+
+FS = 450_000  # PCM rate; the PDM stream runs 10 times faster, as the eRTIS's 4.5 MHz
+
+
+def sigma_delta(x: np.ndarray) -> np.ndarray:
+    """Second-order modulator (two integrators, the 1-bit output fed back to both; quantisation
+    noise shaped by (1 - z^-1)^2 away from the audio band): (C, S) in [-1, 1] -> bits (C, S)."""
+    i1, i2, v = (np.zeros(len(x)) for _ in range(3))
+    bits = np.empty(x.shape, dtype=np.uint8)
+    for n in range(x.shape[1]):
+        i1 = i1 + x[:, n] - v
+        i2 = i2 + i1 - v
+        v = np.where(i2 >= 0, 1.0, -1.0)
+        bits[:, n] = v > 0
+    return bits
+
+
+@pytest.fixture(scope="module")
+def recording():
+    """32 channels, each the 25-80 kHz call at its own delay and level, as PCM and as PDM words."""
+    call = ChirpConfig.band_25_80khz().samples()
+    pcm = np.zeros((32, 1800))
+    for c in range(32):
+        pcm[c, 40 + 17 * c : 40 + 17 * c + len(call)] = (0.5 - 0.01 * c) * call / np.abs(call).max()
+    bits = sigma_delta(resample_poly(pcm, 10, 1, axis=1))  # band-limited upsampling to 4.5 MHz
+    return pcm, bits
+
+
+def words(bits: np.ndarray, order: str) -> np.ndarray:
+    rows = bits.T if order == "lsb" else bits[::-1].T  # bit i of a word is channel i, or channel 31 - i
+    return np.ascontiguousarray(np.packbits(rows, axis=1, bitorder="little")).view("<u4")[:, 0]
+
+
+def test_pdm_decodes_a_sigma_delta_modulated_call(recording):
+    """Every channel of the call comes back within 2 % RMS of its level (measured: <= 1.0 %), in time."""
+    pcm, bits = recording
+    decoded = pdm_to_pcm(words(bits, "lsb"), pdm_rate_hz=10 * FS)
+    assert decoded.shape == pcm.shape and decoded.dtype == np.float32
+    error = np.sqrt(((decoded - pcm) ** 2).mean(axis=1) / (pcm**2).mean(axis=1))
+    assert error.max() < 0.02
+    # The same stream as bytes, as big-endian words and in the other bit order decodes alike.
+    same = words(bits, "lsb")
+    assert np.array_equal(pdm_to_pcm(same.view(np.uint8), pdm_rate_hz=10 * FS), decoded)
+    assert np.array_equal(pdm_to_pcm(same.astype(">u4"), pdm_rate_hz=10 * FS), decoded)
+    assert np.array_equal(pdm_to_pcm(words(bits, "msb"), pdm_rate_hz=10 * FS, bit_order="msb"), decoded)
+    # Read in the wrong bit order, channels are swapped: the check above can fail.
+    swapped = pdm_to_pcm(words(bits, "msb"), pdm_rate_hz=10 * FS)
+    assert np.sqrt(((swapped - pcm) ** 2).mean() / (pcm**2).mean()) > 0.5
+
+
+@pytest.mark.parametrize(
+    "raw, options, message",
+    [
+        (np.zeros(10, dtype=np.int32), {}, "unsigned integers"),
+        (np.zeros(10, dtype=np.uint32), {"channels": 12}, "multiple of 8"),
+        (np.zeros(10, dtype=np.uint8), {}, "not whole words"),
+        (np.zeros(10, dtype=np.uint32), {"bit_order": "big"}, "bit_order"),
+        (np.zeros(10, dtype=np.uint32), {"cutoff_hz": 300e3}, "Nyquist"),
+        (np.zeros(10, dtype=np.uint32), {"taps": 500}, "taps must be odd"),
+    ],
+)
+def test_pdm_refuses_what_it_cannot_decode(raw, options, message):
+    with pytest.raises(ValueError, match=message):
+        pdm_to_pcm(raw, **options)
