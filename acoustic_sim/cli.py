@@ -164,6 +164,33 @@ def _generate_crossengine(args) -> int:
     return _report(summary)
 
 
+def _import(args) -> int:
+    from .devices import check_device, quiet_warp
+
+    quiet_warp(not args.verbose)
+    from .config import SimConfig
+    from .recordings import import_pdm
+    from .settings import apply_settings
+
+    check_device(args.device)
+    rig = apply_settings(SimConfig(), args.set or ())
+    done = import_pdm(
+        args.recordings,
+        args.out,
+        rig,
+        channels=args.channels,
+        pdm_rate_hz=args.pdm_rate,
+        bit_order=args.bit_order,
+        samples_per_ping=args.samples_per_ping,
+        device=args.device,
+    )
+    print(
+        f"{done['pings']} pings -> {done['out']} (energyscapes), {done['picture']} in {done['seconds']:.1f} s; "
+        f"next: python -m learn predict --checkpoint MODEL.pt --input {done['out']} --out pred.npz --png pred.png"
+    )
+    return 0
+
+
 SET_HELP = (
     "change the rig: lidar.*, sonar.*, tracer.*, processing.* (repeatable; e.g. tracer.max_bounces=1, "
     "processing.grid.range_max_m=4, sonar.atmosphere.temperature_c=30, lidar=multibeam_64x1024 for a preset)"
@@ -257,6 +284,27 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--quiet", action="store_true", help="no progress bar")
     gen.add_argument("--verbose", action="store_true", help="show Warp's compile messages")
     gen.set_defaults(handler=_generate)
+
+    imp = sub.add_parser(
+        "import",
+        help="turn a real sensor's recording into energyscapes (raw eRTIS PDM)",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        description="Decode raw 1-bit PDM microphone streams (one word of channel bits per PDM sample; one "
+        "file per ping unless --samples-per-ping splits them) to PCM, and process them with the rig's array, "
+        "call and grid into energyscapes, as the simulator's pings are. Writes OUT (.npy), a picture (.png) "
+        "and the settings (.json) for `learn predict --input OUT`.",
+    )
+    imp.add_argument("recordings", nargs="+", help="raw PDM files, in time order")
+    imp.add_argument("--format", required=True, choices=["pdm"], help="what the files hold")
+    imp.add_argument("--out", required=True, help="energyscapes file to write (.npy)")
+    imp.add_argument("--channels", type=int, default=32, help="microphones in the stream (bits per word)")
+    imp.add_argument("--pdm-rate", type=float, default=4.5e6, help="PDM sample rate [Hz]")
+    imp.add_argument("--bit-order", choices=["lsb", "msb"], default="lsb", help="lsb: bit i of a word is channel i")
+    imp.add_argument("--samples-per-ping", type=int, default=None, help="split each file into pings of this many words")
+    imp.add_argument("--set", action="append", metavar="SECTION.FIELD=VALUE", help=SET_HELP)
+    imp.add_argument("--device", default="cpu", help="Warp device for the processing")
+    imp.add_argument("--verbose", action="store_true", help="show Warp's compile messages")
+    imp.set_defaults(handler=_import)
     return parser
 
 

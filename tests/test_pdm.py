@@ -70,3 +70,40 @@ def test_pdm_decodes_a_sigma_delta_modulated_call(recording):
 def test_pdm_refuses_what_it_cannot_decode(raw, options, message):
     with pytest.raises(ValueError, match=message):
         pdm_to_pcm(raw, **options)
+
+
+def test_import_pdm_images_point_reflectors_where_they_are(tmp_path, device):
+    """Two pings of point reflectors (2 m at 30 deg, 3 m at -45 deg) recorded by our array, put
+    through the sigma-delta modulator as the eRTIS streams them and written as raw files: `import
+    --format pdm` peaks within a range bin and 2 deg of each reflector, and matches the energyscape
+    of the PCM signals themselves."""
+    import json
+
+    import acoustic_sim as sim
+    from acoustic_sim.beamform import energyscape
+    from acoustic_sim.cli import main
+    from acoustic_sim.signals import record
+    from tests.test_beamform import reflectors
+
+    config = sim.SonarConfig.ertis()
+    signals = record(reflectors([2.0, 3.0], [30.0, -45.0]), config, noise="gaussian", snr_db=40.0, device=device)
+    signals = 0.5 * signals / np.abs(signals).max()
+    files = []
+    for i, ping in enumerate(signals):
+        files.append(tmp_path / f"ping-{i}.bin")
+        words(sigma_delta(resample_poly(ping, 10, 1, axis=1)), "lsb").tofile(files[-1])
+    out = tmp_path / "rec.npy"
+    assert main(["import", *map(str, files), "--format", "pdm", "--out", str(out), "--device", device]) == 0
+    images, grid = np.load(out), sim.PolarGrid()
+    assert images.shape == (2, len(grid.range_m), len(grid.azimuth_rad))
+    for image, r, az in zip(images, [2.0, 3.0], [30.0, -45.0], strict=True):
+        i, j = np.unravel_index(np.argmax(image), image.shape)
+        assert abs(grid.range_m[i] - r) <= grid.range_bin_m and abs(np.rad2deg(grid.azimuth_rad[j]) - az) <= 2.0
+    direct = energyscape(signals, config)
+    for a, b in zip(images, direct, strict=True):
+        assert np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.99
+    record_ = json.loads(out.with_suffix(".json").read_text())
+    assert record_["pings"] == 2 and record_["decode"]["decimation"] == 10 and out.with_suffix(".png").exists()
+    # A stream whose words do not fill the array's channels, or a rate that is no multiple of 450 kHz.
+    assert main(["import", str(files[0]), "--format", "pdm", "--out", str(out), "--channels", "16"]) == 2
+    assert main(["import", str(files[0]), "--format", "pdm", "--out", str(out), "--pdm-rate", "4e6"]) == 2

@@ -1,0 +1,96 @@
+"""Recordings of real sensors into our processing: raw eRTIS PDM streams -> energyscapes.
+
+    python -m acoustic_sim import ping-*.bin --format pdm --out rec.npy
+
+Each file is one measurement (or `samples_per_ping` words split a long stream into pings, in
+time order). The PDM is decoded by `signals.pdm_to_pcm`, and the PCM goes through the same
+`beamform.energyscape` as our simulated pings, with the rig's array geometry, call and grid
+(`--set sonar...` for another sensor or call). Time zero of a measurement is taken as the start
+of the call, as the eRTIS records. Writes the energyscapes (N, R, A) float32 to `out`, a picture
+of the first pings beside it (.png) and what was done (.json), so `learn predict --input rec.npy`
+can take them.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .signals import pdm_to_pcm
+
+
+def read_pdm_pings(paths: list[str | Path], *, channels: int, samples_per_ping: int | None) -> list[np.ndarray]:
+    """Raw words of every ping: each file is one ping, or pings of `samples_per_ping` words each."""
+    width = channels // 8
+    pings = []
+    for path in map(Path, paths):
+        raw = np.fromfile(path, dtype=np.uint8)
+        if raw.size == 0 or raw.size % width:
+            raise ValueError(f"{path}: {raw.size} bytes are not whole words of {channels} bits")
+        words = raw.reshape(-1, width)
+        if samples_per_ping is None:
+            pings.append(words)
+            continue
+        if len(words) % samples_per_ping:
+            raise ValueError(f"{path}: {len(words)} words are not whole pings of --samples-per-ping {samples_per_ping}")
+        pings += list(words.reshape(-1, samples_per_ping, width))
+    lengths = {len(p) for p in pings}
+    if len(lengths) > 1:
+        raise ValueError(f"pings differ in length ({sorted(lengths)} words): give files of one recording setting")
+    return pings
+
+
+def import_pdm(
+    paths: list[str | Path],
+    out: str | Path,
+    rig,
+    *,
+    channels: int = 32,
+    pdm_rate_hz: float = 4.5e6,
+    bit_order: str = "lsb",
+    samples_per_ping: int | None = None,
+    device: str = "cpu",
+) -> dict:
+    """Decode raw PDM pings and process them into energyscapes; returns what was written."""
+    from .beamform import energyscape
+    from .render import render_examples
+
+    t0, out = time.perf_counter(), Path(out)
+    if out.suffix != ".npy":
+        raise ValueError(f"--out names the energyscapes file (.npy), got {out}")
+    sonar, processing = rig.sonar, rig.processing
+    if channels != sonar.microphone_count:
+        raise ValueError(
+            f"the stream has {channels} channels but the array has {sonar.microphone_count} microphones "
+            "(set --channels, or the array with --set sonar.microphones_m=...)"
+        )
+    decimation = pdm_rate_hz / sonar.chirp.sample_rate_hz
+    if abs(decimation - round(decimation)) > 1e-9 or round(decimation) < 1:
+        raise ValueError(
+            f"the PDM rate {pdm_rate_hz:.0f} Hz is not a whole multiple of the call's sample rate "
+            f"{sonar.chirp.sample_rate_hz:.0f} Hz (sonar.chirp.sample_rate_hz)"
+        )
+    pings = read_pdm_pings(paths, channels=channels, samples_per_ping=samples_per_ping)
+    decode = dict(channels=channels, pdm_rate_hz=pdm_rate_hz, decimation=round(decimation), bit_order=bit_order)
+    pcm = np.stack([pdm_to_pcm(p, **decode) for p in pings])  # (N, channels, samples)
+    energy = energyscape(pcm, sonar, processing, device=device)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    np.save(out, energy)
+    grid = processing.grid
+    shown = [(f"ping {i}", energy[i], None) for i in range(min(3, len(energy)))]
+    picture = render_examples(shown, grid, out.with_suffix(".png"))
+    record = {
+        "what": "energyscapes (pings, range, azimuth) of a raw PDM recording, processed by acoustic_sim",
+        "files": [str(p) for p in paths],
+        "pings": len(energy),
+        "decode": decode | {"samples_per_ping": samples_per_ping, "pcm_rate_hz": sonar.chirp.sample_rate_hz},
+        "range_m": [float(grid.range_min_m), float(grid.range_max_m), len(grid.range_m)],
+        "azimuth_deg": [float(grid.azimuth_min_deg), float(grid.azimuth_max_deg), len(grid.azimuth_rad)],
+        "rig": rig.to_dict(),
+        "seconds": time.perf_counter() - t0,
+    }
+    out.with_suffix(".json").write_text(json.dumps(record, indent=1, default=str))
+    return {"out": str(out), "picture": str(picture), "pings": len(energy), "seconds": record["seconds"]}
