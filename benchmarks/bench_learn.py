@@ -40,7 +40,14 @@ def _timed(fn, repeats: int, warmup: int, sync) -> float:
 
 
 def bench_model(
-    name: str, device: torch.device, *, repeats: int, batch: int = 12, warmup: int = 2, channels_last: bool = False
+    name: str,
+    device: torch.device,
+    *,
+    repeats: int,
+    batch: int = 12,
+    warmup: int = 2,
+    channels_last: bool = False,
+    cuda_graphs: bool = False,
 ) -> dict:
     torch.manual_seed(0)
     model = build_model(ModelConfig(name=name, frames=5)).to(device)
@@ -55,16 +62,18 @@ def bench_model(
         x = x.contiguous(memory_format=layout)
     y = (torch.rand(batch, 1, 240, 181, device=device) > 0.995).float()
 
+    stepper = torch.compile(model, mode="reduce-overhead") if cuda_graphs else model  # as train.cuda_graphs
+
     def step():
         with torch.autocast("cuda", dtype=torch.bfloat16, enabled=amp):
-            out = model(x)
+            out = stepper(x)
         loss = F.mse_loss(out.float(), y)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
 
     model.train()
-    train_s = _timed(step, repeats, warmup, sync)
+    train_s = _timed(step, repeats, warmup + (3 if cuda_graphs else 0), sync)  # graphs: compile, record, replay
     model.eval()
 
     def infer(inp):
@@ -92,6 +101,9 @@ def main(argv=None) -> dict:
     parser.add_argument(
         "--channels-last", action="store_true", help="also time the paper network in channels-last layout"
     )
+    parser.add_argument(
+        "--cuda-graphs", action="store_true", help="also time polar_unet's training steps as CUDA graphs"
+    )
     args = parser.parse_args(argv)
     device = torch.device(args.device)
     torch.backends.cudnn.benchmark = True  # as learn.train does on GPUs
@@ -110,6 +122,10 @@ def main(argv=None) -> dict:
     if args.channels_last:
         res["models"]["paper_channels_last"] = bench_model(
             "paper", device, repeats=args.repeats, batch=args.batch, warmup=args.warmup, channels_last=True
+        )
+    if args.cuda_graphs:
+        res["models"]["polar_unet_cuda_graphs"] = bench_model(
+            "polar_unet", device, repeats=args.repeats, batch=args.batch, warmup=args.warmup, cuda_graphs=True
         )
     paper, ours = res["models"]["paper"], res["models"]["polar_unet"]
     res["train_speedup"] = ours["train_windows_per_s"] / paper["train_windows_per_s"]

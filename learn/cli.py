@@ -28,6 +28,7 @@ def _configs(args):
         max_val_windows=args.max_val_windows,
         amp=not args.no_amp,
         max_minutes=args.max_minutes,
+        cuda_graphs=args.cuda_graphs,
     )
     configs = {
         "model": ModelConfig(name=args.model, frames=args.frames, width=args.width),
@@ -243,6 +244,9 @@ def _training_options(p) -> None:
     )
     p.add_argument("--seed", type=int, default=train.seed, help="split, initialisation and batch order")
     p.add_argument("--no-amp", action="store_true", help="no bfloat16 autocast on GPUs")
+    p.add_argument(
+        "--cuda-graphs", action="store_true", help="training steps as CUDA graphs (torch.compile; GPUs only)"
+    )
     p.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
     p.add_argument("--quiet", action="store_true", help="no progress bars (the per-epoch lines stay)")
     p.add_argument(

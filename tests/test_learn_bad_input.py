@@ -132,6 +132,7 @@ def test_bad_arguments_and_folders(run, tmp_path, capsys, tiny_dataset):
             "(0, 1]",
         ),
         (["train", "--data", str(best), "--out", str(tmp_path / "t")], "not a folder"),
+        (["train", "--data", str(tiny_dataset), "--out", str(tmp_path / "g"), "--cuda-graphs"], "needs a CUDA"),
     ]
     for argv, message in cases:
         assert message in cli_error(capsys, argv), argv
