@@ -145,8 +145,10 @@ def planner_scene(room: Room):
 def simulate_episode(index: int, frames: int, seed: int, device: str) -> tuple[dict, dict]:
     """Episode `index` of the test set: its room, drive, recordings, energyscapes and LiDAR truth."""
     from .beamform import energyscape
+    from .devices import quiet_warp
     from .lidar import lidar_image
 
+    quiet_warp()  # a spawned worker starts its own Warp
     episode_seed = int(np.random.default_rng([seed, index]).integers(2**31 - 1))
     rng = np.random.default_rng(episode_seed)
     room = draw_room(FLOOR_PLANS[index % len(FLOOR_PLANS)], rng)

@@ -32,11 +32,47 @@ def check_device(name: str, *, allow_auto: bool = False) -> str:
     return name
 
 
+_warp_voice_set = False
+
+
 def quiet_warp(quiet: bool = True) -> None:
-    """Warp's start-up banner and per-module compile/load lines off (warnings and errors stay);
-    the one place the package sets Warp's logging."""
+    """Warp's start-up banner, per-module compile/load lines and missing-driver notice off
+    (warnings and errors stay); the one place the package sets Warp's logging. The first call in
+    a process decides, so a command's `--verbose` holds for the library code it runs."""
+    global _warp_voice_set
+    if _warp_voice_set:
+        return
+    _warp_voice_set = True
     import warp as wp
 
     if quiet:
         wp.config.quiet = True
         wp.config.log_level = wp.LOG_WARNING
+        _init_without_driver_notice(wp)
+
+
+NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"
+"""Warp's native start-up line on a machine without a GPU: news to nobody who runs on the CPU."""
+
+
+def _init_without_driver_notice(wp) -> None:
+    """Start Warp with its native messages (written to file descriptor 2, out of Python's reach)
+    caught, and pass every one on except the missing-driver line."""
+    import os
+    import sys
+    import tempfile
+
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as caught:
+        os.dup2(caught.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+        caught.seek(0)
+        lines = caught.read().decode(errors="replace").splitlines()
+    for line in lines:
+        if NO_DRIVER not in line:
+            print(line, file=sys.stderr)

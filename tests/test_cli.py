@@ -114,3 +114,14 @@ def test_render_writes_its_settings_beside_the_picture(tmp_path, device):
     assert written["picture"] == "view.png" and written["options"]["scene"] == "box_room"
     assert written["sim"]["lidar"]["dropout_probability"] == 0.25 and written["sim"]["lidar"]["noise_m"] == 0.01
     assert set(written["sim"]) == {"lidar", "sonar", "tracer", "processing"}
+
+
+def test_commands_are_quiet_unless_asked(tmp_path):
+    """No Warp banner, module-load lines or missing-driver notice on a CPU run; --verbose shows Warp's lines."""
+    command = [sys.executable, "-m", "acoustic_sim", "generate", "--suite", "tiny", "--frames", "3", "--quiet"]
+    command += ["--device", "cpu", "--out", str(tmp_path / "q")]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=300, check=True)
+    assert "Warp" not in done.stdout + done.stderr and "Module" not in done.stdout + done.stderr
+    assert done.stdout.startswith("tiny: 3 frames")
+    done = subprocess.run([*command[:-1], str(tmp_path / "v"), "--verbose"], capture_output=True, text=True, timeout=300)
+    assert "Warp" in done.stdout + done.stderr
