@@ -123,5 +123,6 @@ def test_commands_are_quiet_unless_asked(tmp_path):
     done = subprocess.run(command, capture_output=True, text=True, timeout=300, check=True)
     assert "Warp" not in done.stdout + done.stderr and "Module" not in done.stdout + done.stderr
     assert done.stdout.startswith("tiny: 3 frames")
-    done = subprocess.run([*command[:-1], str(tmp_path / "v"), "--verbose"], capture_output=True, text=True, timeout=300)
+    verbose = [*command[:-1], str(tmp_path / "v"), "--verbose"]
+    done = subprocess.run(verbose, capture_output=True, text=True, timeout=300)
     assert "Warp" in done.stdout + done.stderr
