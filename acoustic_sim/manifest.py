@@ -50,6 +50,7 @@ def write_manifest(folder: Path, tasks: list[ShardTask], suite: Suite, meta: dic
         "scenarios": dict(scenarios),
         "physics": tasks[0].physics,
         "sim": rig(Physics(**tasks[0].physics), suite.settings).to_dict(),  # the rig before per-episode draws
+        "settings": list(suite.settings),
         "shards": entries,
     }
     path = folder / "manifest.json"
@@ -83,6 +84,7 @@ def write_card(folder: Path, manifest: dict) -> None:
     title = manifest["suite"] + (f" / {manifest['variant']}" if manifest["variant"] else "")
     rows = "\n".join(f"| {name} | {count:,} |" for name, count in manifest["scenarios"].items())
     physics = "\n".join(f"| {k} | {v} |" for k, v in manifest["physics"].items())
+    simulated = "\n".join(f"| {k} | {v} |" for k, v in _rig_facts(manifest["sim"], manifest.get("settings", [])))
     text = f"""# Dataset: {title}
 
 {manifest["description"]}
@@ -97,7 +99,13 @@ rerunning the same command resumes or verifies it.
 |---|---|
 {rows}
 
-Sensor physics:
+The rig as simulated (after every setting; per-episode draws below come on top):
+
+| | |
+|---|---|
+{simulated}
+
+Sensor physics of this variant (per-episode ranges are drawn per drive; `manifest.json` has the whole rig):
 
 | setting | value |
 |---|---|
@@ -115,3 +123,27 @@ with h5py.File("{manifest["shards"][0]["file"]}") as f:
 ```
 """
     (folder / "README.md").write_text(text)
+
+
+def _rig_facts(sim: dict, settings: list[str]) -> list[tuple[str, str]]:
+    """The rig's headline numbers for a dataset card, read from the rig itself (never from a suite's prose)."""
+    tracer, chirp, grid = sim["tracer"], sim["sonar"]["chirp"], sim["processing"]["grid"]
+    facts = [
+        ("secondary bounces (max_bounces)", tracer["max_bounces"]),
+        ("rays per ping", f"{tracer['ray_count']:,}"),
+        ("edge and rough-surface scattering", "on" if tracer["scattering"] else "off"),
+        (
+            "call",
+            f"{chirp['start_frequency_hz'] / 1e3:g} -> {chirp['stop_frequency_hz'] / 1e3:g} kHz, "
+            f"{chirp['duration_s'] * 1e3:g} ms, {chirp['sweep']}, sampled at {chirp['sample_rate_hz'] / 1e3:g} kHz",
+        ),
+        (
+            "grid",
+            f"{grid['range_min_m']:g}-{grid['range_max_m']:g} m in {grid['range_bin_m']:g} m bins x "
+            f"{grid['azimuth_min_deg']:g}..{grid['azimuth_max_deg']:g} deg in {grid['azimuth_step_deg']:g} deg",
+        ),
+        ("LiDAR", f"{sim['lidar']['azimuth_count']:,} beams per scan, noise {sim['lidar']['noise']}"),
+    ]
+    if settings:
+        facts.append(("settings given", ", ".join(f"`{s}`" for s in settings)))
+    return [(k, str(v)) for k, v in facts]

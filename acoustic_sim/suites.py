@@ -341,6 +341,8 @@ def load_suite(name_or_path: str | Path) -> Suite:
         name: Physics(**{**(dataclasses.asdict(p) if isinstance(p, Physics) else p), **physics})
         for name, p in variants.items()
     }
+    if base and "description" not in data:  # the base's prose may name settings this file changes
+        data["description"] = f"custom suite from {path.name}, based on `{base.name}` (the rig as simulated is below)"
     values.update(data)
     values.setdefault("name", path.stem)
     values.setdefault("description", f"custom suite from {path.name}")

@@ -126,3 +126,15 @@ def test_commands_are_quiet_unless_asked(tmp_path):
     verbose = [*command[:-1], str(tmp_path / "v"), "--verbose"]
     done = subprocess.run(verbose, capture_output=True, text=True, timeout=300)
     assert "Warp" in done.stdout + done.stderr
+
+
+def test_dataset_card_reads_the_rig_as_simulated(tmp_path, device):
+    """A suite file based on `paper` with max_bounces 1, and a --set on top: the card says 1 bounce
+    and the --set ray count, not the base suite's prose ("3 secondary bounces")."""
+    suite = tmp_path / "my_suite.toml"
+    suite.write_text('base = "paper"\nframes = 2\nepisode_frames = 2\n[physics]\nmax_bounces = 1\n')
+    args = ["generate", "--suite", str(suite), "--out", str(tmp_path / "d"), "--set", "tracer.ray_count=3000"]
+    assert main([*args, "--device", device, "--quiet"]) == 0
+    card = (tmp_path / "d" / "README.md").read_text()
+    assert "| secondary bounces (max_bounces) | 1 |" in card and "| rays per ping | 3,000 |" in card
+    assert "3 secondary bounces" not in card and "based on `paper`" in card
