@@ -191,6 +191,14 @@ def _import(args) -> int:
     return 0
 
 
+def _export(args) -> int:
+    from .mcap_export import export_mcap
+
+    done = export_mcap(args.dataset, args.out)
+    print(f"{done['frames']} frames of {args.dataset} -> {done['out']} (/scan, /sonar/energyscape, /tf)")
+    return 0
+
+
 SET_HELP = (
     "change the rig: lidar.*, sonar.*, tracer.*, processing.* (repeatable; e.g. tracer.max_bounces=1, "
     "processing.grid.range_max_m=4, sonar.atmosphere.temperature_c=30, lidar=multibeam_64x1024 for a preset)"
@@ -305,6 +313,20 @@ def build_parser() -> argparse.ArgumentParser:
     imp.add_argument("--device", default="cpu", help="Warp device for the processing")
     imp.add_argument("--verbose", action="store_true", help="show Warp's compile messages")
     imp.set_defaults(handler=_import)
+
+    exp = sub.add_parser(
+        "export",
+        help="write a dataset for robotics tools (MCAP of ROS 2 messages)",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        description="Every frame of a dataset folder as ROS 2 messages in an MCAP file, without a ROS install "
+        "(extra `ros`): sensor_msgs/LaserScan on /scan, sensor_msgs/Image (32FC1, range x azimuth) on "
+        "/sonar/energyscape, tf2_msgs/TFMessage world -> sensor on /tf, stamped with the drive's times. "
+        "Open it in Foxglove.",
+    )
+    exp.add_argument("dataset", help="dataset folder (shard-*.h5)")
+    exp.add_argument("--format", required=True, choices=["mcap"], help="what to write")
+    exp.add_argument("--out", required=True, help="file to write (.mcap)")
+    exp.set_defaults(handler=_export)
     return parser
 
 
