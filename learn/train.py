@@ -14,7 +14,6 @@ that epoch are read at it, and the checkpoint stores it for evaluate, predict an
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import json
 import math
@@ -34,12 +33,11 @@ from .checkpoint import check_compatible, save_checkpoint
 from .data import FORMAT_VERSION, DataConfig, Frames, Windows, load_frames, split_groups, torch_device, validation_split
 from .evaluate import calibrate_threshold, model_predictor, score
 from .models import ModelConfig, build_model, parameter_count
+from .progress import epoch_line, warn_if_silent, write_fold_summary, write_history
 
 LOSSES = ("mse", "bce")
 SPLITS = ("episode", "scenario")
 MONITORS = {"scan_f1": 1.0, "beam_accuracy": 1.0, "chamfer_m": -1.0, "ssim": 1.0}  # sign: larger is better
-NO_RETURN_ALARM = 0.9
-"""Warn when the kept model predicts no return on at least this share of the validation beams."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -218,7 +216,7 @@ def train(
                 )
             )
         if dist_info.main:
-            _write_fold_summary(out, results)
+            write_fold_summary(out, results)
         result = {"folds": results}
     else:
         held = validation_split(groups, train_config.val_fraction, seed=train_config.seed)
@@ -376,7 +374,7 @@ def _train_one(
                 state["best_epoch"] = epoch + 1
             state["stale"] = 0 if improved else state["stale"] + 1
             state["epoch"] = epoch + 1
-            tqdm.write(_epoch_line(row, config, state, improved))  # also with --quiet: logs need it
+            tqdm.write(epoch_line(row, config, state, improved))  # also with --quiet: logs need it
             ckpt = {
                 "model": _unwrap(model).state_dict(),
                 "optimizer": optimizer.state_dict(),
@@ -386,7 +384,7 @@ def _train_one(
             save_checkpoint(ckpt, last)
             if improved:
                 save_checkpoint(ckpt, out / "best.pt")
-            _write_history(out, state["history"], state.get("best_epoch"), config.monitor)
+            write_history(out, state["history"], state.get("best_epoch"), config.monitor)
             out_of_time = config.max_minutes is not None and time.perf_counter() - started > 60 * config.max_minutes
             stop[0] = float(state["stale"] >= config.patience or out_of_time)
         else:
@@ -411,51 +409,5 @@ def _train_one(
         } | {k: meta[k] for k in ("model_config", "data_config", "train_config", "parameters", "dataset")}
         summary["threshold"] = best["val_threshold"]
         (out / "summary.json").write_text(json.dumps(summary, indent=1))
-        _warn_if_silent(best, out, hint="" if config.loss == "bce" else ", or with --loss bce")
+        warn_if_silent(best, out, hint="" if config.loss == "bce" else ", or with --loss bce")
     return summary
-
-
-def _epoch_line(row: dict, config: TrainConfig, state: dict, improved: bool) -> str:
-    """One line per epoch: what the validation windows say, and whether this epoch is kept."""
-    kept = "kept" if improved else f"not better for {state['stale']} (best: epoch {state.get('best_epoch', '-')})"
-    line = (
-        f"epoch {row['epoch']}/{config.epochs}: train loss {row['train_loss']:.4g} | val scan F1 "
-        f"{row['val_scan_f1']:.3f} (precision {row['val_return_precision']:.2f}, "
-        f"recall {row['val_return_recall']:.2f}, missed {row['val_missed']:.2f}, false {row['val_false']:.2f}) "
-        f"at threshold {row['val_threshold']:.2f}"
-    )
-    if config.monitor != "scan_f1":
-        line += f", {config.monitor} {row[f'val_{config.monitor}']:.4g}"
-    return f"{line} | {kept}"
-
-
-def _warn_if_silent(best: dict, out: Path, hint: str = "") -> None:
-    """A model that predicts no return almost anywhere looks fine on MSE and SSIM: say so loudly."""
-    share = best["val_no_return"]
-    if share >= NO_RETURN_ALARM:
-        warnings.warn(
-            f"{out}: the kept model (epoch {best['epoch']}) predicts no return on {share:.0%} of the validation "
-            f"beams even at its best threshold {best['val_threshold']:.2f} (scan F1 {best['val_scan_f1']:.3f}): it "
-            f"has not learnt to place walls. Train longer or on more data{hint}.",
-            stacklevel=3,
-        )
-
-
-def _write_history(out: Path, history: list[dict], kept_epoch: int | None, monitor: str) -> None:
-    with open(out / "history.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(history[0]))
-        writer.writeheader()
-        writer.writerows(history)
-    from .plots import plot_curves
-
-    plot_curves(history, out / "curves.png", kept_epoch=kept_epoch, monitor=monitor)
-
-
-def _write_fold_summary(out: Path, results: list[dict]) -> None:
-    keys = list(results[0]["best"])
-    table = {k: [r["best"][k] for r in results] for k in keys}
-    summary = {k: {"mean": float(np.mean(v)), "std": float(np.std(v)), "folds": v} for k, v in table.items()}
-    (out / "folds.json").write_text(json.dumps(summary, indent=1))
-    lines = ["| metric | mean | std |", "|---|---|---|"]
-    lines += [f"| {k} | {s['mean']:.4g} | {s['std']:.4g} |" for k, s in summary.items()]
-    (out / "folds.md").write_text(f"# {len(results)}-fold cross-validation\n\n" + "\n".join(lines) + "\n")

@@ -180,16 +180,16 @@ def test_checkpoints_never_run_pickled_code(tmp_path):
 
 def test_silent_model_warning():
     """The kept model warns when it predicts no return on >= 90 % of the validation beams, not below."""
-    from learn.train import _warn_if_silent
+    from learn.progress import warn_if_silent
 
     row = {"epoch": 3, "val_no_return": 0.95, "val_threshold": 0.5, "val_scan_f1": 0.01}
     with pytest.warns(UserWarning, match="predicts no return on 95% of the validation beams"):
-        _warn_if_silent(row, "run")
+        warn_if_silent(row, "run")
     import warnings
 
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        _warn_if_silent(row | {"val_no_return": 0.5}, "run")
+        warn_if_silent(row | {"val_no_return": 0.5}, "run")
 
 
 def test_train_help_shows_every_default():
