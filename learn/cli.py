@@ -126,8 +126,16 @@ def _evaluate(args) -> int:
 def _predict(args) -> int:
     from .predict import predict
 
-    out = predict(args.checkpoint, args.input, args.out, device=args.device, png=args.png, threshold=args.threshold)
-    print(f"wrote {out}")
+    out = predict(
+        args.checkpoint,
+        args.input,
+        args.out,
+        device=args.device,
+        png=args.png,
+        threshold=args.threshold,
+        mcap=args.mcap,
+    )
+    print(f"wrote {out}" + (f" and {args.mcap} (/scan_pred)" if args.mcap else ""))
     return 0
 
 
@@ -300,6 +308,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--input", required=True, help="dataset folder, or .npy of energyscapes (N, R, A) in time order")
     p.add_argument("--out", required=True, help=".npz to write")
     p.add_argument("--png", default=None, help="also draw the first predictions here")
+    p.add_argument(
+        "--mcap", default=None, help="also write the scans as ROS 2 LaserScans on /scan_pred (.mcap; extra ros)"
+    )
     p.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
     _threshold_option(p)
     p.set_defaults(handler=_predict)

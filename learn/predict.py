@@ -53,11 +53,13 @@ def predict(
     batch_size: int = 32,
     png: str | None = None,
     threshold: float | None = None,
+    mcap: str | None = None,
 ) -> Path:
     """Predictions of every window, saved as .npz (the suffix is added if `out` lacks it; the path
     written is returned): "prediction" (windows, R, A) float16 images,
     "ranges" (windows, A) float32 scans [m] (inf = no return), "threshold", "frame" (the label
-    frame of each window), "range_m", "azimuth_rad". `threshold` overrides the checkpoint's."""
+    frame of each window), "range_m", "azimuth_rad". `threshold` overrides the checkpoint's.
+    `mcap`: also write the scans as ROS 2 LaserScans on /scan_pred (see `learn.ros`)."""
     model, ckpt = load_checkpoint(checkpoint, device)
     threshold = return_threshold(ckpt, threshold)
     source = Path(source)
@@ -73,6 +75,15 @@ def predict(
             image = run(x).float().clamp(0, 1)[:, 0].half()  # as saved: the scans read the saved images
             ranges.append(first_return_ranges(image.float(), frames.range_m, threshold=threshold).float().cpu().numpy())
             preds.append(image.cpu().numpy())
+    labelled = windows.starts + config.label_offset  # the frame each prediction is for
+    if mcap:
+        from .ros import FRAME_S, STAMP_START_S, dataset_stamps, write_scans
+
+        if source.suffix == ".npy":
+            stamps = STAMP_START_S * 10**9 + np.round(np.arange(len(frames.episode)) * FRAME_S * 1e9).astype(np.int64)
+        else:
+            stamps = dataset_stamps(source)
+        write_scans(mcap, np.concatenate(ranges), stamps[labelled], frames.range_m, frames.azimuth_rad)
     out = Path(out)
     out = out if out.suffix == ".npz" else out.with_name(out.name + ".npz")  # numpy appends it anyway
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -81,7 +92,7 @@ def predict(
         prediction=np.concatenate(preds),
         ranges=np.concatenate(ranges),
         threshold=threshold,
-        frame=windows.starts + config.label_offset,
+        frame=labelled,
         range_m=frames.range_m,
         azimuth_rad=frames.azimuth_rad,
     )

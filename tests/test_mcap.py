@@ -58,3 +58,36 @@ def test_export_reads_back_as_the_dataset(tiny_dataset, tmp_path):
 def test_export_refuses_a_folder_without_shards(tmp_path, capsys):
     assert main(["export", str(tmp_path), "--format", "mcap", "--out", str(tmp_path / "x.mcap")]) == 2
     assert "no shard" in capsys.readouterr().err
+
+
+def test_predicted_scans_land_on_the_exported_frames(tiny_dataset, tmp_path):
+    """`learn predict --mcap` writes one LaserScan per window on /scan_pred, stamped as the export
+    stamps its label frame, with the .npz's ranges; learn restates the export's message definition
+    and stamp rule (it may not import the simulator), and both agree."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    import learn.ros
+    from acoustic_sim import mcap_export
+    from learn import PRETRAINED_CHECKPOINT
+    from learn.cli import main as learn_main
+
+    assert learn.ros.LASER_SCAN == mcap_export.LASER_SCAN
+    assert (learn.ros.STAMP_START_S, learn.ros.EPISODE_GAP_S) == (mcap_export.STAMP_START_S, EPISODE_GAP_S)
+    scans = tmp_path / "pred.mcap"
+    argv = ["predict", "--checkpoint", str(PRETRAINED_CHECKPOINT), "--input", str(tiny_dataset)]
+    assert learn_main([*argv, "--out", str(tmp_path / "pred"), "--mcap", str(scans)]) == 0
+    assert main(["export", str(tiny_dataset), "--format", "mcap", "--out", str(tmp_path / "drive.mcap")]) == 0
+    saved = np.load(tmp_path / "pred.npz")
+
+    def messages(path, topic):
+        with open(path, "rb") as f:
+            reader = make_reader(f, decoder_factories=[DecoderFactory()])
+            return [(m.log_time, d) for _, c, m, d in reader.iter_decoded_messages() if c.topic == topic]
+
+    predicted, truth = messages(scans, "/scan_pred"), messages(tmp_path / "drive.mcap", "/scan")
+    assert len(predicted) == len(saved["frame"]) == 8  # two 8-frame drives, K = 5
+    assert [t for t, _ in predicted] == [truth[k][0] for k in saved["frame"]]
+    for (_, scan), ranges in zip(predicted, saved["ranges"], strict=True):
+        np.testing.assert_array_equal(np.array(scan.ranges, np.float32), ranges)
+        assert len(scan.ranges) == 181 and scan.angle_min == pytest.approx(-np.pi / 2)
