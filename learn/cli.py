@@ -214,6 +214,14 @@ def _sim2real_summary(args) -> int:
     return 0
 
 
+def _table2_summary(args) -> int:
+    from .studies import table2_summary
+
+    table2_summary(args.runs, args.out)
+    print(f"wrote {args.out}/table2.md")
+    return 0
+
+
 def _seeds_summary(args) -> int:
     from .studies import seeds_summary
 
@@ -359,6 +367,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("runs", nargs="+", help="sim2real output folders (e.g. one per seed)")
     p.add_argument("--out", required=True)
     p.set_defaults(handler=_sim2real_summary)
+    p = sub.add_parser(
+        "table2-summary",
+        help="Table 2 over repeated runs, with paired differences",
+        formatter_class=fmt,
+        parents=[common],
+    )
+    p.add_argument("runs", nargs="+", help="table2 output folders (e.g. one per seed)")
+    p.add_argument("--out", required=True)
+    p.set_defaults(handler=_table2_summary)
     p = sub.add_parser(
         "seeds-summary", help="mean and std over repeated evaluations", formatter_class=fmt, parents=[common]
     )

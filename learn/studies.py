@@ -327,3 +327,58 @@ def seeds_summary(reports: list[str | Path], out: str | Path) -> dict:
     (out / "summary.md").write_text("\n".join(lines) + "\n")
     (out / "summary.json").write_text(json.dumps(summary, indent=1))
     return summary
+
+
+def table2_summary(runs: list[str | Path], out: str | Path) -> dict:
+    """Table 2 over repeated runs (e.g. seeds), from their table2.json and the K = 5 row's reports:
+    scan F1 mean ± std of the runs' window means per row and case, the echo-peak baseline on the
+    same windows, and per-run paired differences (each run scores all its rows on the same held-out
+    episodes, so the episodes' difficulty cancels out of a difference)."""
+    tables = [json.loads((Path(r) / "table2.json").read_text()) for r in runs]
+    if len(tables) < 2:
+        raise ValueError("give at least two table2 run folders to summarise")
+    rows = list(tables[0])
+    if any(list(t) != rows for t in tables):
+        raise ValueError(f"the runs hold different rows: {[list(t) for t in tables]}")
+    f1 = {r: {c: np.array([t[r][c]["scan_f1"]["mean"] for t in tables]) for c in TABLE2_CASES} for r in rows}
+    peak = {}
+    for c in TABLE2_CASES:
+        reports = [json.loads((Path(r) / "k5" / c / "metrics.json").read_text()) for r in runs]
+        peak[c] = np.array([rep["results"]["echo peak"]["all"]["scan_f1"]["mean"] for rep in reports])
+
+    def cell(values: np.ndarray) -> str:
+        return f"{values.mean():.3f} ± {values.std():.3f}"
+
+    names = ", ".join(f"`{Path(r).name}`" for r in runs)
+    lines = [
+        f"# Table 2 layout over {len(runs)} runs ({names})",
+        "",
+        "scan F1 at 0.10 m: mean ± std over the runs of each run's mean over its held-out windows.",
+        "",
+        "| input | " + " | ".join(TABLE2_CASES) + " |",
+        "|---|---|---|---|",
+    ]
+    lines += [f"| {r} | " + " | ".join(cell(f1[r][c]) for c in TABLE2_CASES) + " |" for r in rows]
+    lines += ["| echo-peak baseline | " + " | ".join(cell(peak[c]) for c in TABLE2_CASES) + " |", ""]
+    pairs = [(r, rows[0]) for r in rows[1:-1]] + [(rows[-1], rows[-2])]  # longer windows; fine-tuning
+    lines += [
+        "Paired differences per run (same windows):",
+        "",
+        "| | case | " + " | ".join(Path(r).name for r in runs) + " |",
+    ]
+    lines += ["|---" * (2 + len(runs)) + "|"]
+    for b, a in pairs:
+        for c in TABLE2_CASES:
+            lines.append(f"| {b} minus {a} | {c} | " + " | ".join(f"{d:+.3f}" for d in f1[b][c] - f1[a][c]) + " |")
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "table2.md").write_text("\n".join(lines) + "\n")
+    summary = {
+        r: {c: {"mean": float(v.mean()), "std": float(v.std()), "runs": v.tolist()} for c, v in f1[r].items()}
+        for r in rows
+    }
+    summary["echo peak"] = {
+        c: {"mean": float(v.mean()), "std": float(v.std()), "runs": v.tolist()} for c, v in peak.items()
+    }
+    (out / "table2.json").write_text(json.dumps(summary, indent=1))
+    return summary

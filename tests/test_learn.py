@@ -5,6 +5,7 @@ import csv
 import dataclasses
 import json
 import os
+import shutil
 import subprocess
 import sys
 
@@ -307,6 +308,20 @@ def test_table2_scores_every_row_on_the_same_held_out_episodes(tiny_dataset, tmp
     text = (tmp_path / "t2" / "table2.md").read_text()
     assert f"{rows['K = 5 fine-tuned']['many']['mse']['mean']:.4f}" in text
     assert text.index("scan F1") < text.index("MSE") and f"{rows['K = 1']['minimal']['scan_f1']['mean']:.4f}" in text
+
+    from learn.studies import table2_summary
+
+    copy = tmp_path / "t2_again"  # a second run with the same numbers: std 0, its differences the run's
+    shutil.copytree(tmp_path / "t2", copy, ignore=shutil.ignore_patterns("*.pt"))
+    summary = table2_summary([tmp_path / "t2", copy], tmp_path / "sum")
+    f1 = {r: rows[r]["noisy"]["scan_f1"]["mean"] for r in rows}
+    assert summary["K = 3"]["noisy"]["mean"] == pytest.approx(f1["K = 3"]) and summary["K = 3"]["noisy"]["std"] == 0
+    assert summary["echo peak"]["noisy"]["mean"] == pytest.approx(k5["results"]["echo peak"]["all"]["scan_f1"]["mean"])
+    diff = f1["K = 5 fine-tuned"] - f1["K = 5"]
+    assert (
+        f"| K = 5 fine-tuned minus K = 5 | noisy | {diff:+.3f} | {diff:+.3f} |"
+        in (tmp_path / "sum" / "table2.md").read_text()
+    )
 
 
 def test_pretrained_model_reads_walls_on_a_fresh_drive(tiny_dataset, tmp_path):
