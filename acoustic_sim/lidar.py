@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import functools
+import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,9 +46,14 @@ class Lidar:
             is the same for the same seed; pass `seed=` to a call to pin its noise.
     """
 
-    def __init__(self, config: LidarConfig, *, device=None, seed: int = 0):
+    def __init__(self, config: LidarConfig, *, device=None, seed: int = 0, cpu_threads: int | None = None):
         self.config = config
         self.device = wp.get_device(device)
+        # Warp runs a CPU launch on one core; launches on disjoint slices of the poses from several
+        # threads run side by side (Warp releases the GIL while a CPU kernel runs).
+        if cpu_threads is not None and cpu_threads < 1:
+            raise ValueError(f"cpu_threads must be >= 1, got {cpu_threads}")
+        self.cpu_threads = cpu_threads or len(os.sched_getaffinity(0))
         self.seed = int(seed)
         self._calls = 0
         self._beam_dirs = wp.array(config.beam_directions().astype(np.float32), dtype=wp.vec3, device=self.device)
@@ -97,12 +104,26 @@ class Lidar:
         # Poses are checked on the device, in the same stream as the scan: one tiny launch and a
         # 4-byte-per-pose read-back cost far less than numpy on large batches.
         launch(kernels.pose_error, dim=len(poses), inputs=[ws.mesh.id, pose_buf], outputs=[error_buf, behind_buf])
-        launch(
-            kernels.lidar_scan,
-            dim=len(range_out),
-            inputs=[ws.mesh.id, ws.face_lidar_transparent, pose_buf, self._beam_dirs, cfg.range_min_m, cfg.range_max_m],
-            outputs=[range_out, face_out],
-        )
+        beams = self.beam_count
+
+        def scan_poses(first: int, last: int) -> None:
+            rays = slice(first * beams, last * beams)
+            scene_in = [ws.mesh.id, ws.face_lidar_transparent]
+            beams_in = [pose_buf[first:last], self._beam_dirs, cfg.range_min_m, cfg.range_max_m]
+            launch(
+                kernels.lidar_scan,
+                dim=(last - first) * beams,
+                inputs=[*scene_in, *beams_in],
+                outputs=[range_out[rays], face_out[rays]],
+            )
+
+        threads = min(self.cpu_threads, len(poses)) if self.device.is_cpu else 1
+        if threads == 1:
+            scan_poses(0, len(poses))
+        else:
+            edges = np.linspace(0, len(poses), threads + 1).round().astype(int)
+            with ThreadPoolExecutor(threads) as pool:
+                list(pool.map(scan_poses, edges[:-1], edges[1:]))  # list(): raise a thread's error here
         if cfg.noise != "none" or cfg.dropout_probability > 0:
             launch(
                 kernels.lidar_noise,

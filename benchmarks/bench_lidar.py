@@ -138,6 +138,11 @@ def bench_scan(lidar: sim.Lidar, scene, poses, repeats: int, peer_rays: int, pee
         "hit_fraction": float(np.isfinite(ours).mean()),
         "peers": [],
     }
+    if lidar.device.is_cpu:  # the same scan with one launch thread: what the threads add
+        single = sim.Lidar(lidar.config, device=lidar.device, cpu_threads=1)
+        _, single_s = median_time(lambda: single.cast(scene, poses), repeats, lidar.device)
+        result |= {"cpu_threads": lidar.cpu_threads, "mrays_per_s_one_thread": rays / single_s / 1e6}
+        result["threads_speedup"] = result["mrays_per_s"] / result["mrays_per_s_one_thread"]
     # Peers on the first `peer_rays` rays (CPU peers are slow on a full GPU-sized batch).
     n_poses = max(1, peer_rays // lidar.beam_count)
     origins, dirs = rays_for(poses[:n_poses], lidar.config)
@@ -198,6 +203,21 @@ def to_markdown(res: dict) -> str:
                 f"| {label} | {r['rays']:,} | {r['first_call_s']:.2f} | {r['mrays_per_s']:,.1f} | "
                 f"{r['mrays_per_s_to_host']:,.1f} | {p['name']} ({threads}) | "
                 f"{p['mrays_per_s']:,.1f} | {p['ours_over_peer']:,.1f}x |"
+            )
+    if "threads_speedup" in res["lidar2d"]:
+        lines += [
+            "",
+            "Our CPU launches split over threads by pose (`Lidar(cpu_threads=...)`, default: every core this "
+            "process may use), against one launch thread in the same run:",
+            "",
+            "| scan | threads | ours [M rays/s] | ours, 1 thread [M rays/s] | speed-up |",
+            "|---|---|---|---|---|",
+        ]
+        for key in ("lidar2d", "lidar3d"):
+            r = res[key]
+            lines.append(
+                f"| {key} | {r['cpu_threads']} | {r['mrays_per_s']:,.2f} | {r['mrays_per_s_one_thread']:,.2f} | "
+                f"{r['threads_speedup']:.2f}x |"
             )
     bare = res.get("bare")
     if bare:

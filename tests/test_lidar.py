@@ -262,3 +262,21 @@ def test_reference_agrees_with_float64_bruteforce():
     tt = (e2[None] * q).sum(-1) / a
     tt[(u < 0) | (v < 0) | (u + v > 1) | (tt <= 0)] = np.inf
     np.testing.assert_allclose(t, tt.min(axis=1), atol=1e-5)
+
+
+def test_cpu_threads_split_the_poses_without_changing_a_range():
+    """On the CPU the scan launch is split over threads by pose (3 uneven slices of 7 poses here):
+    every range, face and noise draw equals the one-thread scan's, and a pose error still surfaces."""
+    scene = scenes.BUILDERS["office"](seed=0)
+    poses = scenes.trajectory(scene, frames=7, seed=1)
+    config = sim.LidarConfig.hokuyo_ust20lx(noise="gaussian", dropout_probability=0.05)
+    one = sim.Lidar(config, device="cpu", cpu_threads=1, seed=4).cast(scene, poses)
+    three = sim.Lidar(config, device="cpu", cpu_threads=3, seed=4).cast(scene, poses)
+    np.testing.assert_array_equal(one.range_m.numpy(), three.range_m.numpy())
+    np.testing.assert_array_equal(one.face.numpy(), three.face.numpy())
+    bad = poses.copy()
+    bad[4, :3, 3] = np.nan
+    with pytest.raises(ValueError):
+        sim.Lidar(config, device="cpu", cpu_threads=3).scan(scene, bad)
+    with pytest.raises(ValueError, match="cpu_threads"):
+        sim.Lidar(config, device="cpu", cpu_threads=0)
