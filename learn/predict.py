@@ -77,10 +77,10 @@ def predict(
             preds.append(image.cpu().numpy())
     labelled = windows.starts + config.label_offset  # the frame each prediction is for
     if mcap:
-        from .ros import FRAME_S, STAMP_START_S, dataset_stamps, write_scans
+        from .ros import FRAME_S, dataset_stamps, drive_stamps, write_scans
 
-        if source.suffix == ".npy":
-            stamps = STAMP_START_S * 10**9 + np.round(np.arange(len(frames.episode)) * FRAME_S * 1e9).astype(np.int64)
+        if source.suffix == ".npy":  # one drive at the training frame rate
+            stamps = drive_stamps(frames.episode, np.arange(len(frames.episode)) * FRAME_S)
         else:
             stamps = dataset_stamps(source)
         write_scans(mcap, np.concatenate(ranges), stamps[labelled], frames.range_m, frames.azimuth_rad)

@@ -37,6 +37,11 @@ def _variant_folder(root: Path, name: str) -> Path:
     return folder
 
 
+def _spread(values: list[float]) -> dict:
+    """Mean, std and the values themselves, of one number over repeated runs."""
+    return {"mean": float(np.mean(values)), "std": float(np.std(values)), "runs": values}
+
+
 def _cell(stats: dict, key: str) -> str:
     return f"{stats[key]['mean']:.4f} / {stats[key]['std']:.4f}"
 
@@ -211,8 +216,7 @@ def sim2real_summary(runs: list[str | Path], out: str | Path) -> dict:
         raise ValueError(f"the runs trained different variants: {[list(t) for t in tables]}")
 
     def across(v: str, where: str, key: str) -> dict:
-        values = [t[v][where][key]["mean"] for t in tables]
-        return {"mean": float(np.mean(values)), "std": float(np.std(values)), "runs": values}
+        return _spread([t[v][where][key]["mean"] for t in tables])
 
     tests = _test_sets(tables[0])
     wheres = ("in_domain", *tests, *(t + ECHO_PEAK for t in tests))
@@ -306,8 +310,7 @@ def seeds_summary(reports: list[str | Path], out: str | Path) -> dict:
     for name in names:
         summary[name] = {}
         for key, _, _ in METRICS:
-            values = [r["results"][name]["all"][key]["mean"] for r in runs]
-            summary[name][key] = {"mean": float(np.mean(values)), "std": float(np.std(values)), "runs": values}
+            summary[name][key] = _spread([r["results"][name]["all"][key]["mean"] for r in runs])
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     lines = [
@@ -373,12 +376,7 @@ def table2_summary(runs: list[str | Path], out: str | Path) -> dict:
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "table2.md").write_text("\n".join(lines) + "\n")
-    summary = {
-        r: {c: {"mean": float(v.mean()), "std": float(v.std()), "runs": v.tolist()} for c, v in f1[r].items()}
-        for r in rows
-    }
-    summary["echo peak"] = {
-        c: {"mean": float(v.mean()), "std": float(v.std()), "runs": v.tolist()} for c, v in peak.items()
-    }
+    summary = {r: {c: _spread(v.tolist()) for c, v in f1[r].items()} for r in rows}
+    summary["echo peak"] = {c: _spread(v.tolist()) for c, v in peak.items()}
     (out / "table2.json").write_text(json.dumps(summary, indent=1))
     return summary
