@@ -47,9 +47,11 @@ def simulate_episode(
     device,
     keep_signals=False,
     keep_arrivals=False,
+    on_frames=None,
 ) -> tuple[dict, dict]:
     """Scene, drive, LiDAR and sonar of one episode -> (arrays, episode record for the shard).
-    `nominal` is the variant's rig (`suites.rig`) before this episode's draws."""
+    `nominal` is the variant's rig (`suites.rig`) before this episode's draws; `on_frames(n)` is
+    called as the sonar finishes each batch of n frames."""
     import scenes
 
     from .lidar import Lidar, lidar_image
@@ -82,6 +84,7 @@ def simulate_episode(
         keep_signals=keep_signals,
         processing=nominal.processing,
         assumed_array=nominal.sonar,
+        on_pings=on_frames,
     )
     arrays = {
         "energyscape": result.energyscape,

@@ -57,6 +57,7 @@ def run_task(task: ShardTask, device=None, on_frames=None) -> dict:
             device=device,
             keep_signals=task.keep_signals,
             keep_arrivals=task.keep_arrivals,
+            on_frames=on_frames,
         )
         for key in ("energyscape", "lidar_ranges", "lidar_image", "pose", "time"):
             getattr(frames, key).append(arrays[key])
@@ -68,8 +69,6 @@ def run_task(task: ShardTask, device=None, on_frames=None) -> dict:
             frames.arrivals.append(arrays["arrivals"] | {"frame": arrays["arrivals"]["frame"] + offset})
         offset += episode.frames
         records.append(record)
-        if on_frames:
-            on_frames(episode.frames)
     grid = nominal.processing.grid
     config = {"suite": task.suite, "variant": task.variant, "physics": task.physics, "sim": nominal.to_dict()}
     attrs = {
@@ -183,11 +182,13 @@ def _check_plan_file(out: Path, tasks: list[ShardTask], meta: dict) -> None:
 
 
 _WORKER_DEVICE = None
+_WORKER_PROGRESS = None  # a queue of finished frame counts, read by the parent's progress bar
 
 
-def _init_worker(devices, parent: int) -> None:
-    global _WORKER_DEVICE
+def _init_worker(devices, progress, parent: int) -> None:
+    global _WORKER_DEVICE, _WORKER_PROGRESS
     _WORKER_DEVICE = devices.get()
+    _WORKER_PROGRESS = progress
     threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
 
 
@@ -199,7 +200,13 @@ def _exit_with_parent(parent: int) -> None:
 
 
 def _run_in_worker(task: ShardTask) -> dict:
-    return run_task(task, _WORKER_DEVICE)
+    return run_task(task, _WORKER_DEVICE, on_frames=_WORKER_PROGRESS.put)
+
+
+def _show_progress(counts, bar) -> None:
+    """Move the bar by the frame counts the workers send, until None arrives."""
+    for n in iter(counts.get, None):
+        bar.update(n)
 
 
 def worker_devices(device: str, workers: int) -> list[str]:
@@ -260,12 +267,17 @@ def generate(
             queue = context.Queue()  # handed to each worker at its start; no manager process to outlive us
             for d in devices:
                 queue.put(d)
-            init = (queue, os.getpid())
-            with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker, initargs=init) as pool:
-                futures = {pool.submit(_run_in_worker, t): t for t in todo}
-                for future in as_completed(futures):
-                    future.result()
-                    bar.update(futures[future].frame_count)
+            counts = context.Queue()  # frames as the workers simulate them, not per finished shard
+            reader = threading.Thread(target=_show_progress, args=(counts, bar), daemon=True)
+            reader.start()
+            init = (queue, counts, os.getpid())
+            try:
+                with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker, initargs=init) as pool:
+                    for future in as_completed([pool.submit(_run_in_worker, t) for t in todo]):
+                        future.result()
+            finally:
+                counts.put(None)
+                reader.join(timeout=5)
         bar.close()
         seconds = time.perf_counter() - t0
         for variant in suite.variants:

@@ -9,6 +9,7 @@ Sonar.simulate    all three on the device, batch by batch, without host round tr
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -71,6 +72,7 @@ class Sonar:
         batch: int | None = None,
         keep_signals: bool = False,
         progress: bool = False,
+        on_pings: Callable[[int], None] | None = None,
         processing: ProcessingConfig | None = None,
         assumed_array: SonarConfig | None = None,
     ) -> SonarFrames:
@@ -85,6 +87,8 @@ class Sonar:
             batch: Pings at once (default 256 on a GPU, 8 on the CPU).
             keep_signals: Also return the microphone signals (N, mics, samples).
             progress: Show a progress bar.
+            on_pings: Called with the number of pings finished after each batch (progress of
+                a caller that shows its own bar, e.g. `generate`).
             processing: The beamformer's settings (`ProcessingConfig`); default the eRTIS's.
             assumed_array: The array geometry and call the beamformer assumes, if not the
                 simulated one (e.g. the nominal array while simulating a mismatched one).
@@ -110,6 +114,8 @@ class Sonar:
             if kept is not None:
                 kept[index[keep]] = signals.numpy()[keep]
             bar.update(int(keep.sum()))
+            if on_pings:
+                on_pings(int(keep.sum()))
         bar.close()
         return SonarFrames(energyscape=images, signals=kept)
 

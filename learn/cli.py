@@ -110,7 +110,13 @@ def _evaluate(args) -> int:
     from .evaluate import evaluate
 
     report = evaluate(
-        args.checkpoint, args.data, args.out, device=args.device, split=args.split, threshold=args.threshold
+        args.checkpoint,
+        args.data,
+        args.out,
+        device=args.device,
+        split=args.split,
+        threshold=args.threshold,
+        progress=not args.quiet,
     )
     print(f"{report['windows']:,} windows ({report['split']} split) of {report['data']}:")
     for name, r in report["results"].items():
@@ -307,6 +313,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="report folder")
     p.add_argument("--split", default="auto", choices=["auto", "val", "all"], help="auto: val on the training data")
     p.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
     _threshold_option(p)
     p.set_defaults(handler=_evaluate)
     p = sub.add_parser(

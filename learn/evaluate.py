@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
 from .checkpoint import load_checkpoint
 from .data import DataConfig, Frames, Windows, load_frames
@@ -50,17 +51,27 @@ def _axes(windows: Windows) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def score(
-    predict: Callable, windows: Windows, indices: np.ndarray, *, threshold: float, batch_size: int = 32
+    predict: Callable,
+    windows: Windows,
+    indices: np.ndarray,
+    *,
+    threshold: float,
+    batch_size: int = 32,
+    progress: str | None = None,
 ) -> dict[str, np.ndarray]:
     """Per-window metrics (`learn.metrics.image_metrics`) of a predictor x (B, 1, K, R, A) -> image
-    (B, 1, R, A) in [0, 1], whose cells >= threshold are returns."""
+    (B, 1, R, A) in [0, 1], whose cells >= threshold are returns. `progress` names a progress bar."""
     if not 0 < threshold <= 1:
         raise ValueError(f"the return threshold must lie in (0, 1], got {threshold}")
     range_m, azimuth_rad = _axes(windows)
     per: dict[str, list] = {}
-    for pred, y in _predictions(predict, windows, indices, batch_size):
+    batches = _predictions(predict, windows, indices, batch_size)
+    bar = tqdm(total=len(indices), desc=progress, unit="win", disable=progress is None, leave=False)
+    for pred, y in batches:
         for k, v in image_metrics(pred, y, range_m, azimuth_rad, threshold=threshold).items():
             per.setdefault(k, []).append(v.cpu().numpy())
+        bar.update(len(y))
+    bar.close()
     return {k: np.concatenate(v) for k, v in per.items()}
 
 
@@ -188,6 +199,7 @@ def evaluate(
     examples: int = 4,
     timing: bool = True,
     threshold: float | None = None,
+    progress: bool = False,
 ) -> dict:
     """Score one or more checkpoints on a dataset (with baselines) and write metrics.json (means
     and std overall and per scenario), per_scenario.csv, per_window.csv (every metric of every
@@ -201,6 +213,7 @@ def evaluate(
             training data), or "auto" (val on the training data, else all).
         episodes: Episode ids to score instead of a split.
         threshold: Return threshold for every model instead of each checkpoint's calibrated one.
+        progress: A progress bar per model and baseline while it is scored.
     """
     from .plots import plot_examples
 
@@ -226,7 +239,8 @@ def evaluate(
     predictors["empty"] = (empty_predictor, BASELINE_THRESHOLD)
     results, per_window = {}, {}
     for name, (predict, t) in predictors.items():
-        per_window[name] = score(predict, windows, indices, threshold=t, batch_size=batch_size)
+        bar = f"scoring {name}" if progress else None
+        per_window[name] = score(predict, windows, indices, threshold=t, batch_size=batch_size, progress=bar)
         results[name] = summarise(per_window[name], scenario, frames.scenarios)
     report = {
         "checkpoints": {name: str(path) for name, path in named.items()},

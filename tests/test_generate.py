@@ -3,6 +3,7 @@ clear errors for foreign or broken files; windows never cross episodes."""
 
 import dataclasses
 import json
+import typing
 from pathlib import Path
 
 import h5py
@@ -180,10 +181,31 @@ def test_episodes_are_dealt_by_weight_and_shared_by_variants():
     assert len({e.seed for e in by_variant["bounces_0"]}) == 24
 
 
-def test_parallel_workers_write_the_same_shards(reference, tmp_path, device):
-    """Two spawned worker processes, one shard each: the arrays equal the single-process run's."""
+class BarSteps:
+    """Stands in for tqdm in `generate`: records every step the progress bar is moved by."""
+
+    steps: typing.ClassVar[list[int]] = []
+
+    def __init__(self, *args, **kwargs):
+        BarSteps.steps = []
+
+    def update(self, n):
+        BarSteps.steps.append(n)
+
+    def set_description(self, text):
+        pass
+
+    def close(self):
+        pass
+
+
+def test_parallel_workers_write_the_same_shards(reference, tmp_path, device, monkeypatch):
+    """Two spawned worker processes, one shard each: the arrays equal the single-process run's,
+    and the parent's bar moves as the workers simulate frames (per episode here), not per shard."""
+    monkeypatch.setattr(gen, "tqdm", BarSteps)
     summary = generate(tmp_path, device, workers=2)
     assert summary["shards_written"] == 2
+    assert sum(BarSteps.steps) == FRAMES and len(BarSteps.steps) == 3, BarSteps.steps
     got, want = shard_arrays(tmp_path), shard_arrays(reference[0])
     assert got.keys() == want.keys()
     for key in want:

@@ -136,10 +136,10 @@ def test_predict_reads_scans_at_the_threshold(tiny_dataset, tmp_path):
         np.testing.assert_array_equal(got["ranges"], want.float().numpy())
 
 
-def test_evaluate_compares_checkpoints_side_by_side(tiny_dataset, tmp_path):
+def test_evaluate_compares_checkpoints_side_by_side(tiny_dataset, tmp_path, capsys):
     """Two named checkpoints and the baselines are scored on the same windows at each model's own
     threshold; the report names each checkpoint and draws examples for both; checkpoints that
-    read other windows (K) are refused."""
+    read other windows (K) are refused; with `progress` a bar counts the windows of each predictor."""
     a, b, k5 = tmp_path / "a", tmp_path / "b", tmp_path / "k5"
     for run, seed in ((a, 0), (b, 1)):
         config = dataclasses.replace(QUICK, epochs=1, seed=seed)
@@ -156,7 +156,10 @@ def test_evaluate_compares_checkpoints_side_by_side(tiny_dataset, tmp_path):
     assert len(rows) == 4 * 12 and rows[0]["predictor"] == "first" and list(rows[0])[4] == "scan_f1"
     second = [float(r["scan_f1"]) for r in rows if r["predictor"] == "second"]
     assert np.mean(second) == pytest.approx(report["results"]["second"]["all"]["scan_f1"]["mean"], abs=1e-5)
-    alone = evaluate(b / "best.pt", tiny_dataset, tmp_path / "alone", split="all", timing=False)
+    capsys.readouterr()
+    alone = evaluate(b / "best.pt", tiny_dataset, tmp_path / "alone", split="all", timing=False, progress=True)
+    bars = capsys.readouterr().err
+    assert all(f"scoring {name}" in bars for name in ("model", "echo peak", "empty")) and "12/12" in bars, bars
     assert _same(alone["results"]["model"], report["results"]["second"])
     five = ModelConfig(name="polar_unet", frames=5, width=4)
     config = dataclasses.replace(QUICK, epochs=1)
