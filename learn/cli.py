@@ -92,6 +92,7 @@ def _train(args) -> int:
         progress=not args.quiet,
         init_from=args.init_from,
         overwrite=args.overwrite,
+        tensorboard=args.tensorboard,
     )
     if summary:
         shown = summary["folds"] if "folds" in summary else [summary]
@@ -298,6 +299,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     p.add_argument("--overwrite", action="store_true", help="replace a run already in OUT")
     p.add_argument("--init-from", default=None, help="start from this checkpoint's weights (fine-tuning)")
+    p.add_argument(
+        "--tensorboard", action="store_true", help="also log every epoch (metrics, example windows) in OUT/tensorboard"
+    )
     _training_options(p)
     p.set_defaults(handler=_train)
     p = sub.add_parser(

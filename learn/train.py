@@ -34,6 +34,7 @@ from .data import FORMAT_VERSION, DataConfig, Frames, Windows, load_frames, spli
 from .evaluate import calibrate_threshold, model_predictor, score
 from .models import ModelConfig, build_model, parameter_count
 from .progress import epoch_line, warn_if_silent, write_fold_summary, write_history
+from .tensorboard import TensorBoardLog
 
 LOSSES = ("mse", "bce")
 SPLITS = ("episode", "scenario")
@@ -174,6 +175,7 @@ def train(
     progress: bool = True,
     init_from: str | Path | None = None,
     overwrite: bool = False,
+    tensorboard: bool = False,
 ) -> dict:
     """Train a model (or `folds` models) on a dataset folder; returns the summary of the run.
 
@@ -182,6 +184,7 @@ def train(
     and curves.png, summary.json. With folds > 1: out/fold_i/ each,
     and folds.json/folds.md with mean and std over the folds. A folder that already holds
     checkpoints is continued (`resume`) or replaced (`overwrite`), never silently overwritten.
+    `tensorboard` also logs every epoch under out/tensorboard (`learn.tensorboard`).
     """
     _check_out(Path(out), resume=resume, overwrite=overwrite)
     if init_from is not None and not Path(init_from).is_file():
@@ -213,6 +216,7 @@ def train(
                     progress,
                     init_from,
                     fold=k,
+                    tensorboard=tensorboard,
                 )
             )
         if dist_info.main:
@@ -221,7 +225,18 @@ def train(
     else:
         held = validation_split(groups, train_config.val_fraction, seed=train_config.seed)
         result = _train_one(
-            windows, ~held, held, out, model_config, data_config, train_config, dist_info, resume, progress, init_from
+            windows,
+            ~held,
+            held,
+            out,
+            model_config,
+            data_config,
+            train_config,
+            dist_info,
+            resume,
+            progress,
+            init_from,
+            tensorboard=tensorboard,
         )
     if dist_info.world > 1:
         import torch.distributed as dist
@@ -259,6 +274,7 @@ def _train_one(
     progress,
     init_from,
     fold=None,
+    tensorboard=False,
 ) -> dict:
     dev = windows.device
     torch.manual_seed(config.seed)
@@ -318,6 +334,7 @@ def _train_one(
         resumed = bool(resume and last.exists())
         run |= {"device": str(dev), "resumed": resumed, "init_from": None if init_from is None else str(init_from)}
         (out / "config.json").write_text(json.dumps(run, indent=1))
+    board = TensorBoardLog(out, val_idx) if tensorboard and dist_info.main else None
     rng = np.random.default_rng(config.seed + 1000 * state["epoch"])
     draws = torch.Generator(device=dev)  # augmentation draws, reseeded every epoch like the order
     while state["epoch"] < config.epochs and state["stale"] < config.patience:
@@ -385,6 +402,8 @@ def _train_one(
             if improved:
                 save_checkpoint(ckpt, out / "best.pt")
             write_history(out, state["history"], state.get("best_epoch"), config.monitor)
+            if board:
+                board.epoch(row, model_predictor(_unwrap(model), amp=config.amp), windows)
             out_of_time = config.max_minutes is not None and time.perf_counter() - started > 60 * config.max_minutes
             stop[0] = float(state["stale"] >= config.patience or out_of_time)
         else:
@@ -395,6 +414,8 @@ def _train_one(
             dist.broadcast(stop, 0)
         if stop.item():
             break
+    if board:
+        board.close()
     summary = {}
     if dist_info.main:
         best = max(state["history"], key=lambda r: _nan_low(sign * r[f"val_{config.monitor}"]))

@@ -446,3 +446,26 @@ def test_sim2real_scores_every_named_test_set_beside_its_echo_peak(tiny_dataset,
     assert "scan F1 in-domain | scan F1 reality | scan F1 crossengine" in header
     assert main([*argv, "--test", "reality=x", "--out", str(tmp_path / "t")]) == 2
     assert "--test wants NAME=FOLDER" in capsys.readouterr().err
+
+
+def test_tensorboard_logs_every_epoch(tiny_dataset, tmp_path, monkeypatch):
+    """`--tensorboard`: every history column as a scalar per epoch (equal to history.csv) and the
+    example windows as pictures; without TensorBoard installed, an error that names the extra."""
+    event_accumulator = pytest.importorskip("tensorboard.backend.event_processing.event_accumulator")
+    run = tmp_path / "run"
+    train(tiny_dataset, run, model_config=MODEL, data_config=DATA, train_config=QUICK, progress=False, tensorboard=True)
+    board = event_accumulator.EventAccumulator(str(run / "tensorboard"), size_guidance={"images": 0})
+    board.Reload()
+    history = list(csv.DictReader(open(run / "history.csv")))
+    f1 = board.Scalars("val/scan_f1")
+    assert [e.step for e in f1] == [1, 2]
+    assert [e.value for e in f1] == pytest.approx([float(r["val_scan_f1"]) for r in history], abs=1e-6)
+    assert {"train/loss", "val/threshold", "speed/samples_per_s"} <= set(board.Tags()["scalars"])
+    pictures = board.Tags()["images"]
+    assert len(pictures) == 3 and all(len(board.Images(tag)) == 2 for tag in pictures)
+    height, width = board.Images(pictures[0])[0].height, board.Images(pictures[0])[0].width
+    frames = load_frames(tiny_dataset)
+    assert (height, width) == (len(frames.range_m), 3 * len(frames.azimuth_rad))  # sonar | label | prediction
+    monkeypatch.setitem(sys.modules, "torch.utils.tensorboard", None)
+    with pytest.raises(ImportError, match=r"sonar2lidar\[tensorboard\]"):
+        train(tiny_dataset, tmp_path / "no", model_config=MODEL, data_config=DATA, train_config=QUICK, tensorboard=True)
