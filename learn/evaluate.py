@@ -425,6 +425,8 @@ def report_markdown(report: dict) -> str:
     for name in checkpoints:
         path = example_file(name, first=name == first)
         lines += ["", f"`{path}`: predictions of {name} (`{checkpoints[name]}`).", "", f"![{name}]({path})"]
+    if any(" - |" in line for line in lines):
+        lines += ["", "`-`: no window defines it (the range MAE of true positives needs at least one true positive)."]
     lines.append("")
     return "\n".join(lines)
 

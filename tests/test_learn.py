@@ -104,7 +104,9 @@ def test_train_checkpoint_resume_and_evaluate(tiny_dataset, tmp_path):
     report = evaluate(run / "best.pt", tiny_dataset, run / "eval", timing=False)
     assert report["split"] == "val" and set(report["results"]) == {"model", "echo peak", "empty"}
     assert np.isfinite(report["results"]["model"]["all"]["ssim"]["mean"])
-    assert (run / "eval" / "examples.png").exists() and "scan F1 @0.10 m" in (run / "eval" / "report.md").read_text()
+    text = (run / "eval" / "report.md").read_text()
+    assert (run / "eval" / "examples.png").exists() and "scan F1 @0.10 m" in text
+    assert "nan" not in text and "`-`: no window defines it" in text  # the empty image has no true positive
     one = evaluate(run / "best.pt", tiny_dataset, run / "one", episodes=[1], timing=False, examples=1)
     assert one["split"] == "episodes" and one["windows"] == 6  # one 8-frame episode, K = 3
     with pytest.raises(ValueError, match="none of the episodes"):
