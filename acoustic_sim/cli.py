@@ -169,11 +169,14 @@ def _import(args) -> int:
 
     quiet_warp(not args.verbose)
     from .config import SimConfig
-    from .recordings import import_pdm
     from .settings import apply_settings
 
     check_device(args.device)
     rig = apply_settings(SimConfig(), args.set or ())
+    if args.format == "chirp":
+        return _import_chirp(args, rig)
+    from .recordings import import_pdm
+
     done = import_pdm(
         args.recordings,
         args.out,
@@ -191,7 +194,38 @@ def _import(args) -> int:
     return 0
 
 
+def _import_chirp(args, rig) -> int:
+    from .chirp import import_chirp
+
+    if len(args.recordings) != 1:
+        raise ValueError(f"--format chirp imports one recording (.h5) at a time, got {len(args.recordings)} files")
+    done = import_chirp(
+        args.recordings[0],
+        args.out,
+        rig,
+        plane_tolerance_m=args.plane_tolerance,
+        episode_gap_s=args.episode_gap,
+        device=args.device,
+    )
+    lidar = f"labels from {done['lidar']}" if done["lidar"] else "no LiDAR, empty labels"
+    print(
+        f"{done['pings']} pings -> {done['out']} ({done['episodes']} episodes; {lidar}, "
+        f"{done['returns_per_scan']:.0f} returns per scan; poses: {done['poses']}) in {done['seconds']:.1f} s; "
+        f"next: python -m learn evaluate --checkpoint MODEL.pt --data {done['out']} --out EVAL"
+    )
+    return 0
+
+
 def _export(args) -> int:
+    if args.format == "chirp":
+        from .chirp import export_chirp
+
+        done = export_chirp(args.dataset, args.out)
+        print(
+            f"{done['frames']} frames of {args.dataset} -> {done['out']} (CHIRP: microphone signals, "
+            f"{done['points']:,} LiDAR points, poses)"
+        )
+        return 0
     from .mcap_export import export_mcap
 
     done = export_mcap(args.dataset, args.out)
@@ -293,22 +327,41 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--verbose", action="store_true", help="show Warp's compile messages")
     gen.set_defaults(handler=_generate)
 
+    from .chirp import EPISODE_GAP_S, PLANE_TOLERANCE_M
+
     imp = sub.add_parser(
         "import",
-        help="turn a real sensor's recording into energyscapes (raw eRTIS PDM)",
+        help="turn a real sensor's recording into energyscapes (raw eRTIS PDM) or a dataset (CHIRP)",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-        description="Decode raw 1-bit PDM microphone streams (one word of channel bits per PDM sample; one "
+        description="pdm: decode raw 1-bit PDM microphone streams (one word of channel bits per PDM sample; one "
         "file per ping unless --samples-per-ping splits them) to PCM, and process them with the rig's array, "
         "call and grid into energyscapes, as the simulator's pings are. Writes OUT (.npy), a picture (.png) "
-        "and the settings (.json) for `learn predict --input OUT`.",
+        "and the settings (.json) for `learn predict --input OUT`. "
+        "chirp: a CHIRP recording (.h5, read with cosys-chirppy: extra `chirp`, CC BY-NC-SA) into a dataset "
+        "folder OUT for `learn evaluate --data OUT` and `learn predict --input OUT`: the microphone signals "
+        "through our processing with the file's array and sample rate and the rig's call and grid; the LiDAR "
+        "points within --plane-tolerance of the sonar's plane as a 2D scan on the rig's LiDAR azimuths "
+        "(nearest point per beam), rasterised as the simulator's labels; poses from the odometry.",
     )
-    imp.add_argument("recordings", nargs="+", help="raw PDM files, in time order")
-    imp.add_argument("--format", required=True, choices=["pdm"], help="what the files hold")
-    imp.add_argument("--out", required=True, help="energyscapes file to write (.npy)")
+    imp.add_argument("recordings", nargs="+", help="raw PDM files in time order, or one CHIRP file")
+    imp.add_argument("--format", required=True, choices=["pdm", "chirp"], help="what the files hold")
+    imp.add_argument("--out", required=True, help="pdm: energyscapes file to write (.npy); chirp: dataset folder")
     imp.add_argument("--channels", type=int, default=32, help="microphones in the stream (bits per word)")
     imp.add_argument("--pdm-rate", type=float, default=4.5e6, help="PDM sample rate [Hz]")
     imp.add_argument("--bit-order", choices=["lsb", "msb"], default="lsb", help="lsb: bit i of a word is channel i")
     imp.add_argument("--samples-per-ping", type=int, default=None, help="split each file into pings of this many words")
+    imp.add_argument(
+        "--plane-tolerance",
+        type=float,
+        default=PLANE_TOLERANCE_M,
+        help="chirp: LiDAR points within this height of the sonar's plane make the 2D scan [m]",
+    )
+    imp.add_argument(
+        "--episode-gap",
+        type=float,
+        default=EPISODE_GAP_S,
+        help="chirp: a longer pause between pings starts a new episode [s]",
+    )
     imp.add_argument("--set", action="append", metavar="SECTION.FIELD=VALUE", help=SET_HELP)
     imp.add_argument("--device", default="cpu", help="Warp device for the processing")
     imp.add_argument("--verbose", action="store_true", help="show Warp's compile messages")
@@ -316,23 +369,27 @@ def build_parser() -> argparse.ArgumentParser:
 
     exp = sub.add_parser(
         "export",
-        help="write a dataset for robotics tools (MCAP of ROS 2 messages)",
+        help="write a dataset for robotics tools (MCAP of ROS 2 messages) or the eRTIS lab (CHIRP)",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-        description="Every frame of a dataset folder as ROS 2 messages in an MCAP file, without a ROS install "
-        "(extra `ros`): sensor_msgs/LaserScan on /scan, sensor_msgs/Image (32FC1, range x azimuth) on "
+        description="mcap: every frame of a dataset folder as ROS 2 messages in an MCAP file, without a ROS "
+        "install (extra `ros`): sensor_msgs/LaserScan on /scan, sensor_msgs/Image (32FC1, range x azimuth) on "
         "/sonar/energyscape, tf2_msgs/TFMessage world -> sensor on /tf, stamped with the drive's times. "
-        "Open it in Foxglove.",
+        "Open it in Foxglove. chirp: a dataset generated with --signals as one CHIRP file (.h5, the eRTIS "
+        "lab's format; cosys-chirppy reads it): the microphone signals with the array's positions and "
+        "sample rate, the call, the LiDAR as x, y, z, intensity points, the poses as odometry, Unix times "
+        "of the drive.",
     )
     exp.add_argument("dataset", help="dataset folder (shard-*.h5)")
-    exp.add_argument("--format", required=True, choices=["mcap"], help="what to write")
-    exp.add_argument("--out", required=True, help="file to write (.mcap)")
+    exp.add_argument("--format", required=True, choices=["mcap", "chirp"], help="what to write")
+    exp.add_argument("--out", required=True, help="file to write (.mcap or .h5)")
     exp.set_defaults(handler=_export)
     return parser
 
 
-USER_ERRORS = (ValueError, TypeError, KeyError, OSError)
-"""Bad input, files or settings (SceneError and DatasetError are ValueErrors): one `error:` line,
-exit code 2; `--debug` shows the trace."""
+USER_ERRORS = (ValueError, TypeError, KeyError, OSError, ImportError)
+"""Bad input, files or settings (SceneError and DatasetError are ValueErrors), or an optional
+extra that is not installed (its ImportError names the extra): one `error:` line, exit code 2;
+`--debug` shows the trace."""
 
 
 def main(argv: list[str] | None = None) -> int:

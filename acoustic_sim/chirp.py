@@ -1,0 +1,402 @@
+"""CHIRP in and out: the HDF5 recording format of the eRTIS lab (Cosys-Lab Hybrid In-air sonar
+Recording Package), whose reader `cosys-chirppy` (extra `chirp`, CC BY-NC-SA) defines a valid file.
+
+    python -m acoustic_sim export DATASET --format chirp --out sim.h5   # a dataset made with --signals
+    python -m acoustic_sim import REC.h5 --format chirp --out data/rec    # a recording -> our shards
+
+CHIRP's microphone array is the reference sensor: each of its captures (one ping) is a reference
+capture, at a Unix time, and every other sensor is synced to them. Frames are X forward, Y left,
+Z up, with the origin at the array; `to_origin` 4x4 transforms place each sensor.
+
+Export writes one file per dataset with `format`, `format_version`, `reference_sensor` and
+`n_reference_captures` at the root and, under `sensors/`, all 1:1 with the pings
+(sync_mode "reference_capture"):
+  acoustic_sensor_00      signals (N, samples, mics) float32, the sample rate, and the array's
+                          nominal positions, as the processing assumes them
+                          (calibration/receiver_relative_translations)
+  acoustic_transmitter_00 the call (signals) at the emitter's position
+  lidar_00                x, y, z, intensity points in the sensor frame, NaN-padded (points,
+                          point_counts); a beam without a return is no point; intensity 1 (the
+                          simulator has none)
+  odometry_00             the poses (position, orientation [x, y, z, w], yaw); base_link is the
+                          sensor frame (transforms/base_link_to_origin = identity); no velocities
+Times are the drive's, stamped as `mcap_export.frame_stamps` stamps them.
+
+Import processes the reference sensor's signals with our processing (`beamform.energyscape`, the
+rig's call and grid) using the file's microphone positions and sample rate; a sample rate other
+than the call's is refused (set `--set sonar.chirp.*` to the call that was recorded). The LiDAR
+label is a 2D scan taken from the 3D points: moved into the sonar's frame with the file's
+transforms, the points within `plane_tolerance_m` of the sonar's plane (|z|) are binned to the
+beams of the rig's LiDAR azimuths (nearest beam, elevation 0) and each beam keeps its nearest
+point inside the LiDAR's range limits; then `lidar_image` makes the label as the simulator does.
+Poses come from the first odometry sensor through the file's base_link transform (identity
+when there is none). A pause longer than `episode_gap_s` between pings starts a new episode
+(windows never cross it); each episode is one shard.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import time
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from .config import ChirpConfig, LidarConfig
+from .dataset import COMPRESSION, ShardFrames, write_shard
+from .lidar import lidar_image, ranges_to_points
+from .mcap_export import frame_stamps
+
+FORMAT, FORMAT_VERSION = "chirp", "2.1"
+ACOUSTIC, TRANSMITTER, LIDAR, ODOMETRY = "acoustic_sensor_00", "acoustic_transmitter_00", "lidar_00", "odometry_00"
+PLANE_TOLERANCE_M = 0.05
+EPISODE_GAP_S = 0.5
+BLOCK = 64  # pings read and processed at once
+
+
+def _chirppy():
+    try:
+        import chirppy
+    except ImportError:
+        raise ImportError(
+            "reading CHIRP files needs the `chirp` extra (cosys-chirppy, CC BY-NC-SA): pip install -e '.[chirp]'"
+        ) from None
+    return chirppy
+
+
+# ---------------------------------------------------------------------------------------- export
+
+
+def _read_drive(shards: list[Path]) -> dict:
+    """Everything of a dataset but its signals (ranges, poses, times, episode per frame, the rig),
+    checking that every shard holds signals and that all share one rig."""
+    drive, keys, sim = {"ranges": [], "pose": [], "time": []}, [], None
+    for i, path in enumerate(shards):
+        with h5py.File(path, "r") as f:
+            if "signals" not in f:
+                raise ValueError(
+                    f"{path} holds no microphone signals: a CHIRP file carries the signals, so generate the "
+                    "dataset with --signals"
+                )
+            config = json.loads(f.attrs["config"])["sim"]
+            if sim is not None and config != sim:
+                raise ValueError(f"{path} was simulated with another rig than {shards[0].name}: one file, one rig")
+            sim = config
+            drive["ranges"].append(f["lidar/ranges"][:])
+            drive["pose"].append(f["pose"][:])
+            drive["time"].append(f["time"][:])
+            keys += [(i, int(e)) for e in f["episode"][:]]  # episodes restart in every shard
+    index = {key: n for n, key in enumerate(dict.fromkeys(keys))}
+    return {k: np.concatenate(v) for k, v in drive.items()} | {
+        "episode": np.array([index[k] for k in keys]),
+        "sim": sim,
+    }
+
+
+def _sensor(f: h5py.File, name: str, kind: str, to_origin: np.ndarray, stamps: np.ndarray, **attrs) -> h5py.Group:
+    """sensors/<name>, one capture per ping, placed by `to_origin` (4x4, sensor -> origin)."""
+    group = f.create_group(f"sensors/{name}")
+    group.attrs.update(sensor_type=kind, sync_mode="reference_capture", reference_frame="origin", **attrs)
+    group.create_dataset("calibration/to_origin", data=to_origin)
+    group.create_dataset("data/timestamps", data=stamps)
+    return group
+
+
+def _points(ranges: np.ndarray, lidar: LidarConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Scans (N, beams) -> x, y, z, intensity points (N, most returns, 4) float32, returns first
+    and NaN after, and the number of returns per scan."""
+    points = ranges_to_points(ranges, lidar).astype(np.float32)  # NaN where a beam has no return
+    found = np.isfinite(points[..., 0])
+    counts = found.sum(axis=1).astype(np.int32)
+    cloud = np.full((len(points), max(int(counts.max(initial=0)), 1), 4), np.nan, np.float32)
+    for k in range(len(points)):
+        cloud[k, : counts[k], :3], cloud[k, : counts[k], 3] = points[k, found[k]], 1.0
+    return cloud, counts
+
+
+def export_chirp(dataset: str | Path, out: str | Path) -> dict:
+    """Write every frame of a dataset folder generated with `--signals` as one CHIRP file."""
+    from scipy.spatial.transform import Rotation
+
+    from . import __version__
+
+    folder, out = Path(dataset), Path(out)
+    shards = sorted(folder.glob("shard-*.h5"))
+    if not shards:
+        raise ValueError(f"{folder} holds no shard-*.h5 files")
+    drive = _read_drive(shards)
+    sonar, n = drive["sim"]["sonar"], len(drive["time"])
+    stamps = frame_stamps(drive["episode"], drive["time"]) / 1e9  # Unix seconds, float64 (0.24 us steps)
+    cloud, counts = _points(drive["ranges"], LidarConfig(**drive["sim"]["lidar"]))
+    mics, poses = np.asarray(sonar["microphones_m"], dtype=np.float64), drive["pose"]
+    rate, samples = float(sonar["chirp"]["sample_rate_hz"]), int(sonar["record_samples"])
+    emitter = np.eye(4)
+    emitter[:3, 3] = sonar["emitter_m"]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(out.name + ".tmp")
+    try:
+        with h5py.File(tmp, "w") as f:
+            f.attrs.update(format=FORMAT, format_version=FORMAT_VERSION, reference_sensor=ACOUSTIC)
+            f.attrs.update(n_reference_captures=n, source=f"sonar2lidar {__version__} simulation of {folder}")
+            acoustic = _sensor(f, ACOUSTIC, "acoustic_sensor", np.eye(4), stamps, sample_rate_hz=rate)
+            acoustic.attrs["num_channels"] = len(mics)
+            acoustic.create_dataset("calibration/receiver_relative_translations", data=mics)
+            signals = acoustic.create_dataset(
+                "data/signals", (n, samples, len(mics)), np.float32, chunks=(1, samples, len(mics)), **COMPRESSION
+            )
+            done = 0
+            for path in shards:
+                with h5py.File(path, "r") as shard:
+                    for first in range(0, len(shard["signals"]), BLOCK):  # (ping, mic, sample) -> (ping, sample, mic)
+                        block = shard["signals"][first : first + BLOCK].astype(np.float32).transpose(0, 2, 1)
+                        signals[done : done + len(block)] = block
+                        done += len(block)
+            call = ChirpConfig(**sonar["chirp"]).samples().astype(np.float32)
+            _sensor(f, TRANSMITTER, "acoustic_transmitter", emitter, stamps, sample_rate_hz=rate).create_dataset(
+                "data/signals", data=call
+            )
+            lidar = _sensor(f, LIDAR, "lidar", np.eye(4), stamps, max_points=cloud.shape[1])
+            lidar.create_dataset("data/points", data=cloud, chunks=(1, *cloud.shape[1:]), **COMPRESSION)
+            lidar.create_dataset("data/point_counts", data=counts)
+            odometry = _sensor(f, ODOMETRY, "odometry", np.eye(4), stamps, source="simulation")
+            unknown = np.full((n, 3), np.nan)  # velocities are not simulated
+            for key, value in {
+                "position": poses[:, :3, 3],
+                "orientation": Rotation.from_matrix(poses[:, :3, :3]).as_quat(),  # x, y, z, w
+                "yaw": np.arctan2(poses[:, 1, 0], poses[:, 0, 0]),
+                "linear_velocity": unknown,
+                "angular_velocity": unknown,
+                "pose_covariance": np.zeros((n, 6, 6)),  # the simulated pose is exact
+                "twist_covariance": np.full((n, 6, 6), np.nan),
+            }.items():
+                odometry.create_dataset(f"data/{key}", data=value)
+            f.create_dataset("transforms/base_link_to_origin", data=np.eye(4))  # the robot is the sensor
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    tmp.replace(out)
+    return {"out": str(out), "frames": n, "shards": len(shards), "points": int(counts.sum())}
+
+
+# ---------------------------------------------------------------------------------------- import
+
+
+def planar_scan(points: np.ndarray, lidar: LidarConfig, *, plane_tolerance_m: float = PLANE_TOLERANCE_M) -> np.ndarray:
+    """A 2D scan from 3D points in the sonar's frame: the points with |z| <= plane_tolerance_m,
+    each given to the nearest azimuth of `lidar`'s beams; per beam the nearest point's range in
+    the xy plane, within the LiDAR's range limits.
+
+    Args:
+        points: x, y, z [m], shape (P, >=3); NaN rows are ignored.
+        lidar: The scan's beams (its azimuths; elevations are not used).
+
+    Returns:
+        Ranges [m], float32 (lidar.azimuth_count,); inf = no point.
+    """
+    x, y, z = np.asarray(points, dtype=np.float64)[:, :3].T
+    with np.errstate(invalid="ignore"):
+        near = np.abs(z) <= plane_tolerance_m  # False for NaN
+    r, azimuth = np.hypot(x[near], y[near]), np.rad2deg(np.arctan2(y[near], x[near]))
+    count = lidar.azimuth_count
+    step = (lidar.azimuth_max_deg - lidar.azimuth_min_deg) / max(count - 1, 1)
+    beam = np.rint((azimuth - lidar.azimuth_min_deg) / step).astype(np.int64)
+    if count * step >= 360.0 - 1e-9:  # a full circle: the last beam's neighbour is the first
+        beam %= count
+    keep = (beam >= 0) & (beam < count) & (r >= lidar.range_min_m) & (r <= lidar.range_max_m)
+    ranges = np.full(count, np.inf)
+    np.minimum.at(ranges, beam[keep], r[keep])
+    return ranges.astype(np.float32)
+
+
+def episodes_of(stamps: np.ndarray, gap_s: float) -> np.ndarray:
+    """Episode index per ping: a new episode wherever the time since the previous ping is over
+    `gap_s` [s]."""
+    return np.concatenate([[0], np.cumsum(np.diff(stamps) > gap_s)]).astype(np.int64)
+
+
+def _recorded_poses(data, acoustic, count: int) -> tuple[np.ndarray, str]:
+    """Sonar-to-odom poses (count, 4, 4) from the first odometry sensor and the file's base_link
+    transform, or identities with the reason."""
+    from scipy.spatial.transform import Rotation
+
+    identity = np.tile(np.eye(4), (count, 1, 1))
+    odometry = next(iter(data.get_sensors_by_type("odometry")), None)
+    if odometry is None or not odometry.can_align_to_reference:
+        return identity, "identity (no odometry synced to the pings)"
+    try:
+        mount = data.get_transform(acoustic.name, "base_link")  # sonar frame -> robot frame
+    except ValueError:
+        return identity, "identity (no base_link transform: CHIRP before 2.1)"
+    poses = np.empty((count, 4, 4))
+    for i in range(count):
+        sample = odometry.at_reference_capture(i)
+        base = np.eye(4)
+        base[:3, :3] = Rotation.from_quat(sample["orientation"]).as_matrix()
+        base[:3, 3] = sample["position"]
+        poses[i] = base @ mount
+    return poses, f"{odometry.name} (base_link in its odom frame)"
+
+
+def _check_chirp(path: Path) -> None:
+    try:
+        with h5py.File(path, "r") as f:
+            kind = f.attrs.get("format")
+            kind = kind.decode() if isinstance(kind, bytes) else kind
+    except OSError as err:
+        raise ValueError(f"{path} is not a readable HDF5 file ({str(err).splitlines()[0]})") from None
+    if kind != FORMAT:
+        raise ValueError(f"{path} is not a CHIRP file (its format attribute is {kind!r}, not {FORMAT!r})")
+
+
+def import_chirp(
+    path: str | Path,
+    out: str | Path,
+    rig,
+    *,
+    plane_tolerance_m: float = PLANE_TOLERANCE_M,
+    episode_gap_s: float = EPISODE_GAP_S,
+    device=None,
+) -> dict:
+    """A CHIRP recording -> a dataset folder of our shards (one per episode), a manifest and a
+    short card, for `learn evaluate` and `learn predict`; returns what was written.
+
+    Args:
+        path: The CHIRP file.
+        out: A new or empty folder.
+        rig: `SimConfig` whose call (sonar.chirp), processing (grid) and LiDAR azimuths are used;
+            the file gives the microphone positions and the sample rate.
+        plane_tolerance_m: Half-height of the slab around the sonar's plane (z = 0) whose LiDAR
+            points make the 2D scan [m].
+        episode_gap_s: A longer pause between pings starts a new episode [s].
+    """
+    from . import __version__
+    from .beamform import energyscape
+    from .render import render_examples
+
+    t0, path, out = time.perf_counter(), Path(path), Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ValueError(f"--out {out} is not an empty folder; choose a new one")
+    if np.ndim(rig.processing.elevation_deg):
+        raise ValueError("import writes one energyscape per ping: set processing.elevation_deg to one angle")
+    _check_chirp(path)
+    chirppy = _chirppy()
+    with chirppy.CHIRPDataset(path) as data:
+        # Sensors are tested against None: chirppy's sensors have a length, so an empty one is falsy.
+        acoustic = data.sensors.get(str(data.reference_sensor))
+        if acoustic is None:
+            acoustic = next(iter(data.get_sensors_by_type("acoustic_sensor")), None)
+        if acoustic is None or acoustic.signals is None or acoustic.get_receiver_positions() is None:
+            raise ValueError(
+                f"{path} holds no microphone data (an acoustic_sensor with data/signals and "
+                "calibration/receiver_relative_translations)"
+            )
+        count, samples, channels = acoustic.signals.shape
+        mics = np.asarray(acoustic.get_receiver_positions(), dtype=np.float64)
+        rate, call_rate = float(acoustic.sample_rates), rig.sonar.chirp.sample_rate_hz
+        if mics.shape != (channels, 3):
+            raise ValueError(f"{path}: {channels} microphone channels but positions of shape {mics.shape}")
+        if abs(rate - call_rate) > 1e-6 * call_rate:
+            raise ValueError(
+                f"{path}: the microphones were sampled at {rate:g} Hz, but our call is sampled at {call_rate:g} Hz; "
+                f"give the recorded call with --set sonar.chirp.sample_rate_hz={rate:g} (and its frequencies)"
+            )
+        stamps = np.asarray(acoustic.get_timestamps(), dtype=np.float64)
+        if len(stamps) != count or not np.all(np.diff(stamps) > 0):
+            raise ValueError(f"{path}: {acoustic.name}'s timestamps are not one increasing time per ping")
+        mic_rows = tuple(tuple(float(v) for v in row) for row in mics)
+        sonar = dataclasses.replace(
+            rig.sonar, microphones_m=mic_rows, microphone_gain=(), microphone_delay_s=(), record_samples=samples
+        )
+        energy = np.empty((count, *rig.processing.grid.shape), np.float16)
+        for first in range(0, count, BLOCK):  # (ping, sample, mic) -> (ping, mic, sample)
+            block = np.asarray(acoustic.signals[first : first + BLOCK], dtype=np.float32).transpose(0, 2, 1)
+            energy[first : first + len(block)] = energyscape(block, sonar, rig.processing, device=device)
+        planar = dataclasses.replace(rig.lidar, elevation_min_deg=0.0, elevation_max_deg=0.0, elevation_count=1)
+        ranges = np.full((count, planar.azimuth_count), np.inf, np.float32)
+        scanner = next(iter(data.get_sensors_by_type("lidar")), None)
+        lidar_name = None if scanner is None else scanner.name
+        if scanner is not None:
+            move = data.get_transform(scanner.name, acoustic.name)  # LiDAR frame -> sonar frame
+            for i in range(count):
+                xyz = np.asarray(scanner.at_reference_capture(i)["points"], dtype=np.float64)[:, :3]
+                ranges[i] = planar_scan(xyz @ move[:3, :3].T + move[:3, 3], planar, plane_tolerance_m=plane_tolerance_m)
+            if not np.isfinite(ranges).any():
+                raise ValueError(
+                    f"{path}: no point of {scanner.name} lies within {plane_tolerance_m:g} m of the sonar's plane; "
+                    "widen --plane-tolerance"
+                )
+        poses, pose_source = _recorded_poses(data, acoustic, count)
+    rig = dataclasses.replace(rig, sonar=sonar, lidar=planar)
+    episode = episodes_of(stamps, episode_gap_s)
+    grid, name = rig.processing.grid, path.stem
+    options = {"plane_tolerance_m": plane_tolerance_m, "episode_gap_s": episode_gap_s}
+    source = {"file": path.name, "bytes": path.stat().st_size, "pings": count, "first_unix_s": stamps[0]}
+    plan_id = hashlib.sha256(json.dumps([source, options, rig.to_dict()], default=str).encode()).hexdigest()[:16]
+    labels = lidar_image(ranges, planar, grid)
+    out.mkdir(parents=True, exist_ok=True)
+    entries = []
+    for k in range(episode[-1] + 1):
+        frames = np.flatnonzero(episode == k)
+        shard = ShardFrames(
+            energyscape=[energy[frames]],
+            lidar_ranges=[ranges[frames]],
+            lidar_image=[labels[frames]],
+            pose=[poses[frames]],
+            time=[stamps[frames] - stamps[frames[0]]],
+            episode=[np.full(len(frames), k)],
+            scenario=[np.zeros(len(frames))],
+        )
+        record = {"index": k, "frames": len(frames), "start_unix_s": float(stamps[frames[0]])}
+        attrs = {
+            "suite": "chirp",
+            "variant": "",
+            "shard": k,
+            "plan_id": plan_id,
+            "package_version": __version__,
+            "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+            "config": {"source": source, "import": options, "poses": pose_source, "sim": rig.to_dict()},
+            "episodes": [record],
+            "scenarios": [name],
+        }
+        file = out / f"shard-{k:05d}.h5"
+        write_shard(file, shard, attrs=attrs, range_m=grid.range_m, azimuth_rad=grid.azimuth_rad)
+        entries.append({"file": file.name, "frames": len(frames), "episodes": [k], "bytes": file.stat().st_size})
+    returns = np.isfinite(ranges).sum(axis=1)
+    manifest = {
+        "format": "sonar2lidar-dataset",
+        "format_version": 1,
+        "plan_id": plan_id,
+        "suite": "chirp",
+        "variant": "",
+        "description": f"the CHIRP recording {path.name}, imported",
+        "frames": count,
+        "episodes": len(entries),
+        "scenarios": {name: count},
+        "source": source,
+        "import": options | {"lidar": lidar_name, "poses": pose_source},
+        "sim": rig.to_dict(),
+        "shards": entries,
+    }
+    (out / "manifest.json").write_text(json.dumps(manifest, indent=1, default=float))
+    shown = [(f"ping {i}", energy[i], labels[i]) for i in np.unique(np.linspace(0, count - 1, 3).round().astype(int))]
+    render_examples(shown, grid, out / "card.png")
+    (out / "README.md").write_text(
+        f"# Dataset: the CHIRP recording {path.name}\n\n{count:,} pings in {len(entries)} episodes (a pause over "
+        f"{episode_gap_s:g} s starts one), imported by `python -m acoustic_sim import --format chirp`: energyscapes "
+        f"by our processing with the file's {channels} microphones at {rate / 1e3:g} kHz and our call; LiDAR labels "
+        f"from the points of {lidar_name or 'no LiDAR'} within {plane_tolerance_m:g} m of the sonar's "
+        f"plane ({returns.mean():.0f} returns per scan on average); poses: {pose_source}.\n\n"
+        "![pings: energyscape (dB) with the LiDAR label on top](card.png)\n"
+    )
+    return {
+        "out": str(out),
+        "pings": count,
+        "episodes": len(entries),
+        "lidar": lidar_name,
+        "returns_per_scan": float(returns.mean()),
+        "poses": pose_source,
+        "seconds": time.perf_counter() - t0,
+    }

@@ -1,0 +1,185 @@
+"""CHIRP round trip: a dataset generated with --signals -> export -> read by the format's own reader
+(cosys-chirppy) -> import -> our shards again, scored by `learn evaluate`; and the refusals."""
+
+import dataclasses
+import json
+import shutil
+import sys
+
+import h5py
+import numpy as np
+import pytest
+
+from acoustic_sim.cli import main
+from acoustic_sim.mcap_export import EPISODE_GAP_S, STAMP_START_S
+
+chirppy = pytest.importorskip("chirppy")  # the `chirp` extra, installed by the `test` extra
+
+
+@pytest.fixture(scope="module")
+def signals_dataset(tmp_path_factory, device):
+    """The conftest's tiny dataset (two 8-frame drives: room, corridor; the same suite, seed and
+    kernels), with the microphone signals kept."""
+    from acoustic_sim.generate import generate
+    from acoustic_sim.suites import SUITES, Physics
+
+    suite = dataclasses.replace(SUITES["tiny"], variants={"": Physics(ray_count=2000)})
+    out = tmp_path_factory.mktemp("tiny_signals")
+    generate(suite, out, frames=16, shards=2, seed=3, device=device, progress=False, keep_signals=True)
+    return out
+
+
+@pytest.fixture(scope="module")
+def exported(signals_dataset, tmp_path_factory):
+    out = tmp_path_factory.mktemp("chirp") / "sim.h5"
+    assert main(["export", str(signals_dataset), "--format", "chirp", "--out", str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def imported(exported, device):
+    out = exported.parent / "rec"
+    assert main(["import", str(exported), "--format", "chirp", "--out", str(out), "--device", device]) == 0
+    return out
+
+
+def read(folder, *keys) -> dict:
+    """Datasets of every shard of a folder, concatenated; `episode` made unique across shards."""
+    found = {k: [] for k in keys}
+    for i, path in enumerate(sorted(folder.glob("shard-*.h5"))):
+        with h5py.File(path, "r") as f:
+            for k in keys:
+                found[k].append(f[k][:] + 1000 * i if k == "episode" else f[k][:])
+    return {k: np.concatenate(v) for k, v in found.items()}
+
+
+def test_chirppy_reads_the_export(signals_dataset, exported):
+    """The reference reader finds 16 pings: signals (samples, mics) as stored, the eRTIS array at
+    450 kHz, one x, y, z, intensity point per LiDAR return (z = 0: a planar scan), the poses, and
+    Unix times that are the drive's (0.1 s apart, drives 1 s apart, from STAMP_START_S)."""
+    from acoustic_sim.config import LidarConfig, SonarConfig
+    from acoustic_sim.lidar import ranges_to_points
+
+    truth = read(signals_dataset, "signals", "lidar/ranges", "pose", "time", "episode")
+    with chirppy.CHIRPDataset(exported) as data:
+        assert (data.format, data.version, len(data)) == ("chirp", "2.1", 16)
+        acoustic, lidar, odometry = data.get_acoustic_sensor(0), data.get_lidar(0), data.get_odometry(0)
+        assert data.reference_sensor == acoustic.name and acoustic.sample_rates == 450e3
+        np.testing.assert_array_equal(acoustic.get_receiver_positions(), np.asarray(SonarConfig.ertis().microphones_m))
+        np.testing.assert_array_equal(acoustic.signals[:], truth["signals"].astype(np.float32).transpose(0, 2, 1))
+        assert len(data.get_acoustic_transmitter(0).get_emitted_signal()) == SonarConfig.ertis().chirp.sample_count
+        beams = ranges_to_points(truth["lidar/ranges"], LidarConfig.hokuyo_ust20lx())
+        for k in range(16):
+            capture = data[k]  # every sensor at reference capture k
+            points = capture[lidar.name]["points"]
+            expected = beams[k][np.isfinite(beams[k][:, 0])]
+            assert points.shape == (len(expected), 4) and np.all(points[:, 3] == 1.0)
+            np.testing.assert_allclose(points[:, :3], expected, atol=1e-6)  # float32 points
+            assert capture[lidar.name]["timestamp"] == capture[acoustic.name]["timestamp"]
+        np.testing.assert_allclose(odometry.poses(), truth["pose"], atol=1e-12)
+        np.testing.assert_array_equal(data.get_transform(acoustic.name, "base_link"), np.eye(4))
+        stamps = data.reference_timestamps
+    starts = np.flatnonzero(np.r_[True, np.diff(truth["episode"]) != 0])
+    assert stamps[0] == STAMP_START_S and list(starts) == [0, 8]
+    for a, b in zip(starts, [*starts[1:], 16], strict=True):
+        np.testing.assert_allclose(np.diff(stamps[a:b]), np.diff(truth["time"][a:b]), atol=1e-6)  # float64 at 1.7e9 s
+    assert stamps[8] - stamps[7] == pytest.approx(EPISODE_GAP_S, abs=1e-6)
+
+
+def test_import_gives_back_the_energyscapes_and_labels(signals_dataset, imported, device):
+    """Imported shards hold the originals: LiDAR labels identical, ranges within 1e-6 relative
+    (points are float32), poses and episode times exact, episodes split at the 1 s gap. The
+    energyscapes are our processing of the stored signals, bit for bit; against the stored
+    energyscapes they differ by <= 0.2 % of each frame's peak, because those were processed from
+    the float32 signals before both were rounded to float16 (0.05 % per rounding; 0.09 % seen)."""
+    from acoustic_sim.beamform import energyscape
+    from acoustic_sim.config import SimConfig
+
+    keys = ("energyscape", "lidar/image", "lidar/ranges", "pose", "time", "episode")
+    truth, got = read(signals_dataset, *keys, "signals"), read(imported, *keys)
+    np.testing.assert_array_equal(got["lidar/image"], truth["lidar/image"])
+    assert truth["lidar/image"].sum() > 16 * 100  # scans with returns on the grid
+    np.testing.assert_allclose(got["lidar/ranges"], truth["lidar/ranges"], rtol=1e-6)
+    np.testing.assert_allclose(got["pose"], truth["pose"], atol=1e-12)
+    np.testing.assert_allclose(got["time"], truth["time"], atol=1e-6)
+    np.testing.assert_array_equal(got["episode"] % 1000, [0] * 8 + [1] * 8)
+    rig = SimConfig()
+    ours = energyscape(truth["signals"].astype(np.float32), rig.sonar, rig.processing, device=device)
+    np.testing.assert_array_equal(got["energyscape"], ours.astype(np.float16))
+    stored = truth["energyscape"].astype(np.float32)
+    peak = stored.max(axis=(1, 2), keepdims=True)
+    assert np.all(np.abs(got["energyscape"].astype(np.float32) - stored) <= 2e-3 * peak)
+    manifest = json.loads((imported / "manifest.json").read_text())
+    assert manifest["frames"] == 16 and manifest["import"]["lidar"] == "lidar_00"
+
+
+def test_learn_evaluate_scores_the_imported_recording(imported, tmp_path):
+    """The issue's acceptance: the imported folder is scored by `learn evaluate` with no other
+    step (the shipped K = 5 model: 4 windows in each 8-ping episode), and `learn predict` runs on it."""
+    from learn import PRETRAINED_CHECKPOINT
+    from learn.cli import main as learn_main
+
+    checkpoint = str(PRETRAINED_CHECKPOINT)
+    report = tmp_path / "eval"
+    assert learn_main(["evaluate", "--checkpoint", checkpoint, "--data", str(imported), "--out", str(report)]) == 0
+    metrics = json.loads((report / "metrics.json").read_text())
+    assert metrics["windows"] == 8 and metrics["split"] == "all"
+    model, empty = (metrics["results"][k]["all"]["scan_f1"]["mean"] for k in ("model", "empty"))
+    assert model > 0.5 and empty == 0.0  # labels with returns, and a model that finds them
+    predict = ["predict", "--checkpoint", checkpoint, "--input", str(imported), "--out", str(tmp_path / "p")]
+    assert learn_main(predict) == 0
+    assert list(np.load(tmp_path / "p.npz")["frame"]) == [2, 3, 4, 5, 10, 11, 12, 13]
+
+
+def _without_signals(signals_dataset, folder):
+    shutil.copy(next(signals_dataset.glob("shard-*.h5")), folder / "shard-00000.h5")
+    with h5py.File(folder / "shard-00000.h5", "a") as f:
+        del f["signals"]
+    return folder
+
+
+def _lidar_only(path):
+    with h5py.File(path, "w") as f:
+        f.attrs.update(format="chirp", format_version="2.1", n_reference_captures=1, reference_sensor="")
+        f.create_group("sensors/lidar_00").attrs["sensor_type"] = "lidar"
+        f["sensors/lidar_00/data/points"] = np.zeros((1, 1, 4), np.float32)
+        f["sensors/lidar_00/data/point_counts"] = np.ones(1, np.int32)
+        f["sensors/lidar_00/data/timestamps"] = np.zeros(1)
+    return path
+
+
+def _other_rate(exported, path):
+    shutil.copy(exported, path)
+    with h5py.File(path, "a") as f:
+        f["sensors/acoustic_sensor_00"].attrs["sample_rate_hz"] = 48000.0
+    return path
+
+
+@pytest.mark.parametrize(
+    ("case", "message"),
+    [
+        ("export-without-signals", "generate the dataset with --signals"),
+        ("import-lidar-only", "holds no microphone data"),
+        ("import-our-shard", "is not a CHIRP file"),
+        ("import-other-rate", "sampled at 48000 Hz, but our call is sampled at 450000 Hz"),
+        ("import-without-chirppy", "needs the `chirp` extra"),
+    ],
+)
+def test_bad_input_is_refused_in_one_line(case, message, signals_dataset, exported, tmp_path, capsys, monkeypatch):
+    if case == "export-without-signals":
+        folder = _without_signals(signals_dataset, tmp_path)
+        argv = ["export", str(folder), "--format", "chirp", "--out", str(tmp_path / "x.h5")]
+    else:
+        source = {
+            "import-lidar-only": lambda: _lidar_only(tmp_path / "lidar.h5"),
+            "import-our-shard": lambda: next(signals_dataset.glob("shard-*.h5")),
+            "import-other-rate": lambda: _other_rate(exported, tmp_path / "rate.h5"),
+            "import-without-chirppy": lambda: exported,
+        }[case]()
+        if case == "import-without-chirppy":
+            monkeypatch.setitem(sys.modules, "chirppy", None)  # `import chirppy` fails
+        argv = ["import", str(source), "--format", "chirp", "--out", str(tmp_path / "rec")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "x.h5").exists() and not any((tmp_path / "rec").glob("*"))
