@@ -114,6 +114,7 @@ class PathTracer:
             self._ray_dirs = wp.array(directions.astype(np.float32), dtype=wp.vec3)
             self._directivity = wp.array(pattern.astype(np.float32), dtype=float)
         self._buffers: dict[tuple[int, int], _TraceBuffers] = {}  # (pings, table size) -> buffers
+        self._curved: _PointEchoes | None = None  # echoes off curved surfaces, (pings, surfaces)
 
     def trace(self, scene: Scene, poses: np.ndarray, *, batch: int = 64) -> Arrivals:
         """Echoes of one ping from each pose, specular and scattered (see the module docstring).
@@ -198,7 +199,7 @@ class PathTracer:
                     direction=wp.empty((n, size), dtype=wp.vec3),
                     point=wp.empty((n, size), dtype=wp.vec3),
                 ),
-                scattered=_ScatteredEchoes(
+                scattered=_PointEchoes(
                     source=wp.empty((n, capacity), dtype=wp.vec3),
                     extra_length=wp.empty((n, capacity), dtype=float),
                     amplitude=wp.empty((n, capacity), dtype=float),
@@ -210,6 +211,21 @@ class PathTracer:
             self._buffers.clear()
             self._buffers[key] = buffers
         return buffers
+
+    def _curved_buffers_for(self, n: int, surfaces: int) -> _PointEchoes:
+        """Buffers of the echoes off a scene's curved surfaces, one slot per surface and ping
+        (every slot counts; the kernel writes each), reused while the shape stays."""
+        if self._curved is not None and self._curved.source.shape == (n, surfaces):
+            return self._curved
+        with wp.ScopedDevice(self.device):
+            self._curved = _PointEchoes(
+                source=wp.empty((n, surfaces), dtype=wp.vec3),
+                extra_length=wp.empty((n, surfaces), dtype=float),
+                amplitude=wp.empty((n, surfaces), dtype=float),
+                count=wp.full(n, surfaces, dtype=wp.int32),
+                order=wp.empty((n, surfaces), dtype=wp.int32),
+            )
+        return self._curved
 
     def _trace_batch(self, scene: Scene, poses: np.ndarray, size: int) -> tuple[_TracedEchoes, np.ndarray]:
         """Echoes of a batch of checked poses, left on the device (in buffers that the next batch
@@ -278,6 +294,7 @@ class PathTracer:
                     b.key,
                     specular.order,
                     b.planes,
+                    ws.plane_curved,
                     self._directivity,
                 ],
                 outputs=[specular.amplitude, specular.source, specular.direction, specular.point, b.ray_queries],
@@ -294,7 +311,27 @@ class PathTracer:
                 inputs=[specular.order, specular.source, b.key, b.image_table, b.image_rank],
                 outputs=[specular.amplitude],
             )
-        traced = _TracedEchoes(specular=specular, scattered=scattered, ray_queries=b.ray_queries)
+            curved = self._curved_buffers_for(n, ws.curved.count)
+            if ws.curved.count:
+                surfaces = ws.curved
+                wp.launch(
+                    kernels.curved_echoes,
+                    dim=(n, surfaces.count),
+                    inputs=[
+                        ws.mesh.id,
+                        surfaces.kind,
+                        surfaces.centre,
+                        surfaces.radius,
+                        surfaces.z_range,
+                        surfaces.gain,
+                        b.poses,
+                        b.inverse_poses,
+                        emitter,
+                        self._directivity,
+                    ],
+                    outputs=[curved.source, curved.extra_length, curved.amplitude, curved.order, b.ray_queries],
+                )
+        traced = _TracedEchoes(specular=specular, scattered=scattered, curved=curved, ray_queries=b.ray_queries)
         return traced, b.overflow.numpy().copy()
 
 
@@ -314,7 +351,7 @@ class _TraceBuffers:
     image_table: wp.array  # (pings, size) uint64 image source hashes, 0 = empty slot
     image_rank: wp.array  # (pings, size) int32 lowest sequence rank per image source
     specular: _SpecularEchoes
-    scattered: _ScatteredEchoes
+    scattered: _PointEchoes
 
 
 @dataclass
@@ -327,14 +364,18 @@ class _SpecularEchoes(EchoBuffer):
 
 
 @dataclass
-class _ScatteredEchoes(EchoBuffer):
+class _PointEchoes(EchoBuffer):
+    """Echoes from a point (source: where the path last reflected or scattered; extra_length: the
+    path before it): scattered arrivals, and specular ones off curved surfaces."""
+
     order: wp.array = None
 
 
 @dataclass
 class _TracedEchoes:
     specular: _SpecularEchoes
-    scattered: _ScatteredEchoes
+    scattered: _PointEchoes
+    curved: _PointEchoes  # first-order specular echoes off curved surfaces, one slot per surface
     ray_queries: wp.array  # (pings,) BVH ray queries made per ping, all stages
 
     @property
@@ -342,7 +383,7 @@ class _TracedEchoes:
         return self.specular.amplitude.shape[0]
 
     def buffers(self) -> list[EchoBuffer]:
-        return [self.specular, self.scattered]
+        return [self.specular, self.scattered, self.curved]
 
     def arrivals(self, speed_of_sound: float) -> Arrivals:
         """Copy to the host as Arrivals, sorted by pose, kind, delay (a reproducible order)."""
@@ -364,31 +405,35 @@ class _TracedEchoes:
                 point_m=spec.point.numpy()[pose_index, slot].astype(np.float64),
             )
         ]
-        scat = self.scattered
-        if scat.slots:
-            count = scat.count.numpy()
-            if (count > scat.slots).any():  # cannot happen: each ray scatters at most once per order
-                raise RuntimeError("scattered echo buffer overflow")
-            keep = np.arange(scat.slots)[None, :] < count[:, None]
-            pose_index = np.nonzero(keep)[0]
-            source = scat.source.numpy()[keep].astype(np.float64)
-            distance = np.linalg.norm(source, axis=1)
-            length = scat.extra_length.numpy()[keep].astype(np.float64) + distance
-            parts.append(
-                Arrivals(
-                    pose_index=pose_index.astype(np.int64),
-                    delay_s=length / speed_of_sound,
-                    direction=source / distance[:, None],
-                    amplitude=scat.amplitude.numpy()[keep].astype(np.float64),
-                    order=scat.order.numpy()[keep].astype(np.int64),
-                    kind=np.full(len(length), KIND_SCATTERED, dtype=np.int64),
-                    source_m=source,
-                    length_m=length,
-                    point_m=source,
-                )
-            )
+        for echoes, kind in ((self.scattered, KIND_SCATTERED), (self.curved, KIND_SPECULAR)):
+            if echoes.slots:
+                parts.append(_point_arrivals(echoes, kind, speed_of_sound))
         found = concatenate(parts)
         return found.select(np.lexsort((found.order, found.delay_s, found.kind, found.pose_index)))
+
+
+def _point_arrivals(echoes: _PointEchoes, kind: int, speed_of_sound: float) -> Arrivals:
+    """Arrivals of point echoes (slots below each ping's count with an amplitude)."""
+    count = echoes.count.numpy()
+    if (count > echoes.slots).any():  # cannot happen: each ray scatters at most once per order
+        raise RuntimeError("point echo buffer overflow")
+    amplitude = echoes.amplitude.numpy()
+    keep = (np.arange(echoes.slots)[None, :] < count[:, None]) & (amplitude > 0)
+    pose_index = np.nonzero(keep)[0]
+    source = echoes.source.numpy()[keep].astype(np.float64)
+    distance = np.linalg.norm(source, axis=1)
+    length = echoes.extra_length.numpy()[keep].astype(np.float64) + distance
+    return Arrivals(
+        pose_index=pose_index.astype(np.int64),
+        delay_s=length / speed_of_sound,
+        direction=source / distance[:, None],
+        amplitude=amplitude[keep].astype(np.float64),
+        order=echoes.order.numpy()[keep].astype(np.int64),
+        kind=np.full(len(length), kind, dtype=np.int64),
+        source_m=source,
+        length_m=length,
+        point_m=source,
+    )
 
 
 def concatenate(parts: list[Arrivals]) -> Arrivals:

@@ -25,7 +25,50 @@ class WarpScene:
     face_scattering: wp.array  # float (face_count,): scattered fraction of the reflected energy
     face_sharp_edges: wp.array  # uint8 (face_count,): bit k set = the edge opposite vertex k is sharp
     face_altitudes: wp.array  # vec3 (face_count,): distance from vertex k to its opposite edge [m]
+    plane_curved: wp.array  # uint8 (plane_count,): 1 = a facet of a curved surface, no mirror of its own
+    curved: CurvedArrays  # the curved surfaces the facets approximate (`scenes.CurvedSurface`)
     mesh_hash: int
+
+
+CURVED_KINDS = ("sphere", "cylinder")  # curved_kind values 0, 1
+
+
+@dataclass
+class CurvedArrays:
+    """A scene's curved surfaces on the device, (count,) arrays."""
+
+    kind: wp.array  # int32, index into CURVED_KINDS
+    centre: wp.array  # vec3 [m]: sphere centre, or a point on the cylinder's axis
+    radius: wp.array  # float [m]
+    z_range: wp.array  # vec2 [m]: the cylinder's extent along z
+    gain: wp.array  # float: specular pressure reflection factor sqrt(R (1 - s)) of its material
+
+    @property
+    def count(self) -> int:
+        return self.kind.shape[0]
+
+
+def curved_arrays(scene: Scene) -> dict[str, np.ndarray]:
+    """Host arrays of `scene.curved` (see CurvedArrays). Each surface reflects with the material
+    most of its side faces have (a cylinder's caps may differ)."""
+    reflection = scene.material_table("acoustic_reflection")
+    scattering = scene.material_table("acoustic_scattering")
+    side = np.abs(scene.mesh.face_normals[:, 2]) < 0.5
+    gain = []
+    for k in range(len(scene.curved)):
+        faces = np.flatnonzero(scene.face_curved == k)
+        faces = faces[side[faces]] if side[faces].any() else faces
+        most = np.bincount(scene.face_material[faces]).argmax() if len(faces) else 0
+        face = faces[scene.face_material[faces] == most][0] if len(faces) else 0
+        gain.append(np.sqrt(reflection[face] * (1.0 - scattering[face])))
+    curved = scene.curved
+    return {
+        "kind": np.array([CURVED_KINDS.index(c.kind) for c in curved], dtype=np.int32),
+        "centre": np.array([c.centre for c in curved], dtype=np.float32).reshape(-1, 3),
+        "radius": np.array([c.radius for c in curved], dtype=np.float32),
+        "z_range": np.array([c.z_range for c in curved], dtype=np.float32).reshape(-1, 2),
+        "gain": np.array(gain, dtype=np.float32),
+    }
 
 
 def face_planes(scene: Scene, *, tolerance: float = 1e-5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -104,6 +147,9 @@ def warp_scene(scene: Scene, device=None) -> WarpScene:
     faces = np.ascontiguousarray(scene.mesh.faces, dtype=np.int32).reshape(-1)
     face_plane, plane_normal, plane_offset = face_planes(scene)
     sharp_edges, altitudes = face_edges(scene)
+    plane_curved = np.zeros(len(plane_offset), dtype=np.uint8)
+    plane_curved[face_plane[scene.face_curved >= 0]] = 1
+    curved = curved_arrays(scene)
     with wp.ScopedDevice(device):
         points = wp.array(vertices, dtype=wp.vec3)
         indices = wp.array(faces, dtype=wp.int32)
@@ -119,6 +165,14 @@ def warp_scene(scene: Scene, device=None) -> WarpScene:
             face_scattering=wp.array(scene.material_table("acoustic_scattering").astype(np.float32), dtype=float),
             face_sharp_edges=wp.array(sharp_edges, dtype=wp.uint8),
             face_altitudes=wp.array(altitudes.astype(np.float32), dtype=wp.vec3),
+            plane_curved=wp.array(plane_curved, dtype=wp.uint8),
+            curved=CurvedArrays(
+                kind=wp.array(curved["kind"], dtype=wp.int32),
+                centre=wp.array(curved["centre"], dtype=wp.vec3),
+                radius=wp.array(curved["radius"], dtype=float),
+                z_range=wp.array(curved["z_range"], dtype=wp.vec2),
+                gain=wp.array(curved["gain"], dtype=float),
+            ),
             mesh_hash=mesh_hash,
         )
     per_device[device.alias] = built

@@ -6,14 +6,15 @@ Pure numpy/trimesh: no simulation code lives here.
 from .builders import box_room, corridor, from_mesh, office, random_world
 from .floor_plans import FLOOR_PLANS, floor_plan, polygon_room
 from .materials import MATERIALS, Material, material
-from .scene import Scene, SceneError
+from .scene import CurvedSurface, Scene, SceneError
 from .svg import from_svg
 from .trajectory import FreeSpace, free_space, pose, poses, trajectory
 
-REVISION = 2
+REVISION = 3
 """Bumped whenever a builder makes other scenes from the same arguments; part of every dataset's
 plan id, so data made before is never taken for data made after (2: floor and ceiling materials
-of room shells the right way round)."""
+of room shells the right way round; 3: cylinders carry their curved surface, which echoes
+specularly from every side)."""
 
 BUILDERS = {
     "box_room": box_room,
@@ -27,6 +28,7 @@ __all__ = [
     "BUILDERS",
     "FLOOR_PLANS",
     "MATERIALS",
+    "CurvedSurface",
     "FreeSpace",
     "Material",
     "Scene",

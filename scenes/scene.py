@@ -17,6 +17,30 @@ class SceneError(ValueError):
     """A scene or its input geometry cannot be used (empty, non-finite, degenerate, ...)."""
 
 
+@dataclass(frozen=True)
+class CurvedSurface:
+    """The smooth convex surface that some faces of a scene approximate: a sphere, or a vertical
+    cylinder. A flat facet reflects specularly only where it happens to face the sensor, so
+    simulators take specular echoes off these from the surface itself; everything else (LiDAR,
+    scattering, occlusion) uses the faces.
+
+    Attributes:
+        kind: "sphere" or "cylinder".
+        centre: The sphere's centre, or a point on the cylinder's axis [m].
+        radius: [m].
+        z_range: The cylinder's extent along z [m] (a sphere ignores it).
+    """
+
+    kind: str
+    centre: tuple[float, float, float]
+    radius: float
+    z_range: tuple[float, float] = (0.0, 0.0)
+
+    def __post_init__(self) -> None:
+        if self.kind not in ("sphere", "cylinder") or not self.radius > 0:
+            raise SceneError(f"a curved surface is a sphere or a cylinder of radius > 0, got {self.kind} {self.radius}")
+
+
 @dataclass(eq=False)
 class Scene:
     """A static 3D world: one triangle mesh whose faces each carry a material.
@@ -32,6 +56,9 @@ class Scene:
         name: Builder name, e.g. "office".
         params: The builder's arguments (JSON-serialisable), so a scene can be described
             and rebuilt.
+        curved: The smooth surfaces some faces approximate (`CurvedSurface`).
+        face_curved: For every face, the index into `curved` of the surface it approximates,
+            -1 for a flat face, shape (face_count,); default all -1.
     """
 
     mesh: trimesh.Trimesh
@@ -39,11 +66,22 @@ class Scene:
     materials: tuple[Material, ...]
     name: str = "scene"
     params: dict = field(default_factory=dict)
+    curved: tuple[CurvedSurface, ...] = ()
+    face_curved: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         self.face_material = np.ascontiguousarray(self.face_material, dtype=np.int32)
         if self.face_material.shape != (len(self.mesh.faces),):
             raise SceneError(f"face_material has shape {self.face_material.shape}, expected ({len(self.mesh.faces)},)")
+        if self.face_curved is None:
+            self.face_curved = np.full(len(self.mesh.faces), -1, dtype=np.int32)
+        self.face_curved = np.ascontiguousarray(self.face_curved, dtype=np.int32)
+        if (
+            self.face_curved.shape != self.face_material.shape
+            or not ((self.face_curved >= -1) & (self.face_curved < len(self.curved))).all()
+        ):
+            count = len(self.curved)
+            raise SceneError(f"face_curved must give each face -1 or the index of one of {count} curved surfaces")
         if len(self.materials) == 0:
             raise SceneError("the material table is empty")
         bad = (self.face_material < 0) | (self.face_material >= len(self.materials))
@@ -82,6 +120,7 @@ class Scene:
                 "faces": self.face_count,
                 "bounds_m": np.round(self.mesh.bounds, 4).tolist(),
                 "materials": [m.__dict__ for m in self.materials],
+                "curved": len(self.curved),
             },
             sort_keys=True,
         )
@@ -126,24 +165,39 @@ def assemble(
     name: str,
     params: dict | None = None,
 ) -> Scene:
-    """Concatenate (mesh, material) parts into one Scene with a compact material table."""
+    """Concatenate (mesh, material) parts into one Scene with a compact material table. A part
+    made by `cylinder_mesh` or `sphere_mesh` brings its `CurvedSurface` along."""
     table: list[Material] = []
     meshes: list[trimesh.Trimesh] = []
     ids: list[np.ndarray] = []
+    curved: list[CurvedSurface] = []
+    face_curved: list[np.ndarray] = []
     for mesh, mat in parts:
         mat = material(mat)
         if mat not in table:
             if any(m.name == mat.name for m in table):
                 raise SceneError(f"two different materials are both named {mat.name!r}")
             table.append(mat)
+        surface = mesh.metadata.get(CURVED_KEY) if isinstance(mesh, trimesh.Trimesh) else None
         mesh, _ = clean_mesh(mesh, what=f"{name} part")
         meshes.append(mesh)
         ids.append(np.full(len(mesh.faces), table.index(mat), dtype=np.int32))
+        face_curved.append(np.full(len(mesh.faces), len(curved) if surface else -1, dtype=np.int32))
+        if surface:
+            curved.append(surface)
     if not meshes:
         raise SceneError(f"{name}: no geometry to build a scene from")
     combined = trimesh.util.concatenate(meshes)
-    combined.merge_vertices()  # parts that share corners become one connected surface
-    return Scene(combined, np.concatenate(ids), tuple(table), name=name, params=dict(params or {}))
+    combined.merge_vertices()  # parts that share corners become one connected surface (faces keep their order)
+    return Scene(
+        combined,
+        np.concatenate(ids),
+        tuple(table),
+        name=name,
+        params=dict(params or {}),
+        curved=tuple(curved),
+        face_curved=np.concatenate(face_curved),
+    )
 
 
 def box_mesh(center: Sequence[float], extents: Sequence[float], yaw: float = 0.0) -> trimesh.Trimesh:
@@ -153,11 +207,25 @@ def box_mesh(center: Sequence[float], extents: Sequence[float], yaw: float = 0.0
     return trimesh.creation.box(extents=extents, transform=transform)
 
 
+CURVED_KEY = "curved_surface"  # trimesh metadata of a part that approximates a CurvedSurface
+
+
 def cylinder_mesh(x: float, y: float, radius: float, z0: float, z1: float, *, sections: int = 32) -> trimesh.Trimesh:
-    """Closed vertical cylinder from z0 to z1 [m]."""
+    """Closed vertical cylinder from z0 to z1 [m] (it carries its `CurvedSurface` into `assemble`)."""
     transform = np.eye(4)
     transform[:3, 3] = (x, y, 0.5 * (z0 + z1))
-    return trimesh.creation.cylinder(radius=radius, height=z1 - z0, sections=sections, transform=transform)
+    mesh = trimesh.creation.cylinder(radius=radius, height=z1 - z0, sections=sections, transform=transform)
+    axis = (float(x), float(y), float(z0))
+    mesh.metadata[CURVED_KEY] = CurvedSurface("cylinder", axis, float(radius), (float(z0), float(z1)))
+    return mesh
+
+
+def sphere_mesh(centre: Sequence[float], radius: float, *, subdivisions: int = 3) -> trimesh.Trimesh:
+    """Sphere [m] (an icosphere; it carries its `CurvedSurface` into `assemble`)."""
+    mesh = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+    mesh.apply_translation(centre)
+    mesh.metadata[CURVED_KEY] = CurvedSurface("sphere", tuple(float(c) for c in centre), float(radius))
+    return mesh
 
 
 def room_shell(size: Sequence[float], *, origin: Sequence[float] = (0.0, 0.0, 0.0)) -> dict[str, trimesh.Trimesh]:

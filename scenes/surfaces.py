@@ -46,4 +46,12 @@ def with_surfaces(scene: Scene, acoustics: dict[str, dict[str, float]]) -> Scene
         changes = {f"acoustic_{k}": float(v) for k, v in values.items()}
         table.append(dataclasses.replace(material, name=f"{material.name}:{name}", **changes))
     params = scene.params | {"surfaces": acoustics}
-    return Scene(scene.mesh, face_material.reshape(-1), tuple(table), name=scene.name, params=params)
+    return Scene(
+        scene.mesh,
+        face_material.reshape(-1),
+        tuple(table),
+        name=scene.name,
+        params=params,
+        curved=scene.curved,
+        face_curved=scene.face_curved,
+    )

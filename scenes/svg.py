@@ -12,7 +12,7 @@ import svgelements as se
 import trimesh
 
 from .materials import Material
-from .scene import Scene, SceneError, assemble, box_mesh
+from .scene import Scene, SceneError, assemble, box_mesh, cylinder_mesh
 
 _CURVE_SAMPLES_PER_M = 10  # straight wall pieces per metre of curved stroke
 
@@ -146,6 +146,9 @@ def from_svg(
         mesh = box_mesh((*(a + b) / 2, wall_height / 2), (length + wall_thickness, wall_thickness, wall_height), yaw)
         parts.append((mesh, wall))
     for center, rx, ry, rotation in pillars:
+        if np.isclose(rx, ry, rtol=1e-6):  # a round pillar: its specular echoes follow the curve
+            parts.append((cylinder_mesh(*(center - offset), rx, 0.0, wall_height, sections=48), pillar))
+            continue
         mesh = trimesh.creation.cylinder(radius=1.0, height=wall_height, sections=48)
         mesh.apply_scale((rx, ry, 1.0))
         transform = trimesh.transformations.rotation_matrix(rotation, (0, 0, 1))
