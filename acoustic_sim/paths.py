@@ -21,6 +21,7 @@ from scenes import Scene
 
 from .array import piston_directivity
 from .config import SonarConfig, TracerConfig
+from .kernels import curved as curved_kernels
 from .kernels import lidar as lidar_kernels
 from .kernels import paths as kernels
 from .poses import check_pose_results, check_poses
@@ -315,7 +316,7 @@ class PathTracer:
             if ws.curved.count:
                 surfaces = ws.curved
                 wp.launch(
-                    kernels.curved_echoes,
+                    curved_kernels.curved_echoes,
                     dim=(n, surfaces.count),
                     inputs=[
                         ws.mesh.id,

@@ -15,7 +15,6 @@ of each beam of the label frame's energyscape, within 10 dB of the frame's peak)
 
 from __future__ import annotations
 
-import csv
 import json
 import time
 from collections.abc import Callable
@@ -29,7 +28,8 @@ from .checkpoint import load_checkpoint
 from .data import DataConfig, Frames, Windows, load_frames
 from .metrics import image_metrics
 from .models import predict_image
-from .scan import CALIBRATION_THRESHOLDS, EXTRA_TOLERANCES_M, scan_f1_sweep, tolerance_suffix
+from .report import example_file, report_markdown, write_per_scenario, write_per_window
+from .scan import CALIBRATION_THRESHOLDS, scan_f1_sweep
 
 ECHO_PEAK_LEVEL = 0.75  # normalised input (40 dB floor): within 10 dB of the frame's peak
 BASELINE_THRESHOLD = 0.5  # baselines predict 0/1 images: any threshold in (0, 1] reads them alike
@@ -260,8 +260,8 @@ def evaluate(
     if timing:
         report["inference"] = inference_timing(models[first_name][0], windows)
     (out / "metrics.json").write_text(json.dumps(report, indent=1))
-    _write_per_scenario(out / "per_scenario.csv", results)
-    _write_per_window(out / "per_window.csv", per_window, indices, windows)
+    write_per_scenario(out / "per_scenario.csv", results)
+    write_per_window(out / "per_window.csv", per_window, indices, windows)
     for name in models:  # the same windows for every model, picked by the first one's scores
         rows = _example_rows(predictors, name, first_name, per_window, windows, indices, frames, examples)
         path = out / example_file(name, first=name == first_name)
@@ -315,11 +315,6 @@ def _pick_windows(windows: Windows, ckpt: dict, frames: Frames, split: str, epis
     raise ValueError(f"split must be auto, val or all, got {split!r}")
 
 
-def example_file(name: str, *, first: bool) -> str:
-    """examples.png for the first model of an evaluation, examples_<name>.png for the others."""
-    return "examples.png" if first else "examples_" + "".join(c if c.isalnum() else "_" for c in name) + ".png"
-
-
 def _example_rows(predictors, name, picker, per_window, windows, indices, frames, count) -> list[dict]:
     """Windows at evenly spaced quantiles of `picker`'s scan_f1 (poor to good, none cherry-picked)."""
     f1 = per_window[name]["scan_f1"]
@@ -350,105 +345,3 @@ def _example_rows(predictors, name, picker, per_window, windows, indices, frames
 
 
 # (key, column title, format): the primary metric first. Tables read their columns from here.
-METRICS = (
-    ("scan_f1", "scan F1 @0.10 m", "{:.3f}"),
-    ("beam_accuracy", "beam acc.", "{:.3f}"),
-    ("return_precision", "precision", "{:.3f}"),
-    ("return_recall", "recall", "{:.3f}"),
-    ("range_mae_tp_m", "range MAE of TP [m]", "{:.3f}"),
-    ("missed", "missed", "{:.2f}"),
-    ("false", "false", "{:.2f}"),
-    ("chamfer_m", "Chamfer [m]", "{:.3f}"),
-    ("iou", "IoU", "{:.3f}"),
-)
-OTHER_METRICS = (
-    *(
-        (f"{k}{tolerance_suffix(t)}", f"{label} @{t:.2f} m", "{:.3f}")
-        for t in EXTRA_TOLERANCES_M
-        for k, label in (("scan_f1", "scan F1"), ("beam_accuracy", "beam acc."))
-    ),
-    ("mse", "MSE", "{:.5f}"),
-    ("ssim", "SSIM", "{:.4f}"),
-    ("peak_range_mae_m", "peak range MAE [m] (ignores confidence)", "{:.3f}"),
-)
-
-
-def _cell(stat, fmt):
-    if not np.isfinite(stat["mean"]):
-        return "-"
-    return fmt.format(stat["mean"]) + " ± " + fmt.format(stat["std"])
-
-
-def _table(rows: dict, columns, first: str) -> list[str]:
-    lines = [f"| {first} | " + " | ".join(label for _, label, _ in columns) + " |", "|---" * (len(columns) + 1) + "|"]
-    lines += [f"| {name} | " + " | ".join(_cell(r[k], f) for k, _, f in columns) + " |" for name, r in rows.items()]
-    return lines
-
-
-def report_markdown(report: dict) -> str:
-    res = report["results"]
-    checkpoints = report.get("checkpoints", {"model": report["checkpoint"]})
-    thresholds = report.get("thresholds", {})
-    lines = [
-        f"# Evaluation: {report['model']['name']} (K = {report['data_config']['frames']}) on "
-        f"{report['suite']}{' / ' + report['variant'] if report['variant'] else ''}",
-        "",
-        f"{report['windows']:,} windows ({report['split']} split) of `{report['data']}`. Mean ± std over windows; "
-        "a prediction is read as a LiDAR scan: per beam the nearest cell at or above the return threshold.",
-        "",
-        "| predictor | checkpoint | return threshold |",
-        "|---|---|---|",
-    ]
-    for name in res:
-        source = f"`{checkpoints[name]}`" if name in checkpoints else "baseline"
-        lines.append(f"| {name} | {source} | {thresholds.get(name, float('nan')):.2f} |")
-    lines += ["", *_table({n: r["all"] for n, r in res.items()}, METRICS, "predictor")]
-    lines += ["", "Other tolerances and the image metrics (MSE and SSIM reward empty images on sparse labels):", ""]
-    lines += _table({n: r["all"] for n, r in res.items()}, OTHER_METRICS, "predictor")
-    first = report.get("examples_from", "model")
-    lines += ["", f"{first} per scenario (windows):", ""]
-    per = {f"{s} ({r['windows']})": r for s, r in res[first].items() if s != "all"}
-    lines += _table(per, METRICS, "scenario")
-    if "inference" in report:
-        t = report["inference"]
-        lines += [
-            "",
-            f"Inference of {first} on {t['device']}: {t['ms_per_frame_batch1']:.2f} ms per frame (batch 1), "
-            f"{t['frames_per_s_batched']:,.0f} frames/s batched (medians of "
-            f"{' and '.join(map(str, t['timed_calls']))} timed calls).",
-        ]
-    lines += [
-        "",
-        f"Examples: windows at evenly spaced quantiles of {first}'s scan F1 (poor to good, not picked by hand); "
-        "each row shows the sonar input, the LiDAR truth, the prediction and the scan read from it, from above.",
-    ]
-    for name in checkpoints:
-        path = example_file(name, first=name == first)
-        lines += ["", f"`{path}`: predictions of {name} (`{checkpoints[name]}`).", "", f"![{name}]({path})"]
-    if any(" - |" in line for line in lines):
-        lines += ["", "`-`: no window defines it (the range MAE of true positives needs at least one true positive)."]
-    lines.append("")
-    return "\n".join(lines)
-
-
-def _write_per_window(path: Path, per_window: dict, indices: np.ndarray, windows: Windows) -> None:
-    """One row per predictor and window: its index, episode, scenario and every metric."""
-    keys = list(next(iter(per_window.values())))
-    names = windows.frames.scenarios
-    with open(path, "w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(["predictor", "window", "episode", "scenario", *keys])
-        for name, per in per_window.items():
-            for i, w in enumerate(indices):
-                row = [name, int(w), int(windows.episode[w]), names[windows.scenario[w]]]
-                writer.writerow(row + [f"{per[k][i]:.6g}" for k in keys])
-
-
-def _write_per_scenario(path: Path, results: dict) -> None:
-    keys = [k for k, _, _ in METRICS + OTHER_METRICS]
-    with open(path, "w", newline="") as f:
-        writer = csv.writer(f)
-        writer.writerow(["predictor", "scenario", "windows", *[f"{k}_{s}" for k in keys for s in ("mean", "std")]])
-        for name, r in results.items():
-            for scen, stats in r.items():
-                writer.writerow([name, scen, stats["windows"], *[stats[k][s] for k in keys for s in ("mean", "std")]])

@@ -19,8 +19,9 @@ import numpy as np
 import torch
 
 from .data import DataConfig, load_frames, shard_paths
-from .evaluate import METRICS, evaluate
+from .evaluate import evaluate
 from .models import ModelConfig
+from .report import METRICS
 from .train import TrainConfig, train
 
 TABLE2_CASES = ("minimal", "many", "noisy")

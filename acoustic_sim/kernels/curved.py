@@ -1,0 +1,111 @@
+"""Specular echoes off curved surfaces (spheres, vertical cylinders): solved on the surface itself."""
+
+import warp as wp
+
+from .paths import BAFFLE_SLACK, SURFACE_STEP, lookup
+
+CURVED_SPHERE = wp.constant(0)  # curved surface kinds, as acoustic_sim.scene.CURVED_KINDS
+CURVED_STEPS = wp.constant(24)  # fixed-point steps towards a curved surface's reflection point
+
+
+@wp.func
+def bisecting_normal(centre: wp.vec3, radius: float, a: wp.vec3, b: wp.vec3) -> wp.vec3:
+    """Unit normal of the point of a sphere (or, with every z = 0, a circle) where a path from a
+    to b reflects: there the normal bisects the directions to a and b. Fixed-point steps from the
+    bisector seen from the centre; each shrinks the error by about radius / distance."""
+    n = wp.normalize(wp.normalize(a - centre) + wp.normalize(b - centre))
+    for _step in range(CURVED_STEPS):
+        point = centre + radius * n
+        n = wp.normalize(wp.normalize(a - point) + wp.normalize(b - point))
+    return n
+
+
+@wp.func
+def reflected_radius(incident: float, radius: float, curvature_cos: float) -> float:
+    """Radius of curvature of a wavefront from `incident` [m] away just after it reflects off a
+    convex surface of `radius`, in a principal plane where the surface bends with 1/radius and
+    the incidence cosine enters as 2 / (radius cos) (in the plane of incidence) or 2 cos / radius
+    (across it) (geometric optics); `curvature_cos` is that cos or 1 / cos."""
+    return 1.0 / (1.0 / incident + 2.0 * curvature_cos / radius)
+
+
+@wp.kernel(enable_backward=False)
+def curved_echoes(
+    # in
+    mesh: wp.uint64,
+    kind: wp.array[wp.int32],
+    centre: wp.array[wp.vec3],
+    radius: wp.array[float],
+    z_range: wp.array[wp.vec2],
+    gain: wp.array[float],
+    poses: wp.array[wp.mat44],
+    inverse_poses: wp.array[wp.mat44],
+    emitter: wp.vec3,
+    directivity: wp.array[float],
+    # out
+    source_out: wp.array2d[wp.vec3],
+    extra_out: wp.array2d[float],
+    amplitude_out: wp.array2d[float],
+    order_out: wp.array2d[wp.int32],
+    ray_queries_out: wp.array[wp.int32],
+):
+    """First-order specular echo off each curved surface (sphere or vertical cylinder) for each
+    ping; dim = (pings, surfaces). Rays would find it only where a facet happens to face the
+    sensor; here the reflection point is solved on the surface itself (for a cylinder in the
+    horizontal plane, its height from the unfolded path), both legs are checked unoccluded, and
+    the amplitude follows geometric optics: sqrt(R (1 - s)) times the emitter's directivity times
+    (1 / d1) sqrt(rho1 rho2 / ((rho1 + d2) (rho2 + d2))), with d1, d2 the legs and rho1, rho2 the
+    reflected wavefront's principal radii (a sphere bends it in both planes, a cylinder only
+    across its axis; a plane would give 1 / (d1 + d2)). Writes the reflection point (sensor
+    frame) as the echo's source and d1 as the path before it, like a scattered arrival; order 1.
+    """
+    p, c = wp.tid()
+    amplitude_out[p, c] = 0.0
+    order_out[p, c] = 1
+    pose = poses[p]
+    inverse = inverse_poses[p]
+    e = wp.transform_point(pose, emitter)
+    r = wp.transform_point(pose, wp.vec3(0.0))
+    o = centre[c]
+    a = radius[c]
+    sphere = kind[c] == CURVED_SPHERE
+    if sphere:
+        if wp.length(e - o) <= a or wp.length(r - o) <= a:
+            return
+        n = bisecting_normal(o, a, e, r)
+        point = o + a * n
+    else:
+        flat_o = wp.vec3(o[0], o[1], 0.0)
+        flat_e = wp.vec3(e[0], e[1], 0.0)
+        flat_r = wp.vec3(r[0], r[1], 0.0)
+        if wp.length(flat_e - flat_o) <= a or wp.length(flat_r - flat_o) <= a:
+            return
+        n = bisecting_normal(flat_o, a, flat_e, flat_r)
+        foot = flat_o + a * n
+        to_e = wp.length(flat_e - foot)
+        z = e[2] + (r[2] - e[2]) * to_e / (to_e + wp.length(flat_r - foot))
+        if z <= z_range[c][0] or z >= z_range[c][1]:
+            return
+        point = wp.vec3(foot[0], foot[1], z)
+    d1 = wp.length(e - point)
+    d2 = wp.length(r - point)
+    cosine = wp.dot(n, e - point) / d1
+    if cosine <= 0.0 or wp.dot(n, r - point) <= 0.0:
+        return
+    start = point + n * SURFACE_STEP
+    queries = int(2)
+    blocked = wp.mesh_query_ray(mesh, start, wp.normalize(e - start), wp.length(e - start)).result
+    if not blocked:
+        blocked = wp.mesh_query_ray(mesh, start, wp.normalize(r - start), wp.length(r - start)).result
+    wp.atomic_add(ray_queries_out, p, queries)
+    emit = wp.normalize(wp.transform_vector(inverse, point - e))
+    if blocked or emit[0] < -BAFFLE_SLACK:  # the emitter is baffled: nothing leaves it backwards
+        return
+    rho_1 = reflected_radius(d1, a, 1.0 / cosine)
+    rho_2 = d1  # a cylinder leaves the wavefront's curvature along its axis as it was
+    if sphere:
+        rho_2 = reflected_radius(d1, a, cosine)
+    spreading = wp.sqrt(rho_1 * rho_2 / ((rho_1 + d2) * (rho_2 + d2))) / d1
+    amplitude_out[p, c] = gain[c] * lookup(directivity, emit[0]) * spreading
+    source_out[p, c] = wp.transform_point(inverse, point)
+    extra_out[p, c] = d1
