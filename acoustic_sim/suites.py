@@ -343,6 +343,8 @@ def load_suite(name_or_path: str | Path) -> Suite:
     }
     if base and "description" not in data:  # the base's prose may name settings this file changes
         data["description"] = f"custom suite from {path.name}, based on `{base.name}` (the rig as simulated is below)"
+    if base:  # named after the file unless it says otherwise: manifests and cards must not call it the base
+        data.setdefault("name", path.stem)
     values.update(data)
     values.setdefault("name", path.stem)
     values.setdefault("description", f"custom suite from {path.name}")

@@ -138,3 +138,4 @@ def test_dataset_card_reads_the_rig_as_simulated(tmp_path, device):
     card = (tmp_path / "d" / "README.md").read_text()
     assert "| secondary bounces (max_bounces) | 1 |" in card and "| rays per ping | 3,000 |" in card
     assert "3 secondary bounces" not in card and "based on `paper`" in card
+    assert card.startswith("# Dataset: my_suite\n")  # the file's name, not its base's
