@@ -11,8 +11,9 @@ echo.
 
 from __future__ import annotations
 
+import os
 import warnings
-from dataclasses import dataclass
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import warp as wp
@@ -21,57 +22,24 @@ from scenes import Scene
 
 from .array import piston_directivity
 from .config import SonarConfig, TracerConfig
+from .echoes import (
+    KIND_SCATTERED,
+    KIND_SPECULAR,
+    Arrivals,
+    PointEchoes,
+    SpecularEchoes,
+    TraceBuffers,
+    TracedEchoes,
+    concatenate,
+)
 from .kernels import curved as curved_kernels
 from .kernels import lidar as lidar_kernels
 from .kernels import paths as kernels
 from .poses import check_pose_results, check_poses
 from .scene import warp_scene
-from .signals import EchoBuffer
 
-KIND_SPECULAR = 0
-KIND_SCATTERED = 1
 DIRECTIVITY_STEPS = 1024  # steps of the emitter's directivity table over the cosine from its axis
-
-
-@dataclass
-class Arrivals:
-    """Echoes of a batch of pings, flat over all poses (numpy, float64 unless noted).
-
-    Attributes:
-        pose_index: Ping each arrival belongs to, int64 (n,).
-        delay_s: Emitter -> scene -> array centre travel time [s], (n,).
-        direction: Unit direction the echo arrives from, sensor frame, (n, 3).
-        amplitude: Pressure amplitude relative to 1 at 1 m on the emitter axis: spherical
-            spreading, reflection factors and emitter directivity at the call's centre frequency
-            (no air absorption: it depends on frequency and is applied when recording), (n,).
-        order: Number of reflections, int64 (n,).
-        kind: KIND_SPECULAR or KIND_SCATTERED, int64 (n,).
-        source_m: Where the echo seems to come from, sensor frame [m] (the image source for
-            specular paths): per-microphone delays are |source - mic| / c, (n, 3).
-        length_m: Path length [m], (n,).
-        point_m: Where the echo last reflected or scattered, sensor frame [m], (n, 3).
-    """
-
-    pose_index: np.ndarray
-    delay_s: np.ndarray
-    direction: np.ndarray
-    amplitude: np.ndarray
-    order: np.ndarray
-    kind: np.ndarray
-    source_m: np.ndarray
-    length_m: np.ndarray
-    point_m: np.ndarray
-
-    def __len__(self) -> int:
-        return len(self.delay_s)
-
-    def select(self, mask: np.ndarray) -> Arrivals:
-        return Arrivals(**{k: v[mask] for k, v in self.__dict__.items()})
-
-    def for_pose(self, i: int) -> Arrivals:
-        """The arrivals of ping i, sorted by delay."""
-        sub = self.select(self.pose_index == i)
-        return sub.select(np.argsort(sub.delay_s, kind="stable"))
+__all__ = ["KIND_SCATTERED", "KIND_SPECULAR", "Arrivals", "PathTracer", "concatenate", "hemisphere_directions"]
 
 
 def hemisphere_directions(count: int) -> np.ndarray:
@@ -94,9 +62,14 @@ class PathTracer:
         sonar: Emitter position, directivity, call and air.
         config: Rays, bounces, table size, scattering and edge band.
         device: Warp device.
+        cpu_threads: On the CPU, a batch's pings are traced in this many threads (default: every
+            core this process may use); Warp runs each CPU launch on one core.
     """
 
-    def __init__(self, sonar: SonarConfig, config: TracerConfig, *, device=None):
+    def __init__(self, sonar: SonarConfig, config: TracerConfig, *, device=None, cpu_threads: int | None = None):
+        if cpu_threads is not None and cpu_threads < 1:
+            raise ValueError(f"cpu_threads must be >= 1, got {cpu_threads}")
+        self.cpu_threads = cpu_threads or len(os.sched_getaffinity(0))
         self.sonar = sonar
         self.config = config
         self.edge_width_m = config.edge_width_for(sonar)
@@ -114,8 +87,8 @@ class PathTracer:
             self._ray_energy = wp.array(ray_energy, dtype=float)
             self._ray_dirs = wp.array(directions.astype(np.float32), dtype=wp.vec3)
             self._directivity = wp.array(pattern.astype(np.float32), dtype=float)
-        self._buffers: dict[tuple[int, int], _TraceBuffers] = {}  # (pings, table size) -> buffers
-        self._curved: _PointEchoes | None = None  # echoes off curved surfaces, (pings, surfaces)
+        self._buffers: dict[tuple[int, int], TraceBuffers] = {}  # (pings, table size) -> buffers
+        self._curved: PointEchoes | None = None  # echoes off curved surfaces, (pings, surfaces)
 
     def trace(self, scene: Scene, poses: np.ndarray, *, batch: int = 64) -> Arrivals:
         """Echoes of one ping from each pose, specular and scattered (see the module docstring).
@@ -167,7 +140,7 @@ class PathTracer:
             if keep.any():
                 yield index, keep, echoes
 
-    def _buffers_for(self, n: int, size: int) -> _TraceBuffers:
+    def _buffers_for(self, n: int, size: int) -> TraceBuffers:
         """Device buffers of a batch of `n` pings with tables of `size`, reused across batches.
 
         Only batches at the configured table size are cached, one shape at a time (a stream of
@@ -180,7 +153,7 @@ class PathTracer:
         tracer = self.config
         capacity = tracer.ray_count * (tracer.max_bounces + 1) if tracer.scattering else 0
         with wp.ScopedDevice(self.device):
-            buffers = _TraceBuffers(
+            buffers = TraceBuffers(
                 poses=wp.empty(n, dtype=wp.mat44),
                 inverse_poses=wp.empty(n, dtype=wp.mat44),
                 errors=wp.empty(n, dtype=float),
@@ -191,7 +164,7 @@ class PathTracer:
                 ray_queries=wp.empty(n, dtype=wp.int32),
                 image_table=wp.empty((n, size), dtype=wp.uint64),
                 image_rank=wp.empty((n, size), dtype=wp.int32),
-                specular=_SpecularEchoes(  # source: image sources; order: the sequence table's orders
+                specular=SpecularEchoes(  # source: image sources; order: the sequence table's orders
                     source=wp.empty((n, size), dtype=wp.vec3),
                     extra_length=wp.zeros((n, size), dtype=float),  # 0 for image sources; no kernel writes it
                     amplitude=wp.empty((n, size), dtype=float),
@@ -200,7 +173,7 @@ class PathTracer:
                     direction=wp.empty((n, size), dtype=wp.vec3),
                     point=wp.empty((n, size), dtype=wp.vec3),
                 ),
-                scattered=_PointEchoes(
+                scattered=PointEchoes(
                     source=wp.empty((n, capacity), dtype=wp.vec3),
                     extra_length=wp.empty((n, capacity), dtype=float),
                     amplitude=wp.empty((n, capacity), dtype=float),
@@ -213,13 +186,13 @@ class PathTracer:
             self._buffers[key] = buffers
         return buffers
 
-    def _curved_buffers_for(self, n: int, surfaces: int) -> _PointEchoes:
+    def _curved_buffers_for(self, n: int, surfaces: int) -> PointEchoes:
         """Buffers of the echoes off a scene's curved surfaces, one slot per surface and ping
         (every slot counts; the kernel writes each), reused while the shape stays."""
         if self._curved is not None and self._curved.source.shape == (n, surfaces):
             return self._curved
         with wp.ScopedDevice(self.device):
-            self._curved = _PointEchoes(
+            self._curved = PointEchoes(
                 source=wp.empty((n, surfaces), dtype=wp.vec3),
                 extra_length=wp.empty((n, surfaces), dtype=float),
                 amplitude=wp.empty((n, surfaces), dtype=float),
@@ -228,7 +201,7 @@ class PathTracer:
             )
         return self._curved
 
-    def _trace_batch(self, scene: Scene, poses: np.ndarray, size: int) -> tuple[_TracedEchoes, np.ndarray]:
+    def _trace_batch(self, scene: Scene, poses: np.ndarray, size: int) -> tuple[TracedEchoes, np.ndarray]:
         """Echoes of a batch of checked poses, left on the device (in buffers that the next batch
         of the same shape reuses), and per pose the count of sequence insertions that found no
         slot in its table of `size`."""
@@ -248,195 +221,119 @@ class PathTracer:
             b.image_rank.fill_(kernels.RANK_NONE)
             wp.launch(lidar_kernels.pose_error, dim=n, inputs=[ws.mesh.id, b.poses], outputs=[b.errors, b.behind])
             check_pose_results(b.errors.numpy(), b.behind.numpy())
-            wp.launch(
-                kernels.discover_sequences,
-                dim=n * tracer.ray_count,
-                inputs=[
-                    ws.mesh.id,
-                    ws.face_plane,
-                    b.poses,
-                    b.inverse_poses,
-                    emitter,
-                    self._ray_dirs,
-                    tracer.max_bounces + 1,
-                    ws.face_reflection,
-                    ws.face_scattering,
-                    ws.face_sharp_edges,
-                    ws.face_altitudes,
-                    self.edge_width_m,
-                    self._ray_energy,
-                    int(tracer.scattering),
-                ],
-                outputs=[
-                    b.key,
-                    scattered.count,
-                    specular.order,
-                    b.planes,
-                    b.overflow,
-                    scattered.source,
-                    scattered.extra_length,
-                    scattered.amplitude,
-                    scattered.order,
-                    b.ray_queries,
-                ],
-            )
-            wp.launch(
-                kernels.validate_sequences,
-                dim=(n, size),
-                inputs=[
-                    ws.mesh.id,
-                    ws.face_plane,
-                    ws.plane_normal,
-                    ws.plane_offset,
-                    ws.face_reflection,
-                    ws.face_scattering,
-                    b.poses,
-                    emitter,
-                    b.key,
-                    specular.order,
-                    b.planes,
-                    ws.plane_curved,
-                    self._directivity,
-                ],
-                outputs=[specular.amplitude, specular.source, specular.direction, specular.point, b.ray_queries],
-            )
-            wp.launch(
-                kernels.claim_images,
-                dim=(n, size),
-                inputs=[specular.amplitude, specular.order, specular.source, b.key],
-                outputs=[b.image_table, b.image_rank],
-            )
-            wp.launch(
-                kernels.drop_duplicate_images,
-                dim=(n, size),
-                inputs=[specular.order, specular.source, b.key, b.image_table, b.image_rank],
-                outputs=[specular.amplitude],
-            )
             curved = self._curved_buffers_for(n, ws.curved.count)
-            if ws.curved.count:
-                surfaces = ws.curved
+
+            def trace_rows(first: int, last: int) -> None:
+                """Every stage for pings first..last-1 (each ping has its own tables)."""
+
+                def rows(a: wp.array) -> wp.array:  # Warp cannot slice an array with an empty axis
+                    return a if 0 in a.shape else a[first:last]
+
+                poses_in, inverse_in = rows(b.poses), rows(b.inverse_poses)
                 wp.launch(
-                    curved_kernels.curved_echoes,
-                    dim=(n, surfaces.count),
+                    kernels.discover_sequences,
+                    dim=(last - first) * tracer.ray_count,
                     inputs=[
                         ws.mesh.id,
-                        surfaces.kind,
-                        surfaces.centre,
-                        surfaces.radius,
-                        surfaces.z_range,
-                        surfaces.gain,
-                        b.poses,
-                        b.inverse_poses,
+                        ws.face_plane,
+                        poses_in,
+                        inverse_in,
                         emitter,
+                        self._ray_dirs,
+                        tracer.max_bounces + 1,
+                        ws.face_reflection,
+                        ws.face_scattering,
+                        ws.face_sharp_edges,
+                        ws.face_altitudes,
+                        self.edge_width_m,
+                        self._ray_energy,
+                        int(tracer.scattering),
+                    ],
+                    outputs=[
+                        rows(b.key),
+                        rows(scattered.count),
+                        rows(specular.order),
+                        rows(b.planes),
+                        rows(b.overflow),
+                        rows(scattered.source),
+                        rows(scattered.extra_length),
+                        rows(scattered.amplitude),
+                        rows(scattered.order),
+                        rows(b.ray_queries),
+                    ],
+                )
+                slots = (last - first, size)
+                wp.launch(
+                    kernels.validate_sequences,
+                    dim=slots,
+                    inputs=[
+                        ws.mesh.id,
+                        ws.face_plane,
+                        ws.plane_normal,
+                        ws.plane_offset,
+                        ws.face_reflection,
+                        ws.face_scattering,
+                        poses_in,
+                        emitter,
+                        rows(b.key),
+                        rows(specular.order),
+                        rows(b.planes),
+                        ws.plane_curved,
                         self._directivity,
                     ],
-                    outputs=[curved.source, curved.extra_length, curved.amplitude, curved.order, b.ray_queries],
+                    outputs=[
+                        rows(specular.amplitude),
+                        rows(specular.source),
+                        rows(specular.direction),
+                        rows(specular.point),
+                        rows(b.ray_queries),
+                    ],
                 )
-        traced = _TracedEchoes(specular=specular, scattered=scattered, curved=curved, ray_queries=b.ray_queries)
+                images = [rows(specular.order), rows(specular.source), rows(b.key)]
+                wp.launch(
+                    kernels.claim_images,
+                    dim=slots,
+                    inputs=[rows(specular.amplitude), *images],
+                    outputs=[rows(b.image_table), rows(b.image_rank)],
+                )
+                wp.launch(
+                    kernels.drop_duplicate_images,
+                    dim=slots,
+                    inputs=[*images, rows(b.image_table), rows(b.image_rank)],
+                    outputs=[rows(specular.amplitude)],
+                )
+                if ws.curved.count:
+                    surfaces = ws.curved
+                    wp.launch(
+                        curved_kernels.curved_echoes,
+                        dim=(last - first, surfaces.count),
+                        inputs=[
+                            ws.mesh.id,
+                            surfaces.kind,
+                            surfaces.centre,
+                            surfaces.radius,
+                            surfaces.z_range,
+                            surfaces.gain,
+                            poses_in,
+                            inverse_in,
+                            emitter,
+                            self._directivity,
+                        ],
+                        outputs=[
+                            rows(curved.source),
+                            rows(curved.extra_length),
+                            rows(curved.amplitude),
+                            rows(curved.order),
+                            rows(b.ray_queries),
+                        ],
+                    )
+
+            threads = min(self.cpu_threads, n) if self.device.is_cpu else 1
+            edges = np.linspace(0, n, threads + 1).round().astype(int).tolist()
+            if threads == 1:
+                trace_rows(0, n)
+            else:  # Warp runs a CPU launch on one core: slices of the batch in threads use them all
+                with ThreadPoolExecutor(threads) as pool:
+                    list(pool.map(trace_rows, edges[:-1], edges[1:]))  # list(): raise a thread's error here
+        traced = TracedEchoes(specular=specular, scattered=scattered, curved=curved, ray_queries=b.ray_queries)
         return traced, b.overflow.numpy().copy()
-
-
-@dataclass
-class _TraceBuffers:
-    """A batch's device arrays (see `PathTracer._buffers_for`): poses and their checks, the
-    sequence and image tables, counters, and the echoes found."""
-
-    poses: wp.array  # (pings,) mat44 sensor-to-world
-    inverse_poses: wp.array  # (pings,) mat44 world-to-sensor
-    errors: wp.array  # (pings,) float, pose_error
-    behind: wp.array  # (pings,) int32, pose_error
-    key: wp.array  # (pings, size) uint64 sequence hashes, 0 = empty slot
-    planes: wp.array  # (pings, size, MAX_ORDER) int32 plane sequence per slot
-    overflow: wp.array  # (pings,) int32 insertions that found no slot
-    ray_queries: wp.array  # (pings,) int32 BVH ray queries, all stages
-    image_table: wp.array  # (pings, size) uint64 image source hashes, 0 = empty slot
-    image_rank: wp.array  # (pings, size) int32 lowest sequence rank per image source
-    specular: _SpecularEchoes
-    scattered: _PointEchoes
-
-
-@dataclass
-class _SpecularEchoes(EchoBuffer):
-    """Validated image-source paths in table slots (amplitude 0: empty or invalid)."""
-
-    order: wp.array = None
-    direction: wp.array = None
-    point: wp.array = None
-
-
-@dataclass
-class _PointEchoes(EchoBuffer):
-    """Echoes from a point (source: where the path last reflected or scattered; extra_length: the
-    path before it): scattered arrivals, and specular ones off curved surfaces."""
-
-    order: wp.array = None
-
-
-@dataclass
-class _TracedEchoes:
-    specular: _SpecularEchoes
-    scattered: _PointEchoes
-    curved: _PointEchoes  # first-order specular echoes off curved surfaces, one slot per surface
-    ray_queries: wp.array  # (pings,) BVH ray queries made per ping, all stages
-
-    @property
-    def pose_count(self) -> int:
-        return self.specular.amplitude.shape[0]
-
-    def buffers(self) -> list[EchoBuffer]:
-        return [self.specular, self.scattered, self.curved]
-
-    def arrivals(self, speed_of_sound: float) -> Arrivals:
-        """Copy to the host as Arrivals, sorted by pose, kind, delay (a reproducible order)."""
-        spec = self.specular
-        amplitude = spec.amplitude.numpy()
-        pose_index, slot = np.nonzero(amplitude > 0)
-        source = spec.source.numpy()[pose_index, slot].astype(np.float64)
-        length = np.linalg.norm(source, axis=1)
-        parts = [
-            Arrivals(
-                pose_index=pose_index.astype(np.int64),
-                delay_s=length / speed_of_sound,
-                direction=spec.direction.numpy()[pose_index, slot].astype(np.float64),
-                amplitude=amplitude[pose_index, slot].astype(np.float64),
-                order=spec.order.numpy()[pose_index, slot].astype(np.int64),
-                kind=np.full(len(length), KIND_SPECULAR, dtype=np.int64),
-                source_m=source,
-                length_m=length,
-                point_m=spec.point.numpy()[pose_index, slot].astype(np.float64),
-            )
-        ]
-        for echoes, kind in ((self.scattered, KIND_SCATTERED), (self.curved, KIND_SPECULAR)):
-            if echoes.slots:
-                parts.append(_point_arrivals(echoes, kind, speed_of_sound))
-        found = concatenate(parts)
-        return found.select(np.lexsort((found.order, found.delay_s, found.kind, found.pose_index)))
-
-
-def _point_arrivals(echoes: _PointEchoes, kind: int, speed_of_sound: float) -> Arrivals:
-    """Arrivals of point echoes (slots below each ping's count with an amplitude)."""
-    count = echoes.count.numpy()
-    if (count > echoes.slots).any():  # cannot happen: each ray scatters at most once per order
-        raise RuntimeError("point echo buffer overflow")
-    amplitude = echoes.amplitude.numpy()
-    keep = (np.arange(echoes.slots)[None, :] < count[:, None]) & (amplitude > 0)
-    pose_index = np.nonzero(keep)[0]
-    source = echoes.source.numpy()[keep].astype(np.float64)
-    distance = np.linalg.norm(source, axis=1)
-    length = echoes.extra_length.numpy()[keep].astype(np.float64) + distance
-    return Arrivals(
-        pose_index=pose_index.astype(np.int64),
-        delay_s=length / speed_of_sound,
-        direction=source / distance[:, None],
-        amplitude=amplitude[keep].astype(np.float64),
-        order=echoes.order.numpy()[keep].astype(np.int64),
-        kind=np.full(len(length), kind, dtype=np.int64),
-        source_m=source,
-        length_m=length,
-        point_m=source,
-    )
-
-
-def concatenate(parts: list[Arrivals]) -> Arrivals:
-    """Join arrival sets (kept flat; `for_pose` sorts by delay)."""
-    return Arrivals(**{k: np.concatenate([getattr(a, k) for a in parts]) for k in Arrivals.__dataclass_fields__})

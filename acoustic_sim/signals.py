@@ -80,6 +80,13 @@ class EchoBuffer:
     def slots(self) -> int:
         return self.source.shape[1]
 
+    def rows(self, first: int, last: int) -> EchoBuffer:
+        """The echoes of pings first..last-1 (views of the same device memory)."""
+        if self.slots == 0:  # nothing to record (Warp cannot slice an array with an empty axis)
+            return self
+        part = (self.source, self.extra_length, self.amplitude, self.count)
+        return EchoBuffer(*(a[first:last] for a in part))
+
 
 def tile_block_dim(size: int) -> int:
     """Threads per block for a tiled FFT of `size` points (sizes that compile on the H100)."""

@@ -9,7 +9,9 @@ Sonar.simulate    all three on the device, batch by batch, without host round tr
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,14 +35,25 @@ class Sonar:
         tracer: How echoes are searched for (`TracerConfig`: bounces, rays, table size,
             scattering, edge band); default `TracerConfig()`.
         device: Warp device.
+        cpu_threads: On the CPU, the pings of a batch are traced, recorded and beamformed in this
+            many threads (default: every core this process may use); Warp runs each CPU launch
+            on one core.
         **tracer_settings: TracerConfig fields to change, e.g. `max_bounces=1`, `ray_count=5000`.
     """
 
-    def __init__(self, config: SonarConfig, tracer: TracerConfig | None = None, *, device=None, **tracer_settings):
+    def __init__(
+        self,
+        config: SonarConfig,
+        tracer: TracerConfig | None = None,
+        *,
+        device=None,
+        cpu_threads: int | None = None,
+        **tracer_settings,
+    ):
         self.config = config
-        self.tracer = PathTracer(
-            config, dataclasses.replace(tracer or TracerConfig(), **tracer_settings), device=device
-        )
+        tracer = dataclasses.replace(tracer or TracerConfig(), **tracer_settings)
+        self.tracer = PathTracer(config, tracer, device=device, cpu_threads=cpu_threads)
+        self.cpu_threads = self.tracer.cpu_threads
         self.device = self.tracer.device
 
     @property
@@ -103,19 +116,29 @@ class Sonar:
         kept = None
         if keep_signals:
             kept = np.empty((len(poses), self.config.microphone_count, self.config.record_samples), np.float32)
-        bar = tqdm(total=len(poses), unit="ping", disable=not progress, desc="sonar")
-        for index, keep, echoes in self.tracer.traced(scene, poses, batch):
-            # The echoes are used up here, before the next batch reuses their buffers. Rows left out
-            # (to be traced again) are recorded too, at no extra launch, and dropped.
-            seeds = ping_seeds(seed, index)
-            signals = recorder(echoes.buffers(), len(index), noise=noise, snr_db=snr_db, seeds=seeds)
-            out = former(signals)
-            images[index[keep]] = out.numpy().reshape(len(index), *former.output_shape)[keep]
+        threads = min(self.cpu_threads, batch) if self.device.is_cpu else 1
+
+        def finish(index, keep, echoes, seeds, first: int, last: int) -> None:
+            """Record and beamform rows first..last-1 of a traced batch (each ping on its own)."""
+            rows = [e.rows(first, last) for e in echoes.buffers()]
+            signals = recorder(rows, last - first, noise=noise, snr_db=snr_db, seeds=seeds[first:last])
+            out = former(signals).numpy().reshape(last - first, *former.output_shape)
+            mine = keep[first:last]
+            images[index[first:last][mine]] = out[mine]
             if kept is not None:
-                kept[index[keep]] = signals.numpy()[keep]
-            bar.update(int(keep.sum()))
-            if on_pings:
-                on_pings(int(keep.sum()))
+                kept[index[first:last][mine]] = signals.numpy()[mine]
+
+        bar = tqdm(total=len(poses), unit="ping", disable=not progress, desc="sonar")
+        with ThreadPoolExecutor(threads) as pool:
+            for index, keep, echoes in self.tracer.traced(scene, poses, batch):
+                # The echoes are used up here, before the next batch reuses their buffers. Rows left out
+                # (to be traced again) are recorded too, at no extra launch, and dropped.
+                batch_rows = functools.partial(finish, index, keep, echoes, ping_seeds(seed, index))
+                edges = np.linspace(0, len(index), min(threads, len(index)) + 1).round().astype(int).tolist()
+                list(pool.map(batch_rows, edges[:-1], edges[1:]))  # list(): raise a thread's error here
+                bar.update(int(keep.sum()))
+                if on_pings:
+                    on_pings(int(keep.sum()))
         bar.close()
         return SonarFrames(energyscape=images, signals=kept)
 

@@ -6,7 +6,9 @@
 Writes benchmarks/results/sonar_<cpu|cuda>.json and .md: for max_bounces 0, 1, 3 the path tracer's
 pings/s and BVH ray queries/s (counted by the kernels: bounce rays, scattering shadow rays and the
 image-source checks) and energyscapes/s end to end (`Sonar.simulate`); pings/s of `Sonar.trace`
-to host Arrivals, recording and energyscapes at 3 bounces.
+to host Arrivals, recording and energyscapes at 3 bounces; on the CPU also end to end with one
+thread (`Sonar(cpu_threads=1)`) beside the default of every core (the stage rows record and
+beamform in one thread).
 Peer: pyroomacoustics' image-source model of a shoebox of the office's size, order 3, timed per
 ping (room build + image sources), if installed. Medians after a first call reported apart.
 """
@@ -132,6 +134,11 @@ def main(argv=None) -> dict:
         "s": res["trace"][3]["end_to_end_s"],
         "energyscapes_per_s": res["trace"][3]["energyscapes_per_s"],
     }
+    if device.is_cpu:  # Warp runs a CPU launch on one core: `simulate` records and beamforms in threads
+        one = sim.Sonar(sim.SonarConfig.ertis(), max_bounces=3, ray_count=args.rays, device=device, cpu_threads=1)
+        _, one_s, _ = timed(lambda: one.simulate(scene, poses, batch=pings), args.repeats, device)
+        res["end_to_end_3_bounces_one_thread"] = {"s": one_s, "energyscapes_per_s": pings / one_s}
+        res["cpu_threads"] = sonar.cpu_threads
     peer = peer_pyroomacoustics(args.repeats)
     if peer:
         res["peer"] = peer
@@ -165,6 +172,12 @@ def main(argv=None) -> dict:
         lines.append(
             f"| {bold}end to end, max_bounces={bounces}{bold} | {bold}{r['energyscapes_per_s']:,.1f}{bold} | "
             "`Sonar.simulate`: trace + record + energyscape, energyscapes copied to the host |"
+        )
+    if "end_to_end_3_bounces_one_thread" in res:
+        one = res["end_to_end_3_bounces_one_thread"]["energyscapes_per_s"]
+        lines.append(
+            f"| end to end, max_bounces=3, `cpu_threads=1` | {one:,.1f} | the rows above trace, record and beamform in "
+            f"{res['cpu_threads']} threads: {res['trace'][3]['energyscapes_per_s'] / one:.2f}x this |"
         )
     if peer:
         lines.append(f"| peer: {peer['name']} | {peer['pings_per_s']:,.1f} | image sources only, no signals |")

@@ -145,6 +145,24 @@ def test_pings_that_overflow_the_sequence_table_are_traced_again_larger(device):
     assert len(want.for_pose(0)) > 0 and len(want.for_pose(1)) > 16 and len(want.for_pose(2)) == 0
 
 
+def test_cpu_threads_split_a_batch_without_changing_a_sample(device):
+    """On the CPU a batch's pings are traced, recorded and beamformed in threads (uneven slices
+    of 5 pings over 3 threads, noise seeded per ping): arrivals, signals and energyscapes equal
+    one thread's."""
+    room = scenes.box_room(tuple(SIZE))
+    poses = np.stack([scenes.pose(1.0 + 0.8 * i, 2.0, 0.2 * i, 1.0) for i in range(5)])
+    sonars = [Sonar(OMNI, max_bounces=1, ray_count=2_000, device=device, cpu_threads=t) for t in (1, 3)]
+    traced = [s.trace(room, poses) for s in sonars]
+    for key, value in traced[0].__dict__.items():
+        np.testing.assert_array_equal(value, getattr(traced[1], key), err_msg=key)
+    runs = [s.simulate(room, poses, noise="gaussian", seed=4, keep_signals=True) for s in sonars]
+    np.testing.assert_array_equal(runs[0].signals, runs[1].signals)
+    np.testing.assert_array_equal(runs[0].energyscape, runs[1].energyscape)
+    assert runs[0].energyscape.max() > 0
+    with pytest.raises(ValueError, match="cpu_threads"):
+        Sonar(OMNI, device=device, cpu_threads=0)
+
+
 LOOKING_DOWN = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # sensor x -> world -z
 
 

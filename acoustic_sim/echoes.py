@@ -1,0 +1,166 @@
+"""What a trace leaves: echoes on the device, per kind, and their host copy (`Arrivals`).
+
+Specular echoes off planes sit in the slots of a ping's sequence table (the image source and its
+amplitude; 0 = empty or invalid); point echoes (scattered, and specular off curved surfaces) are
+where the path last turned plus the path before it. `TracedEchoes.arrivals` copies a batch to
+the host as flat numpy records.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from .signals import EchoBuffer
+
+KIND_SPECULAR = 0
+KIND_SCATTERED = 1
+
+
+@dataclass
+class Arrivals:
+    """Echoes of a batch of pings, flat over all poses (numpy, float64 unless noted).
+
+    Attributes:
+        pose_index: Ping each arrival belongs to, int64 (n,).
+        delay_s: Emitter -> scene -> array centre travel time [s], (n,).
+        direction: Unit direction the echo arrives from, sensor frame, (n, 3).
+        amplitude: Pressure amplitude relative to 1 at 1 m on the emitter axis: spherical
+            spreading, reflection factors and emitter directivity at the call's centre frequency
+            (no air absorption: it depends on frequency and is applied when recording), (n,).
+        order: Number of reflections, int64 (n,).
+        kind: KIND_SPECULAR or KIND_SCATTERED, int64 (n,).
+        source_m: Where the echo seems to come from, sensor frame [m] (the image source for
+            specular paths): per-microphone delays are |source - mic| / c, (n, 3).
+        length_m: Path length [m], (n,).
+        point_m: Where the echo last reflected or scattered, sensor frame [m], (n, 3).
+    """
+
+    pose_index: np.ndarray
+    delay_s: np.ndarray
+    direction: np.ndarray
+    amplitude: np.ndarray
+    order: np.ndarray
+    kind: np.ndarray
+    source_m: np.ndarray
+    length_m: np.ndarray
+    point_m: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.delay_s)
+
+    def select(self, mask: np.ndarray) -> Arrivals:
+        return Arrivals(**{k: v[mask] for k, v in self.__dict__.items()})
+
+    def for_pose(self, i: int) -> Arrivals:
+        """The arrivals of ping i, sorted by delay."""
+        sub = self.select(self.pose_index == i)
+        return sub.select(np.argsort(sub.delay_s, kind="stable"))
+
+
+@dataclass
+class TraceBuffers:
+    """A batch's device arrays (see `PathTracer._buffers_for`): poses and their checks, the
+    sequence and image tables, counters, and the echoes found."""
+
+    poses: wp.array  # (pings,) mat44 sensor-to-world
+    inverse_poses: wp.array  # (pings,) mat44 world-to-sensor
+    errors: wp.array  # (pings,) float, pose_error
+    behind: wp.array  # (pings,) int32, pose_error
+    key: wp.array  # (pings, size) uint64 sequence hashes, 0 = empty slot
+    planes: wp.array  # (pings, size, MAX_ORDER) int32 plane sequence per slot
+    overflow: wp.array  # (pings,) int32 insertions that found no slot
+    ray_queries: wp.array  # (pings,) int32 BVH ray queries, all stages
+    image_table: wp.array  # (pings, size) uint64 image source hashes, 0 = empty slot
+    image_rank: wp.array  # (pings, size) int32 lowest sequence rank per image source
+    specular: SpecularEchoes
+    scattered: PointEchoes
+
+
+@dataclass
+class SpecularEchoes(EchoBuffer):
+    """Validated image-source paths in table slots (amplitude 0: empty or invalid)."""
+
+    order: wp.array = None
+    direction: wp.array = None
+    point: wp.array = None
+
+
+@dataclass
+class PointEchoes(EchoBuffer):
+    """Echoes from a point (source: where the path last reflected or scattered; extra_length: the
+    path before it): scattered arrivals, and specular ones off curved surfaces."""
+
+    order: wp.array = None
+
+
+@dataclass
+class TracedEchoes:
+    specular: SpecularEchoes
+    scattered: PointEchoes
+    curved: PointEchoes  # first-order specular echoes off curved surfaces, one slot per surface
+    ray_queries: wp.array  # (pings,) BVH ray queries made per ping, all stages
+
+    @property
+    def pose_count(self) -> int:
+        return self.specular.amplitude.shape[0]
+
+    def buffers(self) -> list[EchoBuffer]:
+        return [self.specular, self.scattered, self.curved]
+
+    def arrivals(self, speed_of_sound: float) -> Arrivals:
+        """Copy to the host as Arrivals, sorted by pose, kind, delay (a reproducible order)."""
+        spec = self.specular
+        amplitude = spec.amplitude.numpy()
+        pose_index, slot = np.nonzero(amplitude > 0)
+        source = spec.source.numpy()[pose_index, slot].astype(np.float64)
+        length = np.linalg.norm(source, axis=1)
+        parts = [
+            Arrivals(
+                pose_index=pose_index.astype(np.int64),
+                delay_s=length / speed_of_sound,
+                direction=spec.direction.numpy()[pose_index, slot].astype(np.float64),
+                amplitude=amplitude[pose_index, slot].astype(np.float64),
+                order=spec.order.numpy()[pose_index, slot].astype(np.int64),
+                kind=np.full(len(length), KIND_SPECULAR, dtype=np.int64),
+                source_m=source,
+                length_m=length,
+                point_m=spec.point.numpy()[pose_index, slot].astype(np.float64),
+            )
+        ]
+        for echoes, kind in ((self.scattered, KIND_SCATTERED), (self.curved, KIND_SPECULAR)):
+            if echoes.slots:
+                parts.append(_point_arrivals(echoes, kind, speed_of_sound))
+        found = concatenate(parts)
+        return found.select(np.lexsort((found.order, found.delay_s, found.kind, found.pose_index)))
+
+
+def _point_arrivals(echoes: PointEchoes, kind: int, speed_of_sound: float) -> Arrivals:
+    """Arrivals of point echoes (slots below each ping's count with an amplitude)."""
+    count = echoes.count.numpy()
+    if (count > echoes.slots).any():  # cannot happen: each ray scatters at most once per order
+        raise RuntimeError("point echo buffer overflow")
+    amplitude = echoes.amplitude.numpy()
+    keep = (np.arange(echoes.slots)[None, :] < count[:, None]) & (amplitude > 0)
+    pose_index = np.nonzero(keep)[0]
+    source = echoes.source.numpy()[keep].astype(np.float64)
+    distance = np.linalg.norm(source, axis=1)
+    length = echoes.extra_length.numpy()[keep].astype(np.float64) + distance
+    return Arrivals(
+        pose_index=pose_index.astype(np.int64),
+        delay_s=length / speed_of_sound,
+        direction=source / distance[:, None],
+        amplitude=amplitude[keep].astype(np.float64),
+        order=echoes.order.numpy()[keep].astype(np.int64),
+        kind=np.full(len(length), kind, dtype=np.int64),
+        source_m=source,
+        length_m=length,
+        point_m=source,
+    )
+
+
+def concatenate(parts: list[Arrivals]) -> Arrivals:
+    """Join arrival sets (kept flat; `for_pose` sorts by delay)."""
+    return Arrivals(**{k: np.concatenate([getattr(a, k) for a in parts]) for k in Arrivals.__dataclass_fields__})
