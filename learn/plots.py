@@ -149,7 +149,8 @@ def plot_examples(rows: list[dict], range_m, azimuth_rad, out: str | Path, *, th
 
     Args:
         rows: Dicts with "title", "sonar" (R, A) normalised echo level in [0, 1] of the label frame,
-            "truth" (R, A) 0/1 LiDAR image, "pred" (R, A) return probability, optional "caption" (metrics text).
+            "truth" (R, A) 0/1 LiDAR image, "pred" (R, A) return probability, optional "caption" (metrics text)
+            and "threshold" (this row's, instead of `threshold`).
         range_m: Range bin centres [m], ascending, shape (R,).
         azimuth_rad: Azimuth bin centres [rad], ascending, positive left, shape (A,).
         out: PNG path.
@@ -167,11 +168,12 @@ def plot_examples(rows: list[dict], range_m, azimuth_rad, out: str | Path, *, th
             _polar(sub, axes[0], row["sonar"], range_m, azimuth_rad, "sonar input", "magma", echo)
             cbar = _polar(sub, axes[1], row["truth"], range_m, azimuth_rad, "LiDAR truth", "gray_r", "LiDAR return")
             cbar.set_ticks([0, 1])
-            label = f"return probability (red: threshold {threshold:.2f})"
+            level = row.get("threshold", threshold)
+            label = f"return probability (red: threshold {level:.2f})"
             cbar = _polar(sub, axes[2], row["pred"], range_m, azimuth_rad, "prediction", "gray_r", label)
-            cbar.ax.axhline(threshold, color="tab:red", linewidth=2)
+            cbar.ax.axhline(level, color="tab:red", linewidth=2)
             truth_r = _first_return(row["truth"], range_m, 0.5)
-            pred_r = _first_return(row["pred"], range_m, threshold)
+            pred_r = _first_return(row["pred"], range_m, level)
             _top_down(axes[3], truth_r, pred_r, range_m, azimuth_rad)
         fig.savefig(out, dpi=90)
     plt.close(fig)

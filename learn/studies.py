@@ -10,6 +10,7 @@ in their tables comes from a real run whose checkpoint and report stay in the ou
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import json
 import warnings
@@ -18,8 +19,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from .data import DataConfig, load_frames, shard_paths
-from .evaluate import evaluate
+from .checkpoint import load_checkpoint
+from .data import DataConfig, Windows, load_frames, shard_paths
+from .evaluate import evaluate, model_predictor, return_threshold
 from .models import ModelConfig
 from .report import METRICS
 from .train import TrainConfig, train
@@ -173,6 +175,8 @@ def sim2real(
         for name, test in test_frames.items():
             far = evaluate(run / "best.pt", test, run / name, device=device, split="all", timing=False)
             table[v] |= {name: far["results"]["model"]["all"], name + ECHO_PEAK: far["results"]["echo peak"]["all"]}
+    for name, test in test_frames.items():
+        typical_windows({v: out / v for v in variants}, name, test, out / f"examples_{name}.png", device=device)
     sets = ", ".join(f"{name} `{folder}`" for name, folder in tests.items())
     header = f"Training data `{ablation}`; test sets: {sets}. Mean over windows (std in metrics.json)."
     _write_sim2real(
@@ -182,6 +186,37 @@ def sim2real(
         header,
     )
     return table
+
+
+def typical_windows(runs: dict[str, Path], test: str, frames, out: Path, *, device: str = "cpu") -> Path:
+    """A picture of test set `test`: one row per trained run, its window of median scan F1 there
+    (from the run's evaluation `RUN/TEST/per_window.csv`: what it typically does, not its best)
+    as sonar input, LiDAR truth, prediction and both scans from above."""
+    from .plots import plot_examples
+
+    rows = []
+    for name, run in runs.items():
+        with open(run / test / "per_window.csv", newline="") as f:
+            scores = sorted(
+                (float(r["scan_f1"]), int(r["window"])) for r in csv.DictReader(f) if r["predictor"] == "model"
+            )
+        f1, window = scores[(len(scores) - 1) // 2]
+        model, ckpt = load_checkpoint(run / "best.pt", device)
+        windows = Windows(frames, DataConfig(**ckpt["data_config"]), device)
+        x, y = windows.batch([window])
+        with torch.no_grad():
+            pred = model_predictor(model)(x).float().clamp(0, 1)
+        rows.append(
+            {
+                "title": f"trained on {name}: {frames.scenarios[windows.scenario[window]]}, window {window}",
+                "caption": f"its median scan F1 on {test}: {f1:.2f} (of {len(scores)} windows)",
+                "sonar": x[0, 0, windows.config.label_offset].cpu().numpy(),
+                "truth": y[0, 0].cpu().numpy(),
+                "pred": pred[0, 0].cpu().numpy(),
+                "threshold": return_threshold(ckpt),
+            }
+        )
+    return plot_examples(rows, frames.range_m, frames.azimuth_rad, out)
 
 
 def _trained_model(run: Path) -> tuple[str, int]:

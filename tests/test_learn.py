@@ -270,6 +270,7 @@ def test_sim2real_table_matches_its_reports_and_summarises_runs(tiny_dataset, tm
         in (runs[1] / "sim2real.md").read_text()
     )
 
+    assert (runs[1] / "examples_reality.png").stat().st_size > 10_000  # each variant's median window
     rescored = sim2real(ablation, tiny_dataset, runs[1], score_only=True, train_config=config, progress=False)
     assert _same(rescored, table)  # score_only reads the trained runs and scores them alike
     with pytest.raises(ValueError, match=r"no best\.pt to score"):
