@@ -158,6 +158,7 @@ def _export(args) -> int:
         range_count=len(ckpt["range_m"]),
         azimuth_count=len(ckpt["azimuth_rad"]),
         threshold=args.threshold if args.threshold is not None else ckpt.get("threshold"),
+        verbose=args.verbose,
     )
     print(json.dumps(info))
     return 0
@@ -336,6 +337,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("export", help="write ONNX, checked against torch", formatter_class=fmt, parents=[common])
     p.add_argument("--checkpoint", required=True)
     p.add_argument("--out", required=True, help=".onnx to write")
+    p.add_argument("--verbose", action="store_true", help="show torch's exporter warnings")
     _threshold_option(p)
     p.set_defaults(handler=_export)
     p = sub.add_parser(

@@ -12,6 +12,7 @@ beam's range, as `learn predict` reads it.
 
 from __future__ import annotations
 
+import logging
 import warnings
 from pathlib import Path
 
@@ -45,6 +46,7 @@ def export_onnx(
     azimuth_count: int = 181,
     check: bool = True,
     threshold: float | None = None,
+    verbose: bool = False,
 ) -> dict:
     """Write `model` (in eval mode) as ONNX with a dynamic batch and, if `check`, compare with torch.
 
@@ -61,6 +63,8 @@ def export_onnx(
         check: Compare onnxruntime with torch.
         threshold: The model's return threshold on the [0, 1] image (the checkpoint's calibrated
             one), written to the metadata; None writes none.
+        verbose: Let torch's exporter log its warnings (e.g. that torchvision, which we do not
+            use, is missing).
 
     Returns:
         {"path", "max_abs_diff" (None without a check), "tolerance", "opset", "return_threshold"}.
@@ -77,6 +81,10 @@ def export_onnx(
 
     was_training = model.training
     model.eval()
+    exporter_log = logging.getLogger("torch.onnx")
+    level = exporter_log.level
+    if not verbose:
+        exporter_log.setLevel(logging.ERROR)
     try:
         with torch.no_grad(), warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=".*LeafSpec", category=FutureWarning)  # inside torch 2.13
@@ -98,6 +106,7 @@ def export_onnx(
             expected = model(x.to(device)).float().cpu().numpy() if check else None
     finally:
         model.train(was_training)
+        exporter_log.setLevel(level)
     metadata = {"output_kind": getattr(model, "output", "image")}
     if threshold is not None:
         if not 0 < threshold <= 1:

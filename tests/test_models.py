@@ -214,3 +214,21 @@ def test_onnx_matches_torch(name, tmp_path):
 def test_bad_config_raises(kwargs):
     with pytest.raises(ValueError):
         ModelConfig(**kwargs)
+
+
+def test_export_is_quiet_unless_verbose(tmp_path):
+    """`learn export` prints its result, not torch's exporter warnings (torchvision, which we do
+    not use, missing); `--verbose` lets them through."""
+    pytest.importorskip("onnxruntime")
+    import importlib.util
+    import subprocess
+    import sys
+
+    import learn
+
+    command = [sys.executable, "-m", "learn", "export", "--checkpoint", str(learn.PRETRAINED_CHECKPOINT)]
+    quiet = subprocess.run([*command, "--out", str(tmp_path / "q.onnx")], capture_output=True, text=True, timeout=300)
+    assert quiet.returncode == 0 and quiet.stderr.strip() == "", quiet.stderr
+    if importlib.util.find_spec("torchvision") is None:  # the exporter warns about it once per process
+        loud = [*command, "--out", str(tmp_path / "v.onnx"), "--verbose"]
+        assert "torchvision" in subprocess.run(loud, capture_output=True, text=True, timeout=300).stderr
