@@ -2,17 +2,21 @@
 
     python benchmarks/bench_learn.py --device cpu
     python benchmarks/bench_learn.py --device cuda
+    python benchmarks/bench_learn.py --device cuda --ddp   # DDP scaling over the host's GPUs
 
 Writes benchmarks/results/learn_<cpu|cuda>.json and .md. Random weights and inputs on the full
 grid (K = 5, 240 x 181): speed does not depend on the weights. Training: Adam steps at batch 12
 (bfloat16 autocast on GPUs, as `learn train` does); inference: batch 1 (per frame, as on a
-robot) and batch 32. Medians after warm-up steps.
+robot) and batch 32. Medians after warm-up steps. `--ddp` instead times DDP training of polar_unet
+on 1, 2, 4, ... GPUs (torchrun jobs in one run; gloo processes on the CPU) and writes
+learn_ddp_<cpu|cuda>.json and .md with the scaling efficiency beside the one-GPU figure.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import sys
 import time
@@ -91,6 +95,89 @@ def bench_model(
     }
 
 
+def ddp_worker(args) -> None:
+    """One rank under torchrun: DDP training steps of polar_unet at `--batch` windows per GPU (NCCL
+    on GPUs, gloo on the CPU), as `learn train` runs them; rank 0 writes the rate to --worker-out."""
+    import torch.distributed as dist
+    from torch.nn.parallel import DistributedDataParallel
+
+    cuda = args.device.startswith("cuda")
+    dist.init_process_group("nccl" if cuda else "gloo")
+    rank, world, local = dist.get_rank(), dist.get_world_size(), int(os.environ.get("LOCAL_RANK", 0))
+    device = torch.device(f"cuda:{local}" if cuda else "cpu")
+    if cuda:
+        torch.cuda.set_device(device)
+        torch.backends.cudnn.benchmark = True
+    torch.manual_seed(0)  # the same initial weights on every rank, as DDP expects
+    model = DistributedDataParallel(
+        build_model(ModelConfig(name="polar_unet", frames=5)).to(device), device_ids=[local] if cuda else None
+    )
+    optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
+    generator = torch.Generator().manual_seed(rank)  # each rank its own windows
+    x = torch.rand(args.batch, 1, 5, 240, 181, generator=generator).to(device)
+    y = (torch.rand(args.batch, 1, 240, 181, generator=generator) > 0.995).float().to(device)
+
+    def step():
+        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=cuda):
+            out = model(x)
+        loss = F.binary_cross_entropy_with_logits(out.float(), y)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()  # the gradient all-reduce across ranks happens here
+        optimizer.step()
+
+    sync = (lambda: torch.cuda.synchronize(device)) if cuda else (lambda: None)
+    seconds = _timed(step, args.repeats, args.warmup, sync)
+    if rank == 0:
+        rate = {"gpus" if cuda else "processes": world, "windows_per_s": world * args.batch / seconds}
+        Path(args.worker_out).write_text(json.dumps(rate | {"batch_per_rank": args.batch, "s_per_step": seconds}))
+    dist.destroy_process_group()
+
+
+def bench_ddp(args, device: torch.device, name: str) -> dict:
+    """Windows/s of DDP training on 1, 2, 4, ... GPUs of this host (or 1 and 2 gloo processes on the
+    CPU), each a torchrun job in this one run, and the scaling efficiency rate_N / (N x rate_1)."""
+    import subprocess
+    import tempfile
+
+    most = torch.cuda.device_count() if device.type == "cuda" else 2
+    counts = [n for n in (1, 2, 4, 8) if n <= most]
+    runs = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in counts:
+            out = Path(tmp) / f"{n}.json"
+            command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(n)]
+            command += [__file__, "--ddp-worker", "--device", str(device.type), "--batch", str(args.batch)]
+            command += ["--repeats", str(args.repeats), "--warmup", str(args.warmup), "--worker-out", str(out)]
+            done = subprocess.run(command, capture_output=True, text=True)
+            if done.returncode != 0:
+                raise RuntimeError(f"torchrun with {n} ranks failed:\n{done.stderr[-3000:]}")
+            runs.append(json.loads(out.read_text()))
+            print(f"{n} rank(s): {runs[-1]['windows_per_s']:,.1f} windows/s", flush=True)
+    one = runs[0]["windows_per_s"]
+    for n, r in zip(counts, runs, strict=True):
+        r["efficiency"] = r["windows_per_s"] / (n * one)
+    res = {"device_name": name, "torch": torch.__version__, "date": time.strftime("%Y-%m-%d"), "runs": runs}
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    stem = f"learn_ddp_{device.type}"
+    (out / f"{stem}.json").write_text(json.dumps(res, indent=1))
+    unit = "GPUs" if device.type == "cuda" else "gloo processes"
+    lines = [
+        f"# DDP training speed on {name} ({unit}, torch {res['torch']}, {res['date']})",
+        "",
+        f"polar_unet, K = 5, 240 x 181, Adam at {args.batch} windows per rank"
+        f"{', bfloat16 autocast, NCCL' if device.type == 'cuda' else ', gloo'}; medians of {args.repeats} steps, "
+        "each rank count a torchrun job in the same run.",
+        "",
+        f"| {unit} | training windows/s | efficiency (rate / (N x one)) |",
+        "|---|---|---|",
+    ]
+    lines += [f"| {n} | {r['windows_per_s']:,.1f} | {r['efficiency']:.0%} |" for n, r in zip(counts, runs, strict=True)]
+    (out / f"{stem}.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return res
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu")
@@ -104,10 +191,17 @@ def main(argv=None) -> dict:
     parser.add_argument(
         "--cuda-graphs", action="store_true", help="also time polar_unet's training steps as CUDA graphs"
     )
+    parser.add_argument("--ddp", action="store_true", help="DDP scaling over this host's GPUs instead (torchrun)")
+    parser.add_argument("--ddp-worker", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--worker-out", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    if args.ddp_worker:
+        return ddp_worker(args)
     device = torch.device(args.device)
     torch.backends.cudnn.benchmark = True  # as learn.train does on GPUs
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor() or "CPU"
+    if args.ddp:
+        return bench_ddp(args, device, name)
     res = {
         "device": str(device),
         "device_name": name,

@@ -198,46 +198,19 @@ def train(
     windows = Windows(frames, data_config, dev)
     groups = windows.episode if train_config.split_by == "episode" else windows.scenario
     out = Path(out)
+    common = (model_config, data_config, train_config, dist_info, resume, progress, init_from)
     if folds > 1:
         fold_of = split_groups(groups, folds, seed=train_config.seed)
-        results = []
-        for k in range(folds):
-            results.append(
-                _train_one(
-                    windows,
-                    fold_of != k,
-                    fold_of == k,
-                    out / f"fold_{k}",
-                    model_config,
-                    data_config,
-                    train_config,
-                    dist_info,
-                    resume,
-                    progress,
-                    init_from,
-                    fold=k,
-                    tensorboard=tensorboard,
-                )
-            )
+        results = [
+            _train_one(windows, fold_of != k, fold_of == k, out / f"fold_{k}", *common, fold=k, tensorboard=tensorboard)
+            for k in range(folds)
+        ]
         if dist_info.main:
             write_fold_summary(out, results)
         result = {"folds": results}
     else:
         held = validation_split(groups, train_config.val_fraction, seed=train_config.seed)
-        result = _train_one(
-            windows,
-            ~held,
-            held,
-            out,
-            model_config,
-            data_config,
-            train_config,
-            dist_info,
-            resume,
-            progress,
-            init_from,
-            tensorboard=tensorboard,
-        )
+        result = _train_one(windows, ~held, held, out, *common, tensorboard=tensorboard)
     if dist_info.world > 1:
         import torch.distributed as dist
 
