@@ -5,6 +5,8 @@
 #   bash benchmarks/multi_gpu.sh gen   WORKDIR   # paper suite on one GPU and on all: frames/s, identical shards
 #   bash benchmarks/multi_gpu.sh ddp   WORKDIR   # bench_learn --ddp: windows/s on 1..N GPUs, efficiency
 #   bash benchmarks/multi_gpu.sh train WORKDIR   # one GPU at batch 16 vs N GPUs at 16/N each (same global batch)
+#   bash benchmarks/multi_gpu.sh check WORKDIR   # on ONE GPU: --workers 2 --device auto gives the same shards,
+#                                                # torchrun's NCCL path at world size 1 trains as the plain run
 #
 # Environment: FRAMES (12500), WORKERS (8), EPOCHS (6 sub-epochs of 12,000 windows for `train`).
 set -euo pipefail
@@ -18,24 +20,7 @@ gen)
   GEN=(--suite paper --frames "${FRAMES:-12500}" --seed 0 --workers "${WORKERS:-8}" --quiet)
   python -m acoustic_sim generate "${GEN[@]}" --device cuda:0 --out "$W/one_gpu" | tee "$R/generate_one_gpu.txt"
   python -m acoustic_sim generate "${GEN[@]}" --device auto --out "$W/all_gpus" | tee "$R/generate_${GPUS}_gpus.txt"
-  python - "$W/one_gpu" "$W/all_gpus" <<'PY' | tee "$R/generate_identical.txt"
-import sys
-from pathlib import Path
-
-import h5py
-import numpy as np
-
-def arrays(folder):
-    out = {}
-    for path in sorted(Path(folder).glob("shard-*.h5")):
-        with h5py.File(path) as f:
-            f.visititems(lambda n, o, p=path: out.__setitem__(f"{p.name}/{n}", o[()]) if isinstance(o, h5py.Dataset) else None)
-    return out
-
-one, every = arrays(sys.argv[1]), arrays(sys.argv[2])
-same = one.keys() == every.keys() and all(np.array_equal(one[k], every[k]) for k in one)
-print(f"{len(one)} arrays in {len(list(Path(sys.argv[1]).glob('shard-*.h5')))} shards; one GPU vs all GPUs identical: {same}")
-PY
+  python benchmarks/same_shards.py "$W/one_gpu" "$W/all_gpus" | tee "$R/generate_identical.txt"
   ;;
 ddp)
   python benchmarks/bench_learn.py --device cuda --ddp --batch 16 --out "$R"
@@ -50,8 +35,23 @@ train)
   cp "$W/runs/one_gpu/history.csv" "$R/history_one_gpu.csv"
   cp "$W/runs/${GPUS}_gpus/history.csv" "$R/history_${GPUS}_gpus.csv"
   ;;
+check)
+  python -m acoustic_sim generate --suite tiny --out "$W/one" --device cuda:0 --shards 3 --quiet
+  python -m acoustic_sim generate --suite tiny --out "$W/two" --device auto --workers 2 --shards 3 --quiet
+  python benchmarks/same_shards.py "$W/one" "$W/two" | tee "$R/one_gpu_check.txt"
+  OPTS=(--data "$W/one" --model polar_unet --width 4 --frames 3 --epochs 2 --batch-size 2 --loss bce
+    --val-fraction 0.5 --device cuda --quiet --overwrite)
+  torchrun --standalone --nproc_per_node 1 -m learn train "${OPTS[@]}" --out "$W/ddp" | tee -a "$R/one_gpu_check.txt"
+  python -m learn train "${OPTS[@]}" --out "$W/single" | tee -a "$R/one_gpu_check.txt"
+  python - "$W" <<'PY' | tee -a "$R/one_gpu_check.txt"
+import csv, sys
+for key in ("train_loss", "val_scan_f1"):
+    runs = {k: [r[key] for r in csv.DictReader(open(f"{sys.argv[1]}/{k}/history.csv"))] for k in ("ddp", "single")}
+    print(key, runs)
+PY
+  ;;
 *)
-  echo "usage: $0 gen|ddp|train WORKDIR" >&2
+  echo "usage: $0 gen|ddp|train|check WORKDIR" >&2
   exit 2
   ;;
 esac
