@@ -1,6 +1,6 @@
 """Whether two dataset folders hold identical shards: every array of every shard-*.h5, bit for bit.
 
-    python benchmarks/same_shards.py FOLDER_A FOLDER_B   # prints one line; exit 1 if they differ
+python benchmarks/same_shards.py FOLDER_A FOLDER_B   # prints one line; exit 1 if they differ
 """
 
 import sys
@@ -14,10 +14,15 @@ def arrays(folder: str) -> dict[str, np.ndarray]:
     out = {}
     for path in sorted(Path(folder).glob("shard-*.h5")):
         with h5py.File(path) as f:
-            names = []
-            f.visititems(lambda name, item: names.append(name) if isinstance(item, h5py.Dataset) else None)
-            out |= {f"{path.name}/{name}": f[name][()] for name in names}
+            for name in _dataset_names(f):
+                out[f"{path.name}/{name}"] = f[name][()]
     return out
+
+
+def _dataset_names(group: h5py.Group) -> list[str]:
+    names: list[str] = []
+    group.visititems(lambda name, item: names.append(name) if isinstance(item, h5py.Dataset) else None)
+    return names
 
 
 if __name__ == "__main__":
