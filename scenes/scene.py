@@ -58,7 +58,7 @@ class Scene:
             and rebuilt.
         curved: The smooth surfaces some faces approximate (`CurvedSurface`).
         face_curved: For every face, the index into `curved` of the surface it approximates,
-            -1 for a flat face, shape (face_count,); default all -1.
+            -1 for a flat face (a cylinder's caps are flat), shape (face_count,); default all -1.
     """
 
     mesh: trimesh.Trimesh
@@ -182,7 +182,10 @@ def assemble(
         mesh, _ = clean_mesh(mesh, what=f"{name} part")
         meshes.append(mesh)
         ids.append(np.full(len(mesh.faces), table.index(mat), dtype=np.int32))
-        face_curved.append(np.full(len(mesh.faces), len(curved) if surface else -1, dtype=np.int32))
+        curved_faces = np.full(len(mesh.faces), len(curved) if surface else -1, dtype=np.int32)
+        if surface and surface.kind == "cylinder":  # its flat caps stay flat mirrors
+            curved_faces[np.abs(mesh.face_normals[:, 2]) > 0.5] = -1
+        face_curved.append(curved_faces)
         if surface:
             curved.append(surface)
     if not meshes:

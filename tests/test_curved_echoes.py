@@ -9,6 +9,7 @@ import scenes
 from acoustic_sim import Sonar, SonarConfig, TracerConfig
 from acoustic_sim.paths import KIND_SPECULAR
 from scenes.scene import assemble, cylinder_mesh, room_shell, sphere_mesh
+from scenes.surfaces import with_surfaces
 
 ROOM = (9.0, 9.0, 3.0)  # poses up to 4 m from its middle stay inside
 SPHERE_CENTRE, SPHERE_RADIUS = np.array([4.5, 4.5, 1.0]), 0.01  # a 2 cm ball
@@ -126,3 +127,18 @@ def test_a_faceted_pole_echoes_once(device):
     first = echoes.select((echoes.kind == KIND_SPECULAR) & (echoes.order == 1))
     near_leg = np.abs(first.length_m - 2 * (1.5 - 0.1)) < 0.05
     assert near_leg.sum() == 1, first.length_m[near_leg]
+
+
+def test_scenes_remember_the_round_surfaces_behind_their_facets():
+    """Builders pass each cylinder's surface through `assemble`: its side faces point to it, its
+    caps stay flat mirrors; a scene with new materials (`with_surfaces`) keeps them."""
+    world = scenes.random_world(seed=3, cylinder_count=4, wall_count=0)
+    assert len(world.curved) == 4 and all(c.kind == "cylinder" for c in world.curved)
+    normals_z = np.abs(world.mesh.face_normals[:, 2])
+    assert (normals_z[world.face_curved >= 0] < 1e-6).all()
+    assert np.bincount(world.face_curved[world.face_curved >= 0]).tolist() == [96] * 4  # 48 sections x 2
+    for k, c in enumerate(world.curved):  # every side vertex lies on its circle
+        sides = world.mesh.triangles[world.face_curved == k].reshape(-1, 3)
+        np.testing.assert_allclose(np.linalg.norm(sides[:, :2] - c.centre[:2], axis=1), c.radius, rtol=1e-9)
+    redrawn = with_surfaces(world, {"objects": {"reflection": 0.6}})
+    assert redrawn.curved == world.curved and np.array_equal(redrawn.face_curved, world.face_curved)
