@@ -11,22 +11,29 @@ CURVED_STEPS = wp.constant(24)  # fixed-point steps towards a curved surface's r
 @wp.func
 def bisecting_normal(centre: wp.vec3, radius: float, a: wp.vec3, b: wp.vec3) -> wp.vec3:
     """Unit normal of the point of a sphere (or, with every z = 0, a circle) where a path from a
-    to b reflects: there the normal bisects the directions to a and b. Fixed-point steps from the
-    bisector seen from the centre; each shrinks the error by about radius / distance."""
+    to b reflects: there the normal bisects the directions to a and b. From the bisector seen
+    from the centre, damped fixed-point steps: a plain step overshoots by about radius / h (h the
+    distance to the surface) and diverges once h < radius; dividing the step by 1 + that gain (a
+    Newton step on the linearised map) converges for every a, b outside the surface."""
     n = wp.normalize(wp.normalize(a - centre) + wp.normalize(b - centre))
     for _step in range(CURVED_STEPS):
         point = centre + radius * n
-        n = wp.normalize(wp.normalize(a - point) + wp.normalize(b - point))
+        to_a = a - point
+        to_b = b - point
+        da = wp.length(to_a)
+        db = wp.length(to_b)
+        to_a = to_a / da
+        to_b = to_b / db
+        gain = wp.max(0.5 * radius * (wp.dot(n, to_a) / da + wp.dot(n, to_b) / db), 0.0)
+        n = wp.normalize(n + (wp.normalize(to_a + to_b) - n) / (1.0 + gain))
     return n
 
 
 @wp.func
-def reflected_radius(incident: float, radius: float, curvature_cos: float) -> float:
-    """Radius of curvature of a wavefront from `incident` [m] away just after it reflects off a
-    convex surface of `radius`, in a principal plane where the surface bends with 1/radius and
-    the incidence cosine enters as 2 / (radius cos) (in the plane of incidence) or 2 cos / radius
-    (across it) (geometric optics); `curvature_cos` is that cos or 1 / cos."""
-    return 1.0 / (1.0 / incident + 2.0 * curvature_cos / radius)
+def reflected_radius(incident: float, added_curvature: float) -> float:
+    """Radius of curvature of a wavefront from `incident` [m] away just after a reflection that
+    adds `added_curvature` [1/m] in one principal direction (geometric optics)."""
+    return 1.0 / (1.0 / incident + added_curvature)
 
 
 @wp.kernel(enable_backward=False)
@@ -55,9 +62,10 @@ def curved_echoes(
     horizontal plane, its height from the unfolded path), both legs are checked unoccluded, and
     the amplitude follows geometric optics: sqrt(R (1 - s)) times the emitter's directivity times
     (1 / d1) sqrt(rho1 rho2 / ((rho1 + d2) (rho2 + d2))), with d1, d2 the legs and rho1, rho2 the
-    reflected wavefront's principal radii (a sphere bends it in both planes, a cylinder only
-    across its axis; a plane would give 1 / (d1 + d2)). Writes the reflection point (sensor
-    frame) as the echo's source and d1 as the path before it, like a scattered arrival; order 1.
+    reflected wavefront's principal radii (a sphere bends it in both directions, a cylinder only
+    across its axis, for any incidence; a plane would give 1 / (d1 + d2)). Writes the reflection
+    point (sensor frame) as the echo's source and d1 as the path before it, like a scattered
+    arrival; order 1.
     """
     p, c = wp.tid()
     amplitude_out[p, c] = 0.0
@@ -93,18 +101,30 @@ def curved_echoes(
     if cosine <= 0.0 or wp.dot(n, r - point) <= 0.0:
         return
     start = point + n * SURFACE_STEP
-    queries = int(2)
+    queries = int(1)
     blocked = wp.mesh_query_ray(mesh, start, wp.normalize(e - start), wp.length(e - start)).result
     if not blocked:
+        queries += 1
         blocked = wp.mesh_query_ray(mesh, start, wp.normalize(r - start), wp.length(r - start)).result
     wp.atomic_add(ray_queries_out, p, queries)
     emit = wp.normalize(wp.transform_vector(inverse, point - e))
     if blocked or emit[0] < -BAFFLE_SLACK:  # the emitter is baffled: nothing leaves it backwards
         return
-    rho_1 = reflected_radius(d1, a, 1.0 / cosine)
-    rho_2 = d1  # a cylinder leaves the wavefront's curvature along its axis as it was
-    if sphere:
-        rho_2 = reflected_radius(d1, a, cosine)
+    if sphere:  # bends the front by 2 / (a cos) in the plane of incidence, 2 cos / a across it
+        rho_1 = reflected_radius(d1, 2.0 / (a * cosine))
+        rho_2 = reflected_radius(d1, 2.0 * cosine / a)
+    else:
+        # Curved only across its axis (tangent t): one principal direction gains 2/a weighted by
+        # how t lies to the plane of incidence (cos phi), the other keeps the incident 1 / d1.
+        tangent = wp.normalize(wp.cross(wp.vec3(0.0, 0.0, 1.0), n))
+        incident = (point - e) / d1
+        along = incident - wp.dot(incident, n) * n  # the plane of incidence's tangent direction
+        cos_phi = float(1.0)
+        if wp.length(along) > 1.0e-6:
+            cos_phi = wp.dot(wp.normalize(along), tangent)
+        sin2 = 1.0 - cos_phi * cos_phi
+        rho_1 = reflected_radius(d1, 2.0 / a * (cos_phi * cos_phi / cosine + cosine * sin2))
+        rho_2 = d1
     spreading = wp.sqrt(rho_1 * rho_2 / ((rho_1 + d2) * (rho_2 + d2))) / d1
     amplitude_out[p, c] = gain[c] * lookup(directivity, emit[0]) * spreading
     source_out[p, c] = wp.transform_point(inverse, point)
