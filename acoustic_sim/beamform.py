@@ -21,6 +21,7 @@ import warp as wp
 from scipy import signal as sps
 
 from .config import ProcessingConfig, SonarConfig
+from .devices import device_calls
 from .kernels import beamform as kernels
 from .signals import tile_block_dim
 
@@ -128,42 +129,42 @@ class Beamformer:
             raise ValueError(f"signals must have shape (N, {self.config.microphone_count}, {self.samples})")
         elevations = len(self.elevations_deg)
         block = tile_block_dim(self.size)
-        with wp.ScopedDevice(self.device):
-            spectra = wp.empty((pings * mics, self.size), dtype=wp.vec2f)
-            wp.launch(
-                kernels.demodulate,
-                dim=(pings, mics, self.size),
-                inputs=[signals, samples, self._taps, wp.float64(self._cycles_per_output), self.decimation],
-                outputs=[spectra],
-            )
-            wp.launch_tiled(self._fft, dim=[pings * mics], outputs=[spectra], block_dim=block)  # in place
-            beams = wp.zeros((pings * self._looks, self.size), dtype=wp.vec2f)
-            wp.launch(
-                self._beamform,
-                dim=(self._looks, self._band_bin.shape[0]),
-                inputs=[spectra, self._band_bin, self._band_hz, self._matched, self._delays, pings],
-                outputs=[beams],
-            )
-            del spectra
-            envelope = wp.empty((pings * self._looks, self.size), dtype=float)
-            wp.launch_tiled(self._ifft, dim=[pings * self._looks], inputs=[beams], outputs=[envelope], block_dim=block)
-            del beams
-            images = wp.empty((pings * elevations, *self.grid.shape), dtype=float)
-            wp.launch(
-                kernels.envelope_on_grid,
+        zeros, empty, launch, launch_tiled = device_calls(self.device)  # runs in worker threads too
+        spectra = empty((pings * mics, self.size), dtype=wp.vec2f)
+        launch(
+            kernels.demodulate,
+            dim=(pings, mics, self.size),
+            inputs=[signals, samples, self._taps, wp.float64(self._cycles_per_output), self.decimation],
+            outputs=[spectra],
+        )
+        launch_tiled(self._fft, dim=[pings * mics], outputs=[spectra], block_dim=block)  # in place
+        beams = zeros((pings * self._looks, self.size), dtype=wp.vec2f)
+        launch(
+            self._beamform,
+            dim=(self._looks, self._band_bin.shape[0]),
+            inputs=[spectra, self._band_bin, self._band_hz, self._matched, self._delays, pings],
+            outputs=[beams],
+        )
+        del spectra
+        envelope = empty((pings * self._looks, self.size), dtype=float)
+        launch_tiled(self._ifft, dim=[pings * self._looks], inputs=[beams], outputs=[envelope], block_dim=block)
+        del beams
+        images = empty((pings * elevations, *self.grid.shape), dtype=float)
+        launch(
+            kernels.envelope_on_grid,
+            dim=images.shape,
+            inputs=[envelope, self.baseband_samples, self._lowpass, self._range_m, self._samples_per_m, elevations],
+            outputs=[images],
+        )
+        if self.normalise is not None:
+            peak = zeros(pings, dtype=float)
+            launch(kernels.image_peak, dim=images.shape, inputs=[images, elevations], outputs=[peak])
+            launch(
+                kernels.scale_images,
                 dim=images.shape,
-                inputs=[envelope, self.baseband_samples, self._lowpass, self._range_m, self._samples_per_m, elevations],
+                inputs=[peak, elevations, int(self.normalise == "db"), FLOOR_DB],
                 outputs=[images],
             )
-            if self.normalise is not None:
-                peak = wp.zeros(pings, dtype=float)
-                wp.launch(kernels.image_peak, dim=images.shape, inputs=[images, elevations], outputs=[peak])
-                wp.launch(
-                    kernels.scale_images,
-                    dim=images.shape,
-                    inputs=[peak, elevations, int(self.normalise == "db"), FLOOR_DB],
-                    outputs=[images],
-                )
         return images
 
 

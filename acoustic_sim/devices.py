@@ -76,3 +76,26 @@ def _init_without_driver_notice(wp) -> None:
     for line in lines:
         if NO_DRIVER not in line:
             print(line, file=sys.stderr)
+
+
+def device_calls(device):
+    """(wp.zeros, wp.empty, wp.launch, wp.launch_tiled) bound to `device`. Code that may run in
+    worker threads names its device on every call: wp.ScopedDevice sets one process-wide
+    default, which threads would race on."""
+    import functools
+
+    import warp as wp
+
+    return tuple(functools.partial(f, device=device) for f in (wp.zeros, wp.empty, wp.launch, wp.launch_tiled))
+
+
+def cpu_cores() -> int:
+    """CPU cores this process may use (its affinity where the OS tells it, else the machine's);
+    SONAR2LIDAR_CPU_THREADS overrides it (`generate` gives each of its workers a share)."""
+    import os
+
+    if os.environ.get("SONAR2LIDAR_CPU_THREADS", "").isdigit():
+        return max(1, int(os.environ["SONAR2LIDAR_CPU_THREADS"]))
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0))
+    return os.cpu_count() or 1

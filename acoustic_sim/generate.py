@@ -25,7 +25,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from .dataset import FORMAT, FORMAT_VERSION, DatasetError, ShardFrames, read_attrs, verify_shard, write_shard
-from .devices import check_device, quiet_warp
+from .devices import check_device, cpu_cores, quiet_warp
 from .episode import simulate_episode
 from .manifest import shard_entry, write_manifest
 from .physics import Physics, rig
@@ -185,10 +185,11 @@ _WORKER_DEVICE = None
 _WORKER_PROGRESS = None  # a queue of finished frame counts, read by the parent's progress bar
 
 
-def _init_worker(devices, progress, parent: int) -> None:
+def _init_worker(devices, progress, parent: int, cpu_threads: int) -> None:
     global _WORKER_DEVICE, _WORKER_PROGRESS
     _WORKER_DEVICE = devices.get()
     _WORKER_PROGRESS = progress
+    os.environ["SONAR2LIDAR_CPU_THREADS"] = str(cpu_threads)  # the workers share the cores (devices.cpu_cores)
     threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
 
 
@@ -270,7 +271,7 @@ def generate(
             counts = context.Queue()  # frames as the workers simulate them, not per finished shard
             reader = threading.Thread(target=_show_progress, args=(counts, bar), daemon=True)
             reader.start()
-            init = (queue, counts, os.getpid())
+            init = (queue, counts, os.getpid(), max(1, cpu_cores() // workers))
             try:
                 with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker, initargs=init) as pool:
                     for future in as_completed([pool.submit(_run_in_worker, t) for t in todo]):

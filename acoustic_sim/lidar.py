@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import functools
-import os
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -13,6 +12,7 @@ import warp as wp
 from scenes import Scene
 
 from .config import NOISE_CODES, LidarConfig, PolarGrid
+from .devices import cpu_cores
 from .kernels import lidar as kernels
 from .poses import check_pose_results, check_poses
 from .scene import warp_scene
@@ -53,7 +53,7 @@ class Lidar:
         # threads run side by side (Warp releases the GIL while a CPU kernel runs).
         if cpu_threads is not None and cpu_threads < 1:
             raise ValueError(f"cpu_threads must be >= 1, got {cpu_threads}")
-        self.cpu_threads = cpu_threads or len(os.sched_getaffinity(0))
+        self.cpu_threads = cpu_threads or cpu_cores()
         self.seed = int(seed)
         self._calls = 0
         self._beam_dirs = wp.array(config.beam_directions().astype(np.float32), dtype=wp.vec3, device=self.device)

@@ -11,7 +11,6 @@ echo.
 
 from __future__ import annotations
 
-import os
 import warnings
 from concurrent.futures import ThreadPoolExecutor
 
@@ -22,6 +21,7 @@ from scenes import Scene
 
 from .array import piston_directivity
 from .config import SonarConfig, TracerConfig
+from .devices import cpu_cores, device_calls
 from .echoes import (
     KIND_SCATTERED,
     KIND_SPECULAR,
@@ -69,7 +69,7 @@ class PathTracer:
     def __init__(self, sonar: SonarConfig, config: TracerConfig, *, device=None, cpu_threads: int | None = None):
         if cpu_threads is not None and cpu_threads < 1:
             raise ValueError(f"cpu_threads must be >= 1, got {cpu_threads}")
-        self.cpu_threads = cpu_threads or len(os.sched_getaffinity(0))
+        self.cpu_threads = cpu_threads or cpu_cores()
         self.sonar = sonar
         self.config = config
         self.edge_width_m = config.edge_width_for(sonar)
@@ -222,6 +222,7 @@ class PathTracer:
             wp.launch(lidar_kernels.pose_error, dim=n, inputs=[ws.mesh.id, b.poses], outputs=[b.errors, b.behind])
             check_pose_results(b.errors.numpy(), b.behind.numpy())
             curved = self._curved_buffers_for(n, ws.curved.count)
+            launch = device_calls(self.device)[2]  # trace_rows runs in worker threads too
 
             def trace_rows(first: int, last: int) -> None:
                 """Every stage for pings first..last-1 (each ping has its own tables)."""
@@ -230,7 +231,7 @@ class PathTracer:
                     return a if 0 in a.shape else a[first:last]
 
                 poses_in, inverse_in = rows(b.poses), rows(b.inverse_poses)
-                wp.launch(
+                launch(
                     kernels.discover_sequences,
                     dim=(last - first) * tracer.ray_count,
                     inputs=[
@@ -263,7 +264,7 @@ class PathTracer:
                     ],
                 )
                 slots = (last - first, size)
-                wp.launch(
+                launch(
                     kernels.validate_sequences,
                     dim=slots,
                     inputs=[
@@ -290,13 +291,13 @@ class PathTracer:
                     ],
                 )
                 images = [rows(specular.order), rows(specular.source), rows(b.key)]
-                wp.launch(
+                launch(
                     kernels.claim_images,
                     dim=slots,
                     inputs=[rows(specular.amplitude), *images],
                     outputs=[rows(b.image_table), rows(b.image_rank)],
                 )
-                wp.launch(
+                launch(
                     kernels.drop_duplicate_images,
                     dim=slots,
                     inputs=[*images, rows(b.image_table), rows(b.image_rank)],
@@ -304,7 +305,7 @@ class PathTracer:
                 )
                 if ws.curved.count:
                     surfaces = ws.curved
-                    wp.launch(
+                    launch(
                         curved_kernels.curved_echoes,
                         dim=(last - first, surfaces.count),
                         inputs=[

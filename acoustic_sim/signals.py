@@ -11,6 +11,7 @@ import warp as wp
 
 from .air import air_absorption_db_per_m
 from .config import NOISE_CODES, NOISE_KINDS
+from .devices import device_calls
 from .kernels import signals as kernels
 
 # Fractional-delay filter of a recorded echo: taps, and steps of the sample fraction between
@@ -145,57 +146,56 @@ class Recorder:
         mics = cfg.microphone_count
         pairs = (mics + 1) // 2
         samples = cfg.record_samples
-        with wp.ScopedDevice(self.device):
-            # Row: one block of zeros (node 0 reaches back one block), the samples, room for
-            # the last node's FFT.
-            impulses = wp.zeros((pings * 2 * pairs, (self.nodes - 1) * self.block + self._size), dtype=wp.int64)
-            for e in echoes:
-                if e.slots == 0:
-                    continue
-                wp.launch(
-                    kernels.accumulate_echoes,
-                    dim=(pings, e.slots, mics),
-                    inputs=[
-                        e.source,
-                        e.extra_length,
-                        e.amplitude,
-                        e.count,
-                        self._mics,
-                        self._mic_gain,
-                        self._mic_delay,
-                        cfg.chirp.sample_rate_hz / cfg.atmosphere.speed_of_sound,
-                        self._absorption_per_m,
-                        self._taps,
-                        samples,
-                        self.block,
-                    ],
-                    outputs=[impulses],
-                )
-            nodes = wp.empty((pings * pairs * self.nodes, self._size), dtype=wp.vec2f)
-            wp.launch_tiled(
-                self._convolve,
-                dim=[pings * pairs, self.nodes],
-                inputs=[impulses, self._hat, self._filters],
-                outputs=[nodes],
-                block_dim=tile_block_dim(self._size),
+        zeros, empty, launch, launch_tiled = device_calls(self.device)  # runs in worker threads too
+        # Row: one block of zeros (node 0 reaches back one block), the samples, room for
+        # the last node's FFT.
+        impulses = zeros((pings * 2 * pairs, (self.nodes - 1) * self.block + self._size), dtype=wp.int64)
+        for e in echoes:
+            if e.slots == 0:
+                continue
+            launch(
+                kernels.accumulate_echoes,
+                dim=(pings, e.slots, mics),
+                inputs=[
+                    e.source,
+                    e.extra_length,
+                    e.amplitude,
+                    e.count,
+                    self._mics,
+                    self._mic_gain,
+                    self._mic_delay,
+                    cfg.chirp.sample_rate_hz / cfg.atmosphere.speed_of_sound,
+                    self._absorption_per_m,
+                    self._taps,
+                    samples,
+                    self.block,
+                ],
+                outputs=[impulses],
             )
-            del impulses
-            signals = wp.empty((pings, mics, samples), dtype=float)
-            wp.launch(
-                kernels.overlap_nodes, dim=signals.shape, inputs=[nodes, self.nodes, self.block], outputs=[signals]
+        nodes = empty((pings * pairs * self.nodes, self._size), dtype=wp.vec2f)
+        launch_tiled(
+            self._convolve,
+            dim=[pings * pairs, self.nodes],
+            inputs=[impulses, self._hat, self._filters],
+            outputs=[nodes],
+            block_dim=tile_block_dim(self._size),
+        )
+        del impulses
+        signals = empty((pings, mics, samples), dtype=float)
+        launch(kernels.overlap_nodes, dim=signals.shape, inputs=[nodes, self.nodes, self.block], outputs=[signals])
+        del nodes
+        if noise != "none":
+            if seeds is None or len(seeds) != pings:
+                raise ValueError("noise needs one seed per ping")
+            peak = zeros(pings, dtype=float)
+            seed_array = wp.array(seeds, dtype=wp.int32, device=self.device)
+            launch(kernels.peak_magnitude, dim=signals.shape, inputs=[signals], outputs=[peak])
+            launch(
+                kernels.add_noise,
+                dim=signals.shape,
+                inputs=[peak, seed_array, 10.0 ** (-snr_db / 20.0), NOISE_CODES[noise]],
+                outputs=[signals],
             )
-            del nodes
-            if noise != "none":
-                if seeds is None or len(seeds) != pings:
-                    raise ValueError("noise needs one seed per ping")
-                peak = wp.zeros(pings, dtype=float)
-                wp.launch(kernels.peak_magnitude, dim=signals.shape, inputs=[signals], outputs=[peak])
-                wp.launch(
-                    kernels.add_noise,
-                    dim=signals.shape,
-                    inputs=[peak, wp.array(seeds, dtype=wp.int32), 10.0 ** (-snr_db / 20.0), NOISE_CODES[noise]],
-                    outputs=[signals],
-                )
         return signals
 
 

@@ -163,6 +163,18 @@ def test_cpu_threads_split_a_batch_without_changing_a_sample(device):
         Sonar(OMNI, device=device, cpu_threads=0)
 
 
+def test_generate_workers_share_the_cores(monkeypatch):
+    """The default thread count is the process's cores, or the share `generate` gives each of its
+    worker processes (SONAR2LIDAR_CPU_THREADS), so W workers do not start W x cores threads."""
+    monkeypatch.setenv("SONAR2LIDAR_CPU_THREADS", "3")
+    assert (
+        Sonar(OMNI, device="cpu").cpu_threads == 3
+        and sim.Lidar(sim.LidarConfig.hokuyo_ust20lx(), device="cpu").cpu_threads == 3
+    )
+    monkeypatch.delenv("SONAR2LIDAR_CPU_THREADS")
+    assert Sonar(OMNI, device="cpu").cpu_threads == len(__import__("os").sched_getaffinity(0))
+
+
 LOOKING_DOWN = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # sensor x -> world -z
 
 
