@@ -75,11 +75,13 @@ def face_planes(scene: Scene, *, tolerance: float = 1e-5) -> tuple[np.ndarray, n
     """Group faces by their plane: (face_plane (F,), plane_normal (P, 3), plane_offset (P,)).
 
     Faces whose unit normals and offsets agree within `tolerance` (in metres for the offset)
-    share a plane, so a wall split into triangles is one mirror for image sources.
+    share a plane, so a wall split into triangles is one mirror for image sources. A facet of a
+    curved surface never shares a plane with a flat face (its plane is no mirror: `plane_curved`).
     """
     normals = np.asarray(scene.mesh.face_normals, dtype=np.float64)
     offsets = np.einsum("ij,ij->i", normals, scene.mesh.triangles[:, 0])
     keys = np.rint(np.c_[normals, offsets] / tolerance).astype(np.int64)
+    keys = np.c_[keys, scene.face_curved >= 0]
     _, first, face_plane = np.unique(keys, axis=0, return_index=True, return_inverse=True)
     return face_plane.reshape(-1).astype(np.int32), normals[first], offsets[first]
 
@@ -88,8 +90,9 @@ def face_edges(scene: Scene, *, sharp_deg: float = 20.0) -> tuple[np.ndarray, np
     """Sharp edges of every face: (bitmask (F,) uint8, altitudes (F, 3)).
 
     Bit k of a face's mask is set when the edge opposite its vertex k is sharp: on the mesh
-    boundary, or where the neighbouring face turns by more than `sharp_deg`. Altitude k is the
-    distance from vertex k to that edge, so a point with barycentric weight b_k lies b_k h_k
+    boundary, or where the neighbouring face turns by more than `sharp_deg`, unless both faces
+    stand for the same curved surface (a seam of its tessellation, not an edge). Altitude k is
+    the distance from vertex k to that edge, so a point with barycentric weight b_k lies b_k h_k
     from it.
     """
     mesh = scene.mesh
@@ -97,7 +100,9 @@ def face_edges(scene: Scene, *, sharp_deg: float = 20.0) -> tuple[np.ndarray, np
     edge_key = mesh.edges_unique[:, 0].astype(np.int64) * count + mesh.edges_unique[:, 1]
     sharp = np.ones(len(edge_key), dtype=bool)
     pairs = np.sort(mesh.face_adjacency_edges, axis=1).astype(np.int64)
-    smooth = mesh.face_adjacency_angles <= np.deg2rad(sharp_deg)
+    surface = scene.face_curved[mesh.face_adjacency]
+    seam = (surface[:, 0] >= 0) & (surface[:, 0] == surface[:, 1])
+    smooth = (mesh.face_adjacency_angles <= np.deg2rad(sharp_deg)) | seam
     order = np.argsort(edge_key)
     found = order[np.searchsorted(edge_key, pairs[smooth, 0] * count + pairs[smooth, 1], sorter=order)]
     sharp[found] = False

@@ -39,6 +39,10 @@ class CurvedSurface:
     def __post_init__(self) -> None:
         if self.kind not in ("sphere", "cylinder") or not self.radius > 0:
             raise SceneError(f"a curved surface is a sphere or a cylinder of radius > 0, got {self.kind} {self.radius}")
+        if len(self.centre) != 3 or not np.isfinite([*self.centre, self.radius]).all():
+            raise SceneError(f"a curved surface needs a finite centre (x, y, z) and radius, got {self.centre}")
+        if self.kind == "cylinder" and not self.z_range[0] < self.z_range[1]:
+            raise SceneError(f"a cylinder's z_range must run upwards, got {self.z_range}")
 
 
 @dataclass(eq=False)
@@ -180,6 +184,8 @@ def assemble(
             table.append(mat)
         surface = mesh.metadata.get(CURVED_KEY) if isinstance(mesh, trimesh.Trimesh) else None
         mesh, _ = clean_mesh(mesh, what=f"{name} part")
+        if surface:
+            _check_on_surface(mesh, surface, f"{name} part")
         meshes.append(mesh)
         ids.append(np.full(len(mesh.faces), table.index(mat), dtype=np.int32))
         curved_faces = np.full(len(mesh.faces), len(curved) if surface else -1, dtype=np.int32)
@@ -211,6 +217,26 @@ def box_mesh(center: Sequence[float], extents: Sequence[float], yaw: float = 0.0
 
 
 CURVED_KEY = "curved_surface"  # trimesh metadata of a part that approximates a CurvedSurface
+
+
+def _check_on_surface(mesh: trimesh.Trimesh, surface: CurvedSurface, what: str) -> None:
+    """Refuse a part whose faces do not lie on the curved surface it carries: trimesh keeps the
+    metadata through moves, scaling and concatenation, which would leave the echo behind."""
+    centre, radius = np.asarray(surface.centre), surface.radius
+    tolerance = 1e-6 * max(radius, 1.0)
+    if surface.kind == "sphere":
+        off = np.abs(np.linalg.norm(mesh.vertices - centre, axis=1) - radius)
+    else:
+        side = mesh.faces[np.abs(mesh.face_normals[:, 2]) < 0.5].reshape(-1)
+        off = np.abs(np.linalg.norm(mesh.vertices[side, :2] - centre[:2], axis=1) - radius)
+        z0, z1 = surface.z_range
+        off = np.r_[off, np.maximum(z0 - mesh.vertices[:, 2], mesh.vertices[:, 2] - z1).clip(0)]
+    if off.max(initial=0.0) > tolerance:
+        raise SceneError(
+            f"{what}: its vertices lie up to {off.max():.3g} m off the {surface.kind} it carries (moved, scaled "
+            "or merged after cylinder_mesh/sphere_mesh?); make it with those at its final place, or drop "
+            f"mesh.metadata[{CURVED_KEY!r}]"
+        )
 
 
 def cylinder_mesh(x: float, y: float, radius: float, z0: float, z1: float, *, sections: int = 32) -> trimesh.Trimesh:

@@ -191,3 +191,33 @@ def test_close_to_a_large_round_object_the_echo_is_still_exact(device):
             echoes = arrivals.for_pose(i)
             first = echoes.select((echoes.kind == KIND_SPECULAR) & (echoes.order == 1))
             assert np.abs(first.length_m - want).min(initial=np.inf) <= SAMPLE_M, (scene.name, i, gap[i], want)
+
+
+def test_a_moved_or_merged_round_part_is_refused():
+    """trimesh keeps a part's metadata when it is moved or merged: `assemble` refuses a part whose
+    faces left the surface it carries, rather than echo from where the surface used to be."""
+    moved = sphere_mesh(SPHERE_CENTRE, SPHERE_RADIUS)
+    moved.apply_translation((1.0, 0.0, 0.0))
+    with pytest.raises(scenes.SceneError, match="off the sphere"):
+        room_with((moved, "metal"))
+    merged = cylinder_mesh(*POLE_AXIS, POLE_RADIUS, 0.0, POLE_TOP)
+    merged = merged + scenes.scene.box_mesh((1.0, 1.0, 0.5), (0.2, 0.2, 0.2))
+    with pytest.raises(scenes.SceneError, match="off the cylinder"):
+        room_with((merged, "metal"))
+    assert len(room_with((sphere_mesh(SPHERE_CENTRE, SPHERE_RADIUS), "metal")).curved) == 1
+
+
+def test_a_wall_flush_with_a_pillar_facet_still_echoes(device):
+    """A hexagonal pillar sunk into the wall y = 0 with one facet flush with it (same plane, same
+    normal): the wall's mirror echo stays (a curved facet never shares the wall's plane)."""
+    radius = 0.3
+    pillar = cylinder_mesh(3.0, -radius * np.cos(np.pi / 6), radius, 0.0, 3.0, sections=6)
+    room = assemble([*[(m, "painted_wall") for m in room_shell((6.0, 4.0, 3.0)).values()], (pillar, "metal")], name="r")
+    facet = np.flatnonzero((room.face_curved >= 0) & (room.mesh.face_normals[:, 1] > 0.999))
+    assert len(facet) and np.allclose(room.mesh.triangles[facet][..., 1], 0.0, atol=1e-9)  # flush with the wall
+    sonar = Sonar(SONAR, TracerConfig(max_bounces=0, scattering=False), device=device)
+    pose = scenes.pose(1.0, 1.5, -np.pi / 2, 1.5)  # looking at the wall, 2 m beside the pillar
+    echoes = sonar.trace(room, pose[None]).for_pose(0)
+    first = echoes.select((echoes.kind == KIND_SPECULAR) & (echoes.order == 1))
+    wall = np.hypot(3.0, SONAR.emitter_m[2])  # emitter 1.5 m + array 1.5 m from the wall, 5 cm apart
+    assert np.abs(first.length_m - wall).min() < 1e-3, first.length_m
