@@ -40,6 +40,7 @@ import dataclasses
 import hashlib
 import json
 import time
+import warnings
 from pathlib import Path
 
 import h5py
@@ -47,6 +48,7 @@ import numpy as np
 
 from .config import ChirpConfig, LidarConfig
 from .dataset import COMPRESSION, ShardFrames, write_shard
+from .extras import MissingExtra
 from .lidar import lidar_image, ranges_to_points
 from .mcap_export import frame_stamps
 
@@ -61,7 +63,7 @@ def _chirppy():
     try:
         import chirppy
     except ImportError:
-        raise ImportError(
+        raise MissingExtra(
             "reading CHIRP files needs the `chirp` extra (cosys-chirppy, CC BY-NC-SA): pip install -e '.[chirp]'"
         ) from None
     return chirppy
@@ -201,14 +203,36 @@ def planar_scan(points: np.ndarray, lidar: LidarConfig, *, plane_tolerance_m: fl
         near = np.abs(z) <= plane_tolerance_m  # False for NaN
     r, azimuth = np.hypot(x[near], y[near]), np.rad2deg(np.arctan2(y[near], x[near]))
     count = lidar.azimuth_count
-    step = (lidar.azimuth_max_deg - lidar.azimuth_min_deg) / max(count - 1, 1)
-    beam = np.rint((azimuth - lidar.azimuth_min_deg) / step).astype(np.int64)
+    if count < 2:
+        raise ValueError("a 2D scan from points needs a LiDAR of two or more beams (lidar.azimuth_count)")
+    step = (lidar.azimuth_max_deg - lidar.azimuth_min_deg) / (count - 1)
+    # Degrees past the first beam, wrapped so that any sector (also one across +-180 deg) bins
+    # alike and a point half a step before the first beam still falls on it.
+    past = np.mod(azimuth - lidar.azimuth_min_deg + step / 2, 360.0) - step / 2
+    beam = np.rint(past / step).astype(np.int64)
     if count * step >= 360.0 - 1e-9:  # a full circle: the last beam's neighbour is the first
         beam %= count
     keep = (beam >= 0) & (beam < count) & (r >= lidar.range_min_m) & (r <= lidar.range_max_m)
     ranges = np.full(count, np.inf)
     np.minimum.at(ranges, beam[keep], r[keep])
     return ranges.astype(np.float32)
+
+
+def _warn_if_other_call(data, chirp, path) -> None:
+    """Our matched filter uses the rig's call: say so when the file's transmitter emitted another."""
+    transmitter = next(iter(data.get_sensors_by_type("acoustic_transmitter")), None)
+    emitted = None if transmitter is None else transmitter.get_emitted_signal()
+    if emitted is None:
+        return
+    ours = chirp.samples()
+    emitted = np.asarray(emitted, dtype=np.float64).reshape(-1)
+    same = len(emitted) == len(ours) and np.dot(emitted, ours) >= 0.99 * np.linalg.norm(emitted) * np.linalg.norm(ours)
+    if not same:
+        warnings.warn(
+            f"{path}: its transmitter emitted another call ({len(emitted)} samples) than the rig's "
+            f"({len(ours)}); the matched filter uses the rig's: give the recorded call with --set sonar.chirp.*",
+            stacklevel=3,
+        )
 
 
 def episodes_of(stamps: np.ndarray, gap_s: float) -> np.ndarray:
@@ -303,6 +327,7 @@ def import_chirp(
                 f"{path}: the microphones were sampled at {rate:g} Hz, but our call is sampled at {call_rate:g} Hz; "
                 f"give the recorded call with --set sonar.chirp.sample_rate_hz={rate:g} (and its frequencies)"
             )
+        _warn_if_other_call(data, rig.sonar.chirp, path)
         stamps = np.asarray(acoustic.get_timestamps(), dtype=np.float64)
         if len(stamps) != count or not np.all(np.diff(stamps) > 0):
             raise ValueError(f"{path}: {acoustic.name}'s timestamps are not one increasing time per ping")

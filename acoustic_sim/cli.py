@@ -9,6 +9,8 @@ import sys
 import time
 from pathlib import Path
 
+from .extras import MissingExtra  # no heavy imports: a plain exception class
+
 
 def _scene_from_args(args):
     import scenes
@@ -386,10 +388,10 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-USER_ERRORS = (ValueError, TypeError, KeyError, OSError, ImportError)
+USER_ERRORS = (ValueError, TypeError, KeyError, OSError, MissingExtra)
 """Bad input, files or settings (SceneError and DatasetError are ValueErrors), or an optional
-extra that is not installed (its ImportError names the extra): one `error:` line, exit code 2;
-`--debug` shows the trace."""
+extra that is not installed (MissingExtra names it): one `error:` line, exit code 2; `--debug`
+shows the trace. Any other ImportError is a bug and keeps its trace."""
 
 
 def main(argv: list[str] | None = None) -> int:

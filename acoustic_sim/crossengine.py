@@ -23,6 +23,7 @@ import numpy as np
 from scenes import FLOOR_PLANS, floor_plan, polygon_room, trajectory
 
 from .config import LidarConfig, ProcessingConfig, SonarConfig
+from .extras import MissingExtra
 from .suites import DRIVE
 
 IMAGE_ORDER = 4  # reflections per path: walls, floor and ceiling alike
@@ -37,7 +38,7 @@ def _need_pyroomacoustics():
     try:
         import pyroomacoustics
     except ImportError:
-        raise ImportError(
+        raise MissingExtra(
             "the crossengine test set needs pyroomacoustics (an optional extra): pip install -e '.[test]'"
         ) from None
     return pyroomacoustics

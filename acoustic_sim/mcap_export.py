@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .extras import MissingExtra
+
 STAMP_START_S = 1_700_000_000
 EPISODE_GAP_S = 1.0
 WORLD_FRAME, SENSOR_FRAME = "world", "sensor"
@@ -80,7 +82,7 @@ def export_mcap(dataset: str | Path, out: str | Path) -> dict:
     try:
         from mcap_ros2.writer import Writer
     except ImportError:
-        raise ImportError("MCAP export needs the `ros` extra: pip install -e '.[ros]'") from None
+        raise MissingExtra("MCAP export needs the `ros` extra: pip install -e '.[ros]'") from None
     import h5py
     from scipy.spatial.transform import Rotation
 

@@ -183,3 +183,34 @@ def test_bad_input_is_refused_in_one_line(case, message, signals_dataset, export
     err = capsys.readouterr().err
     assert message in err and len(err.strip().splitlines()) == 1, err
     assert not (tmp_path / "x.h5").exists() and not any((tmp_path / "rec").glob("*"))
+
+
+def test_a_scan_from_points_in_any_sector():
+    """planar_scan bins by degrees past the first beam, wrapped: a rear sector across +-180 deg
+    keeps its points, a point half a step before the first beam falls on it; one beam is refused."""
+    from acoustic_sim.chirp import planar_scan
+    from acoustic_sim.config import LidarConfig
+
+    rear = dataclasses.replace(
+        LidarConfig.hokuyo_ust20lx(), azimuth_min_deg=90.0, azimuth_max_deg=270.0, azimuth_count=181
+    )
+    bearings = np.deg2rad([-179.7, -90.0, 90.0, 89.6])  # beams 90, 180, 0, 0
+    points = np.c_[2.0 * np.cos(bearings), 2.0 * np.sin(bearings), np.zeros(4)]
+    ranges = planar_scan(points, rear, plane_tolerance_m=0.05)
+    assert np.isfinite(ranges).sum() == 3 and np.isfinite(ranges[[0, 90, 180]]).all()
+    with pytest.raises(ValueError, match="two or more beams"):
+        planar_scan(points, dataclasses.replace(rear, azimuth_max_deg=90.0, azimuth_count=1), plane_tolerance_m=0.05)
+
+
+def test_import_warns_when_the_recorded_call_is_another(exported, tmp_path, device):
+    """Our matched filter uses the rig's call: a file whose transmitter emitted another one is
+    imported with a warning that says so."""
+    other = tmp_path / "other_call.h5"
+    shutil.copy(exported, other)
+    with h5py.File(other, "r+") as f:
+        call = f["sensors/acoustic_transmitter_00/data/signals"]
+        call[...] = call[()][::-1]  # the time-reversed sweep: another call
+    with pytest.warns(UserWarning, match="another call"):
+        assert (
+            main(["import", str(other), "--format", "chirp", "--out", str(tmp_path / "rec"), "--device", device]) == 0
+        )
