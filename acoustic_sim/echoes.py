@@ -31,9 +31,11 @@ class Arrivals:
             spreading, reflection factors and emitter directivity at the call's centre frequency
             (no air absorption: it depends on frequency and is applied when recording), (n,).
         order: Number of reflections, int64 (n,).
-        kind: KIND_SPECULAR or KIND_SCATTERED, int64 (n,).
-        source_m: Where the echo seems to come from, sensor frame [m] (the image source for
-            specular paths): per-microphone delays are |source - mic| / c, (n, 3).
+        kind: KIND_SPECULAR or KIND_SCATTERED, int64 (n,). A specular echo off a curved surface
+            (sphere, cylinder) is KIND_SPECULAR of order 1 whose source_m equals its point_m.
+        source_m: Where the echo seems to come from, sensor frame [m]: the image source of a
+            specular path off planes (per-microphone delays |source - mic| / c), else the point
+            where the path last turned (delays: the path before it plus |source - mic|), (n, 3).
         length_m: Path length [m], (n,).
         point_m: Where the echo last reflected or scattered, sensor frame [m], (n, 3).
     """

@@ -1,7 +1,8 @@
 """`learn train --tensorboard`: each epoch's numbers and a few validation windows as pictures,
 under RUN/tensorboard (open with `tensorboard --logdir RUN`). TensorBoard is an optional extra.
 
-Scalars are the epoch's history row, grouped as train/..., val/... and speed/...; each picture is
+Scalars are the epoch's history row, grouped as train/..., val/... and speed/... (flushed every
+epoch, so a run that stops early keeps what it logged); each picture is
 one validation window: the sonar frame of the label | the LiDAR label | the prediction, range upwards.
 """
 
@@ -16,13 +17,21 @@ EXAMPLES = 3
 """Validation windows shown each epoch (the same ones, spread over the validation set)."""
 
 
+SPEED = ("samples_per_s", "train_seconds")  # history columns about speed, not learning
+
+
+def summary_writer():
+    """torch's SummaryWriter class; it needs the tensorboard package (the optional extra)."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError:
+        raise ImportError("--tensorboard needs TensorBoard: pip install 'sonar2lidar[tensorboard]'") from None
+    return SummaryWriter
+
+
 class TensorBoardLog:
     def __init__(self, out: Path, val_indices: np.ndarray):
-        try:
-            from torch.utils.tensorboard import SummaryWriter
-        except ImportError:  # torch's writer needs the tensorboard package
-            raise ImportError("--tensorboard needs TensorBoard: pip install 'sonar2lidar[tensorboard]'") from None
-        self.writer = SummaryWriter(str(Path(out) / "tensorboard"))
+        self.writer = summary_writer()(str(Path(out) / "tensorboard"))
         picks = np.linspace(0, len(val_indices) - 1, min(EXAMPLES, len(val_indices))).round().astype(int)
         self.examples = np.asarray(val_indices)[np.unique(picks)]
 
@@ -30,9 +39,9 @@ class TensorBoardLog:
         """Log one epoch's history row and the examples as `predict` (x -> image in [0, 1]) sees them."""
         step = row["epoch"]
         for key, value in row.items():
-            if key == "epoch":
+            if key in ("epoch", "step"):
                 continue
-            group, name = key.split("_", 1) if key.startswith(("train_", "val_")) else ("speed", key)
+            group, name = ("speed", key) if key in SPEED else key.split("_", 1)  # train_loss, val_...
             self.writer.add_scalar(f"{group}/{name}", value, step)
         with torch.no_grad():
             x, y = windows.batch(self.examples)

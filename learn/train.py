@@ -34,7 +34,7 @@ from .data import FORMAT_VERSION, DataConfig, Frames, Windows, load_frames, spli
 from .evaluate import calibrate_threshold, model_predictor, score
 from .models import ModelConfig, build_model, parameter_count
 from .progress import epoch_line, warn_if_silent, write_fold_summary, write_history
-from .tensorboard import TensorBoardLog
+from .tensorboard import TensorBoardLog, summary_writer
 
 LOSSES = ("mse", "bce")
 SPLITS = ("episode", "scenario")
@@ -187,6 +187,8 @@ def train(
     `tensorboard` also logs every epoch under out/tensorboard (`learn.tensorboard`).
     """
     _check_out(Path(out), resume=resume, overwrite=overwrite)
+    if tensorboard:
+        summary_writer()  # a missing extra is refused before anything is written
     if init_from is not None and not Path(init_from).is_file():
         raise FileNotFoundError(f"--init-from checkpoint {init_from} does not exist")
     dist_info, dev = _init_distributed(device)

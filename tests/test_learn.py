@@ -469,6 +469,8 @@ def test_tensorboard_logs_every_epoch(tiny_dataset, tmp_path, monkeypatch):
     height, width = board.Images(pictures[0])[0].height, board.Images(pictures[0])[0].width
     frames = load_frames(tiny_dataset)
     assert (height, width) == (len(frames.range_m), 3 * len(frames.azimuth_rad))  # sonar | label | prediction
+    assert {"speed/samples_per_s", "speed/train_seconds"} <= set(board.Tags()["scalars"])
     monkeypatch.setitem(sys.modules, "torch.utils.tensorboard", None)
     with pytest.raises(ImportError, match=r"sonar2lidar\[tensorboard\]"):
         train(tiny_dataset, tmp_path / "no", model_config=MODEL, data_config=DATA, train_config=QUICK, tensorboard=True)
+    assert not (tmp_path / "no").exists()  # refused before anything was written
