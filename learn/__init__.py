@@ -10,3 +10,8 @@ from pathlib import Path
 PRETRAINED_CHECKPOINT = Path(__file__).parent / "pretrained" / "polar_unet_k5.pt"
 """Our polar UNet (K = 5) trained on the H100 by benchmarks/learner_converged.sh (seed 0), with its
 calibrated return threshold; load it with `learn.checkpoint.load_checkpoint`."""
+
+
+class MissingExtra(ImportError):
+    """An optional extra (onnx, ros, tensorboard) is not installed; the message names what to
+    install. `python -m learn` shows it as one `error:` line; any other ImportError keeps its trace."""

@@ -8,6 +8,8 @@ import json
 import sys
 import typing
 
+from . import MissingExtra
+
 
 def _configs(args):
     from .data import DataConfig
@@ -398,8 +400,9 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-USER_ERRORS = (ValueError, TypeError, KeyError, OSError, FloatingPointError)
-"""Bad input, files or settings: one `error:` line and exit code 2 (the trace with --debug)."""
+USER_ERRORS = (ValueError, TypeError, KeyError, OSError, FloatingPointError, MissingExtra)
+"""Bad input, files or settings, or a missing optional extra: one `error:` line and exit code 2
+(the trace with --debug)."""
 
 
 def main(argv: list[str] | None = None) -> int:

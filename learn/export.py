@@ -20,6 +20,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from . import MissingExtra
+
 OPSET = 18  # the lowest opset the torch.export-based exporter writes natively
 # float32 sums of up to ~10^5 terms (PaperNet: 80 channels x 625-tap kernels) in a different order
 # differ by ~1e-6 of the output scale; 1e-4 of it is far above that and far below a real error
@@ -33,7 +35,7 @@ def _import_onnx():
         import onnxruntime
         import onnxscript  # noqa: F401  (used by torch.onnx.export)
     except ImportError as e:
-        raise ImportError(f'ONNX export needs onnx, onnxruntime and onnxscript: pip install -e ".[onnx]" ({e})') from e
+        raise MissingExtra(f'ONNX export needs onnx, onnxruntime and onnxscript: pip install -e ".[onnx]" ({e})') from e
     return onnx, onnxruntime
 
 

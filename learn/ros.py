@@ -9,6 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
+from . import MissingExtra
+
 STAMP_START_S = 1_700_000_000
 EPISODE_GAP_S = 1.0
 FRAME_S = 0.1  # recorded energyscapes (.npy) carry no times: 10 Hz, the training frame rate
@@ -56,7 +58,7 @@ def write_scans(out: str | Path, ranges: np.ndarray, stamps: np.ndarray, range_m
     try:
         from mcap_ros2.writer import Writer
     except ImportError:
-        raise ImportError("--mcap needs the `ros` extra: pip install -e '.[ros]'") from None
+        raise MissingExtra("--mcap needs the `ros` extra: pip install -e '.[ros]'") from None
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     azimuth_rad, range_m = np.asarray(azimuth_rad, np.float64), np.asarray(range_m, np.float64)

@@ -13,6 +13,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from . import MissingExtra
+
 EXAMPLES = 3
 """Validation windows shown each epoch (the same ones, spread over the validation set)."""
 
@@ -25,7 +27,7 @@ def summary_writer():
     try:
         from torch.utils.tensorboard import SummaryWriter
     except ImportError:
-        raise ImportError("--tensorboard needs TensorBoard: pip install 'sonar2lidar[tensorboard]'") from None
+        raise MissingExtra("--tensorboard needs TensorBoard: pip install 'sonar2lidar[tensorboard]'") from None
     return SummaryWriter
 
 

@@ -451,9 +451,10 @@ def test_sim2real_scores_every_named_test_set_beside_its_echo_peak(tiny_dataset,
     assert "--test wants NAME=FOLDER" in capsys.readouterr().err
 
 
-def test_tensorboard_logs_every_epoch(tiny_dataset, tmp_path, monkeypatch):
+def test_tensorboard_logs_every_epoch(tiny_dataset, tmp_path, monkeypatch, capsys):
     """`--tensorboard`: every history column as a scalar per epoch (equal to history.csv) and the
-    example windows as pictures; without TensorBoard installed, an error that names the extra."""
+    example windows as pictures; without TensorBoard installed, an error that names the extra
+    (one `error:` line from the command line)."""
     event_accumulator = pytest.importorskip("tensorboard.backend.event_processing.event_accumulator")
     run = tmp_path / "run"
     train(tiny_dataset, run, model_config=MODEL, data_config=DATA, train_config=QUICK, progress=False, tensorboard=True)
@@ -474,3 +475,7 @@ def test_tensorboard_logs_every_epoch(tiny_dataset, tmp_path, monkeypatch):
     with pytest.raises(ImportError, match=r"sonar2lidar\[tensorboard\]"):
         train(tiny_dataset, tmp_path / "no", model_config=MODEL, data_config=DATA, train_config=QUICK, tensorboard=True)
     assert not (tmp_path / "no").exists()  # refused before anything was written
+    from learn.cli import main
+
+    argv = ["train", "--data", str(tiny_dataset), "--out", str(tmp_path / "cli"), "--tensorboard", "--quiet"]
+    assert main(argv) == 2 and "error: --tensorboard needs TensorBoard" in capsys.readouterr().err
