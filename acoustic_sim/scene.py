@@ -50,14 +50,12 @@ class CurvedArrays:
 
 def curved_arrays(scene: Scene) -> dict[str, np.ndarray]:
     """Host arrays of `scene.curved` (see CurvedArrays). Each surface reflects with the material
-    most of its side faces have (a cylinder's caps may differ)."""
+    most of its faces have (`scene.face_curved` names only a cylinder's side faces, not its caps)."""
     reflection = scene.material_table("acoustic_reflection")
     scattering = scene.material_table("acoustic_scattering")
-    side = np.abs(scene.mesh.face_normals[:, 2]) < 0.5
     gain = []
     for k in range(len(scene.curved)):
         faces = np.flatnonzero(scene.face_curved == k)
-        faces = faces[side[faces]] if side[faces].any() else faces
         most = np.bincount(scene.face_material[faces]).argmax() if len(faces) else 0
         face = faces[scene.face_material[faces] == most][0] if len(faces) else 0
         gain.append(np.sqrt(reflection[face] * (1.0 - scattering[face])))

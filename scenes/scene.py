@@ -184,14 +184,12 @@ def assemble(
             table.append(mat)
         surface = mesh.metadata.get(CURVED_KEY) if isinstance(mesh, trimesh.Trimesh) else None
         mesh, _ = clean_mesh(mesh, what=f"{name} part")
+        on_surface = _surface_faces(mesh, surface) if surface else np.zeros(len(mesh.faces), dtype=bool)
         if surface:
-            _check_on_surface(mesh, surface, f"{name} part")
+            _check_on_surface(mesh, surface, on_surface, f"{name} part")
         meshes.append(mesh)
         ids.append(np.full(len(mesh.faces), table.index(mat), dtype=np.int32))
-        curved_faces = np.full(len(mesh.faces), len(curved) if surface else -1, dtype=np.int32)
-        if surface and surface.kind == "cylinder":  # its flat caps stay flat mirrors
-            curved_faces[np.abs(mesh.face_normals[:, 2]) > 0.5] = -1
-        face_curved.append(curved_faces)
+        face_curved.append(np.where(on_surface, len(curved), -1).astype(np.int32))
         if surface:
             curved.append(surface)
     if not meshes:
@@ -219,16 +217,24 @@ def box_mesh(center: Sequence[float], extents: Sequence[float], yaw: float = 0.0
 CURVED_KEY = "curved_surface"  # trimesh metadata of a part that approximates a CurvedSurface
 
 
-def _check_on_surface(mesh: trimesh.Trimesh, surface: CurvedSurface, what: str) -> None:
-    """Refuse a part whose faces do not lie on the curved surface it carries: trimesh keeps the
+def _surface_faces(mesh: trimesh.Trimesh, surface: CurvedSurface) -> np.ndarray:
+    """Which faces of a part stand for its curved surface: all of a sphere's, a cylinder's sides
+    (its caps stay flat mirrors)."""
+    if surface.kind == "sphere":
+        return np.ones(len(mesh.faces), dtype=bool)
+    return np.abs(mesh.face_normals[:, 2]) <= 0.5
+
+
+def _check_on_surface(mesh: trimesh.Trimesh, surface: CurvedSurface, faces: np.ndarray, what: str) -> None:
+    """Refuse a part whose `faces` do not lie on the curved surface it carries: trimesh keeps the
     metadata through moves, scaling and concatenation, which would leave the echo behind."""
     centre, radius = np.asarray(surface.centre), surface.radius
     tolerance = 1e-6 * max(radius, 1.0)
+    corners = mesh.vertices[mesh.faces[faces].reshape(-1)]
     if surface.kind == "sphere":
-        off = np.abs(np.linalg.norm(mesh.vertices - centre, axis=1) - radius)
+        off = np.abs(np.linalg.norm(corners - centre, axis=1) - radius)
     else:
-        side = mesh.faces[np.abs(mesh.face_normals[:, 2]) < 0.5].reshape(-1)
-        off = np.abs(np.linalg.norm(mesh.vertices[side, :2] - centre[:2], axis=1) - radius)
+        off = np.abs(np.linalg.norm(corners[:, :2] - centre[:2], axis=1) - radius)
         z0, z1 = surface.z_range
         off = np.r_[off, np.maximum(z0 - mesh.vertices[:, 2], mesh.vertices[:, 2] - z1).clip(0)]
     if off.max(initial=0.0) > tolerance:
