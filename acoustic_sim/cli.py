@@ -145,6 +145,10 @@ def _report(summary: dict) -> int:
         f"({summary['shards_written']} written, {summary['shards_skipped']} already complete) in "
         f"{summary['seconds']:.1f} s, {summary['frames_per_s']:,.1f} frames/s on {', '.join(summary['devices'])}"
     )
+    parts = summary.get("seconds_by_part")
+    if parts and summary["shards_written"]:
+        workers = " summed over workers" if summary.get("workers", 1) > 1 else ""
+        print(f"time by part{workers}: " + ", ".join(f"{k} {v:.1f} s" for k, v in parts.items()))
     return 0
 
 

@@ -5,6 +5,7 @@ its own (in any process, in any order)."""
 from __future__ import annotations
 
 import dataclasses
+import time
 
 import numpy as np
 
@@ -38,24 +39,25 @@ def episode_sonar_config(physics: Physics, nominal: SonarConfig, rng: np.random.
     return config, snr_db
 
 
-def simulate_episode(
-    episode: Episode,
-    physics: Physics,
-    nominal: SimConfig,
-    suite: dict,
-    *,
-    device,
-    keep_signals=False,
-    keep_arrivals=False,
-    on_frames=None,
-) -> tuple[dict, dict]:
-    """Scene, drive, LiDAR and sonar of one episode -> (arrays, episode record for the shard).
-    `nominal` is the variant's rig (`suites.rig`) before this episode's draws; `on_frames(n)` is
-    called as the sonar finishes each batch of n frames."""
-    import scenes
+@dataclasses.dataclass
+class PreparedEpisode:
+    """The host half of an episode (see `prepare_episode`), ready for the device."""
 
-    from .lidar import Lidar, lidar_image
-    from .sonar import Sonar
+    episode: Episode
+    scene: object  # scenes.Scene
+    poses: np.ndarray
+    drive: dict
+    acoustics: dict
+    drawn: SimConfig
+    draws: dict
+    sonar_config: SonarConfig
+    snr_db: float
+
+
+def prepare_episode(episode: Episode, physics: Physics, nominal: SimConfig, suite: dict) -> PreparedEpisode:
+    """Everything of an episode that runs on the host: its scene, drive and drawn physics. Needs no
+    device, so `generate` prepares the next episode while the GPU renders this one."""
+    import scenes
 
     scene = scenes.BUILDERS[episode.builder](**episode.scene_params)
     drive = episode_drive(suite, episode.seed)
@@ -71,21 +73,52 @@ def simulate_episode(
         turn_rate=drive["turn_rate_rad_s"],
         seed=episode.seed,
     )
-    ranges = Lidar(nominal.lidar, device=device).scan(scene, poses, seed=episode.seed)
     drawn, draws = physics.draw(nominal, np.random.default_rng([episode.seed, 3]))
     sonar_config, snr_db = episode_sonar_config(physics, drawn.sonar, np.random.default_rng([episode.seed, 2]))
-    sonar = Sonar(sonar_config, drawn.tracer, device=device)
+    return PreparedEpisode(episode, scene, poses, drive, acoustics, drawn, draws, sonar_config, snr_db)
+
+
+def simulate_episode(
+    episode: Episode | PreparedEpisode,
+    physics: Physics,
+    nominal: SimConfig,
+    suite: dict,
+    *,
+    device,
+    keep_signals=False,
+    keep_arrivals=False,
+    on_frames=None,
+    seconds: dict | None = None,
+) -> tuple[dict, dict]:
+    """Scene, drive, LiDAR and sonar of one episode -> (arrays, episode record for the shard).
+    `nominal` is the variant's rig (`suites.rig`) before this episode's draws; `episode` may come
+    prepared already (`prepare_episode`); `on_frames(n)` is called as the sonar finishes each batch
+    of n frames; `seconds`, if given, adds the time of each part ("prepare", "lidar", "sonar")."""
+    from .lidar import Lidar, lidar_image
+    from .sonar import Sonar
+
+    seconds = {} if seconds is None else seconds
+    t0 = time.perf_counter()
+    ready = episode if isinstance(episode, PreparedEpisode) else prepare_episode(episode, physics, nominal, suite)
+    t1 = time.perf_counter()
+    episode, scene, poses = ready.episode, ready.scene, ready.poses
+    ranges = Lidar(nominal.lidar, device=device).scan(scene, poses, seed=episode.seed)
+    t2 = time.perf_counter()
+    sonar = Sonar(ready.sonar_config, ready.drawn.tracer, device=device)
     result = sonar.simulate(
         scene,
         poses,
         noise=physics.sonar_noise,
-        snr_db=snr_db,
+        snr_db=ready.snr_db,
         seed=episode.seed,
         keep_signals=keep_signals,
         processing=nominal.processing,
         assumed_array=nominal.sonar,
         on_pings=on_frames,
     )
+    t3 = time.perf_counter()
+    for part, dt in (("prepare", t1 - t0), ("lidar", t2 - t1), ("sonar", t3 - t2)):
+        seconds[part] = seconds.get(part, 0.0) + dt
     arrays = {
         "energyscape": result.energyscape,
         "lidar_ranges": ranges,
@@ -105,17 +138,18 @@ def simulate_episode(
             "kind": arrivals.kind,
             "point_m": arrivals.point_m,
         }
+    sonar_config = ready.sonar_config
     record = dataclasses.asdict(episode) | {
         "scene": scene.describe(),
-        "snr_db": snr_db,
+        "snr_db": ready.snr_db,
         "temperature_c": sonar_config.atmosphere.temperature_c,
         "sonar_config": dataclasses.asdict(sonar_config) if sonar_config != nominal.sonar else None,
         "lidar_config": dataclasses.asdict(nominal.lidar),
     }
-    if draws:  # only then: records of variants without draws stay as they were
-        record |= {"draws": draws, "tracer_config": dataclasses.asdict(drawn.tracer)}
-    if acoustics:
-        record["surfaces"] = acoustics
-    if any(isinstance(suite.get(name), list | tuple) for name in drive):
-        record["drive"] = drive
+    if ready.draws:  # only then: records of variants without draws stay as they were
+        record |= {"draws": ready.draws, "tracer_config": dataclasses.asdict(ready.drawn.tracer)}
+    if ready.acoustics:
+        record["surfaces"] = ready.acoustics
+    if any(isinstance(suite.get(name), list | tuple) for name in ready.drive):
+        record["drive"] = ready.drive
     return arrays, record

@@ -1,11 +1,12 @@
 """Dataset generation: a suite -> episodes -> shard tasks -> HDF5 shards, resumable and parallel.
 
 `plan.plan` deals a suite's episodes (robot drives, each with its own scene and seed) to shards;
-`run_task` simulates one shard (`episode.simulate_episode` per episode) and writes it; `generate`
-runs the tasks that are not finished yet (in this process, in local worker processes, or as Ray
-tasks), then writes each dataset's manifest and card (`manifest`). Everything an episode draws
-comes from its seed, so the same command on the same device gives identical arrays, and a rerun
-skips the shards that are already complete.
+`run_tasks` simulates shards (`episode.simulate_episode` per episode) and writes them, preparing
+the next episode and writing the last shard beside the device's work; `generate` runs the tasks
+that are not finished yet (in this process, in local worker processes, or as Ray tasks), then
+writes each dataset's manifest and card (`manifest`). Everything an episode draws comes from its
+seed, so the same command on the same device gives identical arrays, and a rerun skips the shards
+that are already complete.
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import socket
 import threading
 import time
 import warnings
-from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +27,7 @@ from tqdm.auto import tqdm
 
 from .dataset import FORMAT, FORMAT_VERSION, DatasetError, ShardFrames, read_attrs, verify_shard, write_shard
 from .devices import check_device, cpu_cores, quiet_warp
-from .episode import simulate_episode
+from .episode import prepare_episode, simulate_episode
 from .manifest import shard_entry, write_manifest
 from .physics import Physics, rig
 from .plan import ShardTask, plan
@@ -36,39 +37,110 @@ PLAN_FILE = "plan.json"
 LOCK_FILE = ".generate.lock"  # "pid host" of the run writing the folder
 
 
-def run_task(task: ShardTask, device=None, on_frames=None) -> dict:
-    """Simulate and write one shard; returns its manifest entry. `on_frames(n)` reports progress."""
-    import warp as wp
+def run_tasks(tasks: list[ShardTask], device=None, on_frames=None, *, overlap: bool = True) -> tuple[list[dict], dict]:
+    """Simulate and write shards, in order; returns (their manifest entries, seconds per part).
 
-    from . import __version__
+    With `overlap` (the default) the device never waits for host work that can run beside it: one
+    thread prepares the next episode (scene, drive, drawn physics; across shard boundaries too)
+    while the device renders this one, and another compresses and writes each finished shard while
+    the next is rendered (one write in flight: at most two shards in memory). The arrays are the
+    same either way. Seconds per part: "prepare", "lidar", "sonar", "write" (time each took,
+    wherever it ran) and "waiting" (the rendering thread blocked on a preparation or a write).
+    `on_frames(n)` reports progress."""
+    import warp as wp
 
     quiet_warp()
     device = str(wp.get_device(device))
-    physics = Physics(**task.physics)
-    nominal = rig(physics, tuple(task.suite.get("settings", ())))  # the variant's rig before per-episode draws
-    frames, records = ShardFrames(), []
-    offset = 0
-    for episode in task.episodes:
-        arrays, record = simulate_episode(
-            episode,
-            physics,
-            nominal,
-            task.suite,
-            device=device,
-            keep_signals=task.keep_signals,
-            keep_arrivals=task.keep_arrivals,
-            on_frames=on_frames,
-        )
-        for key in ("energyscape", "lidar_ranges", "lidar_image", "pose", "time"):
-            getattr(frames, key).append(arrays[key])
-        frames.episode.append(np.full(episode.frames, episode.index))
-        frames.scenario.append(np.full(episode.frames, episode.scenario))
-        if task.keep_signals:
-            frames.signals.append(arrays["signals"])
-        if task.keep_arrivals:
-            frames.arrivals.append(arrays["arrivals"] | {"frame": arrays["arrivals"]["frame"] + offset})
-        offset += episode.frames
-        records.append(record)
+    rigs = {}  # task path -> (physics, the variant's rig before per-episode draws)
+    for task in tasks:
+        physics = Physics(**task.physics)
+        rigs[task.path] = physics, rig(physics, tuple(task.suite.get("settings", ())))
+    jobs = [(task, episode) for task in tasks for episode in task.episodes]
+    seconds = dict.fromkeys(("prepare", "lidar", "sonar", "write", "waiting"), 0.0)
+
+    def prepare(i: int):
+        t0 = time.perf_counter()
+        task, episode = jobs[i]
+        ready = prepare_episode(episode, *rigs[task.path], task.suite)
+        return ready, time.perf_counter() - t0
+
+    def write(task: ShardTask, frames: ShardFrames, records: list) -> tuple[dict, float]:
+        t0 = time.perf_counter()
+        _write_shard(task, frames, records, rigs[task.path][1], device)
+        return shard_entry(task), time.perf_counter() - t0
+
+    def collect(future) -> tuple:
+        t0 = time.perf_counter()
+        value, took = future.result()
+        seconds["waiting"] += time.perf_counter() - t0
+        return value, took
+
+    entries = []
+    with ThreadPoolExecutor(1) as preparer, ThreadPoolExecutor(1) as writer:
+        ahead = preparer.submit(prepare, 0) if overlap and jobs else None
+        writing = None
+        i = 0
+        for task in tasks:
+            physics, nominal = rigs[task.path]
+            frames, records = ShardFrames(), []
+            for episode in task.episodes:
+                if overlap:
+                    episode, took = collect(ahead)
+                    seconds["prepare"] += took
+                    ahead = preparer.submit(prepare, i + 1) if i + 1 < len(jobs) else None
+                arrays, record = simulate_episode(
+                    episode,
+                    physics,
+                    nominal,
+                    task.suite,
+                    device=device,
+                    keep_signals=task.keep_signals,
+                    keep_arrivals=task.keep_arrivals,
+                    on_frames=on_frames,
+                    seconds=seconds,
+                )
+                _add_episode(frames, arrays, jobs[i][1], task)
+                records.append(record)
+                i += 1
+            if writing is not None:
+                entry, took = collect(writing)
+                entries.append(entry)
+                seconds["write"] += took
+                writing = None
+            if overlap:
+                writing = writer.submit(write, task, frames, records)
+            else:
+                entry, took = write(task, frames, records)
+                entries.append(entry)
+                seconds["write"] += took
+        if writing is not None:
+            entry, took = collect(writing)
+            entries.append(entry)
+            seconds["write"] += took
+    return entries, seconds
+
+
+def run_task(task: ShardTask, device=None, on_frames=None) -> dict:
+    """Simulate and write one shard; returns its manifest entry. `on_frames(n)` reports progress."""
+    return run_tasks([task], device, on_frames)[0][0]
+
+
+def _add_episode(frames: ShardFrames, arrays: dict, episode, task: ShardTask) -> None:
+    """Append one simulated episode's arrays to the shard's frames."""
+    for key in ("energyscape", "lidar_ranges", "lidar_image", "pose", "time"):
+        getattr(frames, key).append(arrays[key])
+    frames.episode.append(np.full(episode.frames, episode.index))
+    frames.scenario.append(np.full(episode.frames, episode.scenario))
+    if task.keep_signals:
+        frames.signals.append(arrays["signals"])
+    if task.keep_arrivals:
+        offset = sum(len(e) for e in frames.episode[:-1])
+        frames.arrivals.append(arrays["arrivals"] | {"frame": arrays["arrivals"]["frame"] + offset})
+
+
+def _write_shard(task: ShardTask, frames: ShardFrames, records: list, nominal, device: str) -> None:
+    from . import __version__
+
     grid = nominal.processing.grid
     config = {"suite": task.suite, "variant": task.variant, "physics": task.physics, "sim": nominal.to_dict()}
     attrs = {
@@ -86,7 +158,6 @@ def run_task(task: ShardTask, device=None, on_frames=None) -> dict:
     }
     Path(task.path).parent.mkdir(parents=True, exist_ok=True)
     write_shard(Path(task.path), frames, attrs=attrs, range_m=grid.range_m, azimuth_rad=grid.azimuth_rad)
-    return shard_entry(task)
 
 
 def is_complete(task: ShardTask) -> bool:
@@ -200,8 +271,15 @@ def _exit_with_parent(parent: int) -> None:
     os._exit(1)
 
 
-def _run_in_worker(task: ShardTask) -> dict:
-    return run_task(task, _WORKER_DEVICE, on_frames=_WORKER_PROGRESS.put)
+def _run_in_worker(tasks: list[ShardTask]) -> dict:
+    return run_tasks(tasks, _WORKER_DEVICE, on_frames=_WORKER_PROGRESS.put)[1]
+
+
+def chains(tasks: list[ShardTask], workers: int) -> list[list[ShardTask]]:
+    """The tasks in runs of a few for each worker call: long enough that a worker's preparing and
+    writing overlap its rendering (`run_tasks`), short enough that workers finish together."""
+    size = max(1, min(8, len(tasks) // (2 * workers)))
+    return [tasks[i : i + size] for i in range(0, len(tasks), size)]
 
 
 def _show_progress(counts, bar) -> None:
@@ -233,8 +311,12 @@ def generate(
     keep_signals: bool = False,
     keep_arrivals: bool = False,
     progress: bool = True,
+    overlap: bool = True,
 ) -> dict:
-    """Generate (or finish) a dataset; returns a summary (frames, shards, seconds, frames/s)."""
+    """Generate (or finish) a dataset; returns a summary (frames, shards, seconds, frames/s, and
+    `seconds_by_part`: the time spent preparing episodes, in LiDAR, in the sonar, writing and
+    waiting, summed over workers; see `run_tasks`). `overlap=False` runs each worker's parts one
+    after another (for measuring what the overlap gains; the shards are the same)."""
     t0 = time.perf_counter()
     out = Path(out)
     if workers < 1:
@@ -258,11 +340,17 @@ def generate(
         bar = tqdm(total=sum(t.frame_count for t in tasks), initial=done_frames, unit="frame", disable=not progress)
         bar.set_description(f"{suite.name}")
         devices = worker_devices(device, workers)
+        parts = dict.fromkeys(("prepare", "lidar", "sonar", "write", "waiting"), 0.0)
+
+        def add(seconds: dict) -> None:
+            for k, v in seconds.items():
+                parts[k] += v
+
         if ray_address:
             _run_on_ray(todo, ray_address, devices[0].startswith("cuda"), bar)
+            parts = {}  # not reported back by Ray tasks
         elif workers == 1 or len(todo) <= 1:
-            for task in todo:
-                run_task(task, devices[0], on_frames=bar.update)
+            add(run_tasks(todo, devices[0], on_frames=bar.update, overlap=overlap)[1])
         else:
             context = multiprocessing.get_context("spawn")
             queue = context.Queue()  # handed to each worker at its start; no manager process to outlive us
@@ -274,8 +362,8 @@ def generate(
             init = (queue, counts, os.getpid(), max(1, cpu_cores() // workers))
             try:
                 with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker, initargs=init) as pool:
-                    for future in as_completed([pool.submit(_run_in_worker, t) for t in todo]):
-                        future.result()
+                    for future in as_completed([pool.submit(_run_in_worker, c) for c in chains(todo, workers)]):
+                        add(future.result())
             finally:
                 counts.put(None)
                 reader.join(timeout=5)
@@ -294,6 +382,8 @@ def generate(
         "seconds": seconds,
         "frames_per_s": made / seconds if made else 0.0,
         "devices": sorted(set(devices)),
+        "seconds_by_part": parts,
+        "workers": 1 if ray_address else workers,
     }
 
 

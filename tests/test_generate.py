@@ -3,6 +3,7 @@ clear errors for foreign or broken files; windows never cross episodes."""
 
 import dataclasses
 import json
+import threading
 import typing
 from pathlib import Path
 
@@ -112,6 +113,41 @@ def test_resume_after_a_kill_gives_the_same_dataset(reference, tmp_path, device,
         np.testing.assert_array_equal(got[key], want[key], err_msg=key)
     again = generate(tmp_path, device)
     assert again["shards_written"] == 0
+
+
+def test_overlapped_parts_change_nothing_but_the_time(reference, tmp_path, device, monkeypatch):
+    """Preparing the next episode and writing the last shard beside the rendering (the default)
+    gives the same arrays as doing each part in turn, and the summary says where the time went."""
+    events = []
+    real_prepare, real_write = gen.prepare_episode, gen.write_shard
+
+    def prepare(episode, *args):
+        events.append(("prepare", episode.index, threading.current_thread() is threading.main_thread()))
+        return real_prepare(episode, *args)
+
+    def write(path, frames, **kwargs):
+        events.append(("write", path.name, threading.current_thread() is threading.main_thread()))
+        real_write(path, frames, **kwargs)
+
+    monkeypatch.setattr(gen, "prepare_episode", prepare)
+    monkeypatch.setattr(gen, "write_shard", write)
+    overlapped = generate(tmp_path / "overlapped", device)
+    assert events and not any(on_main for *_, on_main in events)  # all of it beside the rendering thread
+    events.clear()
+    monkeypatch.setattr(gen, "prepare_episode", real_prepare)  # simulate_episode prepares by itself
+    in_turn = generate(tmp_path / "in_turn", device, overlap=False)
+    assert [e[0] for e in events] == ["write", "write"] and all(on_main for *_, on_main in events)
+    for folder in ("overlapped", "in_turn"):
+        got, want = shard_arrays(tmp_path / folder), shard_arrays(reference[0])
+        assert got.keys() == want.keys()
+        for key in want:
+            np.testing.assert_array_equal(got[key], want[key], err_msg=f"{folder}: {key}")
+    for summary in (overlapped, in_turn):
+        parts = summary["seconds_by_part"]
+        assert set(parts) == {"prepare", "lidar", "sonar", "write", "waiting"}
+        assert all(parts[k] > 0 for k in ("prepare", "lidar", "sonar", "write"))
+        assert parts["lidar"] + parts["sonar"] < summary["seconds"]
+    assert in_turn["seconds_by_part"]["waiting"] == 0
 
 
 def test_foreign_corrupt_and_other_version_files(reference, tmp_path, device):
