@@ -271,8 +271,8 @@ def _exit_with_parent(parent: int) -> None:
     os._exit(1)
 
 
-def _run_in_worker(tasks: list[ShardTask]) -> dict:
-    return run_tasks(tasks, _WORKER_DEVICE, on_frames=_WORKER_PROGRESS.put)[1]
+def _run_in_worker(tasks: list[ShardTask], overlap: bool) -> dict:
+    return run_tasks(tasks, _WORKER_DEVICE, on_frames=_WORKER_PROGRESS.put, overlap=overlap)[1]
 
 
 def chains(tasks: list[ShardTask], workers: int) -> list[list[ShardTask]]:
@@ -362,7 +362,9 @@ def generate(
             init = (queue, counts, os.getpid(), max(1, cpu_cores() // workers))
             try:
                 with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker, initargs=init) as pool:
-                    for future in as_completed([pool.submit(_run_in_worker, c) for c in chains(todo, workers)]):
+                    for future in as_completed(
+                        [pool.submit(_run_in_worker, c, overlap) for c in chains(todo, workers)]
+                    ):
                         add(future.result())
             finally:
                 counts.put(None)

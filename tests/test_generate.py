@@ -242,6 +242,7 @@ def test_parallel_workers_write_the_same_shards(reference, tmp_path, device, mon
     summary = generate(tmp_path, device, workers=2)
     assert summary["shards_written"] == 2
     assert sum(BarSteps.steps) == FRAMES and len(BarSteps.steps) == 3, BarSteps.steps
+    assert summary["seconds_by_part"]["sonar"] > 0 and summary["seconds_by_part"]["write"] > 0  # sent back
     got, want = shard_arrays(tmp_path), shard_arrays(reference[0])
     assert got.keys() == want.keys()
     for key in want:
@@ -257,3 +258,14 @@ def test_ray_tasks_write_the_same_shards(reference, tmp_path, device):
     got, want = shard_arrays(tmp_path), shard_arrays(reference[0])
     for key in want:
         np.testing.assert_array_equal(got[key], want[key], err_msg=key)
+
+
+def test_workers_get_runs_of_tasks_long_enough_to_overlap():
+    """Each worker call takes a run of tasks (so preparing and writing overlap the rendering),
+    at most 8 and at least one, every task exactly once, in order."""
+    for tasks, workers in ((list(range(240)), 8), (list(range(2)), 2), (list(range(7)), 1), ([], 3)):
+        runs = gen.chains(tasks, workers)
+        assert [t for run in runs for t in run] == tasks
+        assert all(1 <= len(run) <= 8 for run in runs)
+        if len(tasks) >= 2 * workers:
+            assert len(runs) >= workers and min(map(len, runs[:-1])) >= 2
