@@ -15,6 +15,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
+import warp as wp
 from tqdm.auto import tqdm
 
 from scenes import Scene
@@ -112,7 +113,11 @@ class Sonar:
         former = beamformer(
             assumed_array or self.config, samples=self.config.record_samples, processing=processing, device=self.device
         )
-        images = np.empty((len(poses), *former.output_shape), dtype=np.float32)
+        # On a GPU the energyscapes go straight into page-locked host memory, each batch by an
+        # asynchronous copy that the next batch's work queues behind: no pageable staging, no host
+        # copy between batches (the GPU idled ~22 % of the time in both, profile_sonar.py).
+        host = wp.empty((len(poses), *former.output_shape), dtype=float, device="cpu", pinned=self.device.is_cuda)
+        images = host.numpy()
         kept = None
         if keep_signals:
             kept = np.empty((len(poses), self.config.microphone_count, self.config.record_samples), np.float32)
@@ -122,11 +127,14 @@ class Sonar:
             """Record and beamform rows first..last-1 of a traced batch (each ping on its own)."""
             rows = [e.rows(first, last) for e in echoes.buffers()]
             signals = recorder(rows, last - first, noise=noise, snr_db=snr_db, seeds=seeds[first:last])
-            out = former(signals).numpy().reshape(last - first, *former.output_shape)
-            mine = keep[first:last]
-            images[index[first:last][mine]] = out[mine]
+            out = former(signals).reshape((last - first, *former.output_shape))
+            mine, at = keep[first:last], index[first:last]
+            if mine.all() and at[-1] - at[0] == len(at) - 1:  # consecutive poses: one copy into place
+                wp.copy(host[int(at[0]) : int(at[-1]) + 1], out)
+            else:  # a batch with rows to trace again
+                images[at[mine]] = out.numpy()[mine]
             if kept is not None:
-                kept[index[first:last][mine]] = signals.numpy()[mine]
+                kept[at[mine]] = signals.numpy()[mine]
 
         bar = tqdm(total=len(poses), unit="ping", disable=not progress, desc="sonar")
         with ThreadPoolExecutor(threads) as pool:
@@ -139,6 +147,7 @@ class Sonar:
                 bar.update(int(keep.sum()))
                 if on_pings:
                     on_pings(int(keep.sum()))
+        wp.synchronize_device(self.device)  # the last copies into `images`
         bar.close()
         return SonarFrames(energyscape=images, signals=kept)
 
