@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import threading
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -113,11 +114,10 @@ class Sonar:
         former = beamformer(
             assumed_array or self.config, samples=self.config.record_samples, processing=processing, device=self.device
         )
-        # On a GPU the energyscapes go straight into page-locked host memory, each batch by an
-        # asynchronous copy that the next batch's work queues behind: no pageable staging, no host
-        # copy between batches (the GPU idled ~22 % of the time in both, profile_sonar.py).
-        host = wp.empty((len(poses), *former.output_shape), dtype=float, device="cpu", pinned=self.device.is_cuda)
-        images = host.numpy()
+        images = np.empty((len(poses), *former.output_shape), dtype=np.float32)
+        copies = batch_copies(self.device, (batch, *former.output_shape)) if self.device.is_cuda else None
+        if copies is not None:
+            copies.drop()  # a batch left by a call that failed midway
         kept = None
         if keep_signals:
             kept = np.empty((len(poses), self.config.microphone_count, self.config.record_samples), np.float32)
@@ -129,9 +129,9 @@ class Sonar:
             signals = recorder(rows, last - first, noise=noise, snr_db=snr_db, seeds=seeds[first:last])
             out = former(signals).reshape((last - first, *former.output_shape))
             mine, at = keep[first:last], index[first:last]
-            if mine.all() and at[-1] - at[0] == len(at) - 1:  # consecutive poses: one copy into place
-                wp.copy(host[int(at[0]) : int(at[-1]) + 1], out)
-            else:  # a batch with rows to trace again
+            if copies is not None and mine.all():
+                copies.put(out, at, images)
+            else:  # CPU (out is host memory already), or a GPU batch with rows to trace again
                 images[at[mine]] = out.numpy()[mine]
             if kept is not None:
                 kept[at[mine]] = signals.numpy()[mine]
@@ -147,9 +147,64 @@ class Sonar:
                 bar.update(int(keep.sum()))
                 if on_pings:
                     on_pings(int(keep.sum()))
-        wp.synchronize_device(self.device)  # the last copies into `images`
+        if copies is not None:
+            copies.land(images)
         bar.close()
         return SonarFrames(energyscape=images, signals=kept)
+
+
+class BatchCopies:
+    """A GPU's energyscapes to host memory behind its computation: each batch is copied on a side
+    stream into one of two reused page-locked buffers while the next batch computes, then moved
+    into its rows on the host. Device-to-host copies on the lent H100 ran at ~1.6 GB/s, pinned or
+    not (28 ms per batch of 256 pings, a fifth of the GPU time in line); overlapped, they cost none.
+    """
+
+    def __init__(self, device, shape: tuple[int, ...]):
+        self.stream = wp.Stream(device)
+        self.buffers = [wp.empty(shape, dtype=float, device="cpu", pinned=True) for _ in range(2)]
+        self.pending = None  # (event, device array kept alive until copied, buffer, destination rows)
+        self.turn = 0
+
+    def put(self, out: wp.array, rows: np.ndarray, images: np.ndarray) -> None:
+        """Queue the copy of `out` (n, ...) for images[rows] after the work queued so far, then land
+        the batch before (its copy ran beside this batch's computation)."""
+        buffer = self.buffers[self.turn]
+        self.turn ^= 1
+        self.stream.wait_stream(wp.get_stream(out.device))
+        wp.copy(buffer[: out.shape[0]], out, stream=self.stream)
+        previous, self.pending = self.pending, (self.stream.record_event(), out, buffer, rows)
+        if previous is not None:
+            self._land(previous, images)
+
+    def land(self, images: np.ndarray) -> None:
+        """Wait for the last queued batch and move it into place."""
+        if self.pending is not None:
+            self._land(self.pending, images)
+            self.pending = None
+
+    def drop(self) -> None:
+        """Forget a queued batch (once its copy is done, so its buffer can be reused)."""
+        if self.pending is not None:
+            wp.synchronize_event(self.pending[0])
+            self.pending = None
+
+    @staticmethod
+    def _land(pending, images: np.ndarray) -> None:
+        event, _, buffer, rows = pending
+        wp.synchronize_event(event)
+        images[rows] = buffer.numpy()[: len(rows)]
+
+
+@functools.lru_cache(maxsize=4)
+def _batch_copies(device: str, shape: tuple[int, ...], thread: int) -> BatchCopies:
+    return BatchCopies(device, shape)
+
+
+def batch_copies(device, shape: tuple[int, ...]) -> BatchCopies:
+    """Reused BatchCopies for a device and batch shape (page-locked memory is slow to allocate);
+    one per thread, so that two threads simulating on one GPU never share buffers."""
+    return _batch_copies(str(device), tuple(shape), threading.get_ident())
 
 
 @dataclass

@@ -145,6 +145,20 @@ def test_pings_that_overflow_the_sequence_table_are_traced_again_larger(device):
     assert len(want.for_pose(0)) > 0 and len(want.for_pose(1)) > 16 and len(want.for_pose(2)) == 0
 
 
+def test_simulate_equals_trace_record_energyscape_step_by_step(device):
+    """`simulate` (echoes, signals and images left on the device, batch after batch; on a GPU the
+    images come back on a side stream behind the next batch) gives the energyscapes of the
+    host-side chain trace -> record -> energyscape, for 5 poses in batches of 2 (the last one
+    short), with noise seeded per ping."""
+    room = scenes.box_room(tuple(SIZE))
+    poses = np.stack([scenes.pose(1.0 + 0.8 * i, 2.0, 0.3 * i, 1.0) for i in range(5)])
+    sonar = Sonar(OMNI, max_bounces=2, ray_count=3_000, device=device)
+    want = sonar.energyscape(sonar.record(sonar.trace(room, poses), pose_count=5, noise="gaussian", seed=3))
+    for batch in (2, 5):
+        got = sonar.simulate(room, poses, batch=batch, noise="gaussian", seed=3).energyscape
+        np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5 * want.max())
+
+
 def test_cpu_threads_split_a_batch_without_changing_a_sample(device):
     """On the CPU a batch's pings are traced, recorded and beamformed in threads (uneven slices
     of 5 pings over 3 threads, noise seeded per ping): arrivals, signals and energyscapes equal
