@@ -80,19 +80,14 @@ def _write(tmp: Path, frames: ShardFrames, *, attrs: dict, range_m: np.ndarray, 
         f.attrs["frame_count"] = frames.frame_count
         for key, value in attrs.items():
             f.attrs[key] = json.dumps(value) if isinstance(value, dict | list) else value
-        chunk = (1, len(range_m), len(azimuth_rad))
-        escape = f.create_dataset(
-            "energyscape", data=cat(frames.energyscape).astype(np.float16), chunks=chunk, **COMPRESSION
-        )
+        escape = _rows(f, "energyscape", cat(frames.energyscape).astype(np.float16))
         escape.attrs["dims"] = "frame, range, azimuth"
         escape.attrs["description"] = "beamformed echo envelope (linear, pressure re the call at 1 m)"
         f.create_dataset("range_m", data=range_m, **CHECKSUM).attrs["units"] = "m"
         f.create_dataset("azimuth_rad", data=azimuth_rad, **CHECKSUM).attrs["units"] = "rad, 0 ahead, + to the left"
         ranges = f.create_dataset("lidar/ranges", data=cat(frames.lidar_ranges).astype(np.float32), **COMPRESSION)
         ranges.attrs["units"] = "m, inf = no return"
-        image = f.create_dataset(
-            "lidar/image", data=cat(frames.lidar_image).astype(np.uint8), chunks=chunk, **COMPRESSION
-        )
+        image = _rows(f, "lidar/image", cat(frames.lidar_image).astype(np.uint8))
         image.attrs["dims"] = "frame, range, azimuth"
         image.attrs["description"] = "1 where a LiDAR return falls in the cell (the label)"
         f.create_dataset("pose", data=cat(frames.pose), **CHECKSUM).attrs["description"] = "4x4 sensor-to-world, z up"
@@ -100,14 +95,23 @@ def _write(tmp: Path, frames: ShardFrames, *, attrs: dict, range_m: np.ndarray, 
         f.create_dataset("episode", data=cat(frames.episode).astype(np.int32), **CHECKSUM)
         f.create_dataset("scenario", data=cat(frames.scenario).astype(np.int16), **CHECKSUM)
         if frames.signals:
-            signals = cat(frames.signals).astype(np.float16)
-            f.create_dataset("signals", data=signals, chunks=(1, *signals.shape[1:]), **COMPRESSION)
+            _rows(f, "signals", cat(frames.signals).astype(np.float16))
             f["signals"].attrs["dims"] = "frame, microphone, sample"
         if frames.arrivals:
             group = f.create_group("arrivals")
             for key in frames.arrivals[0]:
                 group.create_dataset(key, data=cat([a[key] for a in frames.arrivals]), **COMPRESSION)
             group.attrs["description"] = "one row per echo; `frame` indexes the shard's frames"
+
+
+def _rows(f: h5py.File, name: str, array: np.ndarray) -> h5py.Dataset:
+    """A compressed dataset chunked by frame, its chunks compressed on every core (`chunks`)."""
+    from .chunks import write_rows
+    from .devices import cpu_cores
+
+    dataset = f.create_dataset(name, shape=array.shape, dtype=array.dtype, chunks=(1, *array.shape[1:]), **COMPRESSION)
+    write_rows(dataset, array, cpu_cores())
+    return dataset
 
 
 def read_attrs(path: Path) -> dict:

@@ -1,0 +1,76 @@
+"""Chunks compressed in threads (acoustic_sim.chunks) against HDF5's own filter pipeline: the
+checksum HDF5 stores, the data h5py reads back (and verifies), refusals for what is not handled."""
+
+import h5py
+import numpy as np
+import pytest
+
+from acoustic_sim.chunks import encode, fletcher32, pipeline, write_rows
+from acoustic_sim.dataset import COMPRESSION
+
+
+@pytest.mark.parametrize(
+    "raw",
+    [
+        bytes(range(7)),  # an odd byte count
+        np.random.default_rng(0).integers(0, 256, 720).astype(np.uint8).tobytes(),  # exactly one block of words
+        np.random.default_rng(1).integers(0, 256, 5001).astype(np.uint8).tobytes(),  # blocks and a rest, odd
+        b"\xff" * 4000,  # the largest words: the sums wrap and fold
+    ],
+    ids=["odd", "one-block", "many-blocks", "all-ones"],
+)
+def test_fletcher32_is_the_checksum_hdf5_stores(tmp_path, raw):
+    """HDF5 appends its Fletcher-32 (little-endian) to each chunk it stores; ours of the chunk's
+    bytes equals it, for odd sizes, whole blocks and words that make the sums wrap."""
+    with h5py.File(tmp_path / "f.h5", "w") as f:
+        data = np.frombuffer(raw, np.uint8)
+        dataset = f.create_dataset("x", data=data, chunks=(len(data),), fletcher32=True)
+        _, stored = dataset.id.read_direct_chunk((0,))
+    assert stored[:-4] == raw
+    assert fletcher32(raw) == int.from_bytes(stored[-4:], "little")
+    assert fletcher32(raw) != fletcher32(raw[:-1] + bytes([raw[-1] ^ 1]))  # one flipped bit shows
+
+
+@pytest.mark.parametrize("dtype", [np.float16, np.uint8])
+def test_rows_written_in_threads_read_back_through_hdf5(tmp_path, dtype):
+    """A shard-like dataset (shuffle, gzip 1, Fletcher-32, one chunk per frame) written with
+    `write_rows` in 3 threads reads back equal through h5py, which inflates, unshuffles and checks
+    every chunk's checksum; the stored chunks are as large as HDF5's own for the same data."""
+    rng = np.random.default_rng(2)
+    array = (rng.random((9, 24, 18)) * (3.0 if dtype == np.float16 else 1.5)).astype(dtype)
+    with h5py.File(tmp_path / "f.h5", "w") as f:
+        ours = f.create_dataset("ours", shape=array.shape, dtype=dtype, chunks=(1, 24, 18), **COMPRESSION)
+        write_rows(ours, array, threads=3)
+        theirs = f.create_dataset("theirs", data=array, chunks=(1, 24, 18), **COMPRESSION)
+        sizes = [
+            (len(ours.id.read_direct_chunk((i, 0, 0))[1]), len(theirs.id.read_direct_chunk((i, 0, 0))[1]))
+            for i in range(9)
+        ]
+    with h5py.File(tmp_path / "f.h5", "r") as f:
+        np.testing.assert_array_equal(f["ours"][()], array)
+    assert all(abs(a - b) <= 8 for a, b in sizes), sizes  # same filters: a zlib build's few bytes at most
+
+
+def test_a_damaged_chunk_fails_its_checksum(tmp_path):
+    """A bit flipped in the checksum of a chunk we wrote is caught by HDF5 on reading: the check is real."""
+    array = np.arange(2 * 50, dtype=np.float16).reshape(2, 50)
+    with h5py.File(tmp_path / "f.h5", "w") as f:
+        dataset = f.create_dataset("x", shape=array.shape, dtype=array.dtype, chunks=(1, 50), **COMPRESSION)
+        data = bytearray(encode(array[1], pipeline(dataset)))
+        data[-1] ^= 0x10  # in the stored checksum: the deflated data still inflates
+        dataset.id.write_direct_chunk((0, 0), encode(array[0], pipeline(dataset)))
+        dataset.id.write_direct_chunk((1, 0), bytes(data))
+    with h5py.File(tmp_path / "f.h5", "r") as f:
+        np.testing.assert_array_equal(f["x"][0], array[0])
+        with pytest.raises(OSError):
+            f["x"][1]
+
+
+def test_what_is_not_handled_is_refused(tmp_path):
+    with h5py.File(tmp_path / "f.h5", "w") as f:
+        lzf = f.create_dataset("lzf", shape=(2, 4), dtype=np.float32, chunks=(1, 4), compression="lzf")
+        with pytest.raises(ValueError, match="not applied here"):
+            write_rows(lzf, np.zeros((2, 4), np.float32), threads=2)
+        whole = f.create_dataset("whole", shape=(2, 4), dtype=np.float32, chunks=(2, 4), **COMPRESSION)
+        with pytest.raises(ValueError, match="chunks of one row"):
+            write_rows(whole, np.zeros((2, 4), np.float32), threads=2)
