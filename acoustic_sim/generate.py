@@ -35,6 +35,7 @@ from .suites import Suite
 
 PLAN_FILE = "plan.json"
 LOCK_FILE = ".generate.lock"  # "pid host" of the run writing the folder
+PARTS = ("prepare", "lidar", "sonar", "write", "waiting")  # where a run's time goes (run_tasks)
 
 
 def run_tasks(tasks: list[ShardTask], device=None, on_frames=None, *, overlap: bool = True) -> tuple[list[dict], dict]:
@@ -56,7 +57,7 @@ def run_tasks(tasks: list[ShardTask], device=None, on_frames=None, *, overlap: b
         physics = Physics(**task.physics)
         rigs[task.path] = physics, rig(physics, tuple(task.suite.get("settings", ())))
     jobs = [(task, episode) for task in tasks for episode in task.episodes]
-    seconds = dict.fromkeys(("prepare", "lidar", "sonar", "write", "waiting"), 0.0)
+    seconds = dict.fromkeys(PARTS, 0.0)
 
     def prepare(i: int):
         t0 = time.perf_counter()
@@ -76,6 +77,11 @@ def run_tasks(tasks: list[ShardTask], device=None, on_frames=None, *, overlap: b
         return value, took
 
     entries = []
+
+    def wrote(entry: dict, took: float) -> None:
+        entries.append(entry)
+        seconds["write"] += took
+
     with ThreadPoolExecutor(1) as preparer, ThreadPoolExecutor(1) as writer:
         ahead = preparer.submit(prepare, 0) if overlap and jobs else None
         writing = None
@@ -84,12 +90,13 @@ def run_tasks(tasks: list[ShardTask], device=None, on_frames=None, *, overlap: b
             physics, nominal = rigs[task.path]
             frames, records = ShardFrames(), []
             for episode in task.episodes:
+                ready = episode  # simulate_episode prepares it, unless the preparer has
                 if overlap:
-                    episode, took = collect(ahead)
+                    ready, took = collect(ahead)
                     seconds["prepare"] += took
                     ahead = preparer.submit(prepare, i + 1) if i + 1 < len(jobs) else None
                 arrays, record = simulate_episode(
-                    episode,
+                    ready,
                     physics,
                     nominal,
                     task.suite,
@@ -99,24 +106,18 @@ def run_tasks(tasks: list[ShardTask], device=None, on_frames=None, *, overlap: b
                     on_frames=on_frames,
                     seconds=seconds,
                 )
-                _add_episode(frames, arrays, jobs[i][1], task)
+                _add_episode(frames, arrays, episode, task)
                 records.append(record)
                 i += 1
-            if writing is not None:
-                entry, took = collect(writing)
-                entries.append(entry)
-                seconds["write"] += took
+            if writing is not None:  # one write in flight
+                wrote(*collect(writing))
                 writing = None
             if overlap:
                 writing = writer.submit(write, task, frames, records)
             else:
-                entry, took = write(task, frames, records)
-                entries.append(entry)
-                seconds["write"] += took
+                wrote(*write(task, frames, records))
         if writing is not None:
-            entry, took = collect(writing)
-            entries.append(entry)
-            seconds["write"] += took
+            wrote(*collect(writing))
     return entries, seconds
 
 
@@ -340,7 +341,7 @@ def generate(
         bar = tqdm(total=sum(t.frame_count for t in tasks), initial=done_frames, unit="frame", disable=not progress)
         bar.set_description(f"{suite.name}")
         devices = worker_devices(device, workers)
-        parts = dict.fromkeys(("prepare", "lidar", "sonar", "write", "waiting"), 0.0)
+        parts = dict.fromkeys(PARTS, 0.0)
 
         def add(seconds: dict) -> None:
             for k, v in seconds.items():

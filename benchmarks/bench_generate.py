@@ -27,10 +27,8 @@ import warp as wp
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from acoustic_sim.generate import generate  # noqa: E402
+from acoustic_sim.generate import PARTS, generate  # noqa: E402
 from acoustic_sim.suites import load_suite  # noqa: E402
-
-PARTS = ("prepare", "lidar", "sonar", "write", "waiting")
 
 
 def timed_runs(suite, device, tmp: Path, args, workers: int, overlap: bool) -> dict:

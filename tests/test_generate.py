@@ -144,7 +144,7 @@ def test_overlapped_parts_change_nothing_but_the_time(reference, tmp_path, devic
             np.testing.assert_array_equal(got[key], want[key], err_msg=f"{folder}: {key}")
     for summary in (overlapped, in_turn):
         parts = summary["seconds_by_part"]
-        assert set(parts) == {"prepare", "lidar", "sonar", "write", "waiting"}
+        assert set(parts) == set(gen.PARTS) == {"prepare", "lidar", "sonar", "write", "waiting"}
         assert all(parts[k] > 0 for k in ("prepare", "lidar", "sonar", "write"))
         assert parts["lidar"] + parts["sonar"] < summary["seconds"]
     assert in_turn["seconds_by_part"]["waiting"] == 0
