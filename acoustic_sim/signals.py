@@ -136,26 +136,29 @@ class Recorder:
             self._mic_delay = wp.array((config.channel_delay_s() * fs).astype(np.float32), dtype=float)
         self._convolve = kernels.node_convolution(size)
 
-    def __call__(
-        self, echoes, pings: int, *, noise: str = "none", snr_db: float = 40.0, seeds: np.ndarray | None = None
-    ) -> wp.array:
-        """Signals (pings, mics, record_samples) float32 on the device."""
-        if noise not in NOISE_KINDS:
-            raise ValueError(f"noise must be one of {NOISE_KINDS}, got {noise!r}")
+    def impulses(self, echoes, pings: int, *, taps_per_thread: int | None = None) -> wp.array:
+        """The echoes' fractional-delay impulses, fixed point (2^32 per unit amplitude), int64.
+
+        Row p * 2 * pairs + m is ping p's microphone m (pairs = ceil(mics / 2)); column
+        `block` + n is sample n. Before them one block of zeros (node 0 reaches back one block),
+        after them room for the last node's FFT. `taps_per_thread` (1 on a GPU, DELAY_TAPS on a
+        CPU by default) changes the speed only, not a bit of the result.
+        """
         cfg = self.config
         mics = cfg.microphone_count
-        pairs = (mics + 1) // 2
-        samples = cfg.record_samples
-        zeros, empty, launch, launch_tiled = device_calls(self.device)  # runs in worker threads too
-        # Row: one block of zeros (node 0 reaches back one block), the samples, room for
-        # the last node's FFT.
-        impulses = zeros((pings * 2 * pairs, (self.nodes - 1) * self.block + self._size), dtype=wp.int64)
+        zeros, _, launch, _ = device_calls(self.device)
+        rows = pings * 2 * ((mics + 1) // 2)
+        impulses = zeros((rows, (self.nodes - 1) * self.block + self._size), dtype=wp.int64)
+        if taps_per_thread is None:  # see the kernel: atomics bound a GPU, arithmetic a CPU
+            taps_per_thread = 1 if self.device.is_cuda else DELAY_TAPS
+        if DELAY_TAPS % taps_per_thread:
+            raise ValueError(f"taps_per_thread must divide {DELAY_TAPS}, got {taps_per_thread}")
         for e in echoes:
             if e.slots == 0:
                 continue
             launch(
                 kernels.accumulate_echoes,
-                dim=(pings, e.slots, mics),
+                dim=(pings, e.slots, mics * DELAY_TAPS // taps_per_thread),
                 inputs=[
                     e.source,
                     e.extra_length,
@@ -167,11 +170,26 @@ class Recorder:
                     cfg.chirp.sample_rate_hz / cfg.atmosphere.speed_of_sound,
                     self._absorption_per_m,
                     self._taps,
-                    samples,
+                    taps_per_thread,
+                    cfg.record_samples,
                     self.block,
                 ],
                 outputs=[impulses],
             )
+        return impulses
+
+    def __call__(
+        self, echoes, pings: int, *, noise: str = "none", snr_db: float = 40.0, seeds: np.ndarray | None = None
+    ) -> wp.array:
+        """Signals (pings, mics, record_samples) float32 on the device."""
+        if noise not in NOISE_KINDS:
+            raise ValueError(f"noise must be one of {NOISE_KINDS}, got {noise!r}")
+        cfg = self.config
+        mics = cfg.microphone_count
+        pairs = (mics + 1) // 2
+        samples = cfg.record_samples
+        zeros, empty, launch, launch_tiled = device_calls(self.device)  # runs in worker threads too
+        impulses = self.impulses(echoes, pings)
         nodes = empty((pings * pairs * self.nodes, self._size), dtype=wp.vec2f)
         launch_tiled(
             self._convolve,

@@ -74,6 +74,61 @@ def test_channel_gain_and_delay_mismatch(device):
         sim.SonarConfig.ertis(microphone_gain=(1.0, 2.0))
 
 
+def test_impulses_of_many_echoes_match_a_per_tap_reference(device):
+    """Three pings of up to 60 echoes each (one ping silent), a mismatched array and air
+    absorption: the fixed-point impulse rows equal the fractional-delay taps written out in
+    float64 for every echo, microphone and tap, within the float32 rounding of the delay
+    (2e-3 of the amplitude), and bit for bit alike with 1, 2 or 8 taps per thread. Catches a tap,
+    microphone row or ping row put in the wrong place.
+    Echoes within 1e-3 sample of a whole sample at some microphone are left out: there float32
+    and float64 may round to neighbouring samples, whose (equally valid) filters differ."""
+    from acoustic_sim.signals import FRACTION_STEPS, Recorder, echo_buffer, fractional_delay_table
+
+    rng = np.random.default_rng(11)
+    gain, delay = rng.uniform(0.5, 1.5, 32), rng.uniform(0.0, 20e-6, 32)
+    config = sim.SonarConfig.ertis(microphone_gain=tuple(gain), microphone_delay_s=tuple(delay))
+    mics = np.asarray(config.microphones_m)
+    pose = np.repeat([0, 2], [60, 35])  # ping 1 has no echo
+    source = rng.uniform([0.3, -2, -1], [4, 2, 1], (len(pose), 3))
+    extra = np.where(rng.random(len(pose)) < 0.5, rng.uniform(0, 3, len(pose)), 0.0)
+    path = extra[:, None] + np.linalg.norm(source[:, None] - mics[None], axis=2)
+    at = path * FS / C + delay[None] * FS  # (echo, mic) arrival in samples
+    clear = (np.abs(at - np.round(at)) > 1e-3).all(axis=1)
+    pose, source, extra, path, at = pose[clear], source[clear], extra[clear], path[clear], at[clear]
+    n = len(pose)
+    length = np.linalg.norm(source, axis=1) + extra
+    amplitude = rng.uniform(0.01, 1.0, n)
+    arrivals = Arrivals(
+        pose_index=pose,
+        delay_s=length / C,
+        direction=source / np.linalg.norm(source, axis=1, keepdims=True),
+        amplitude=amplitude,
+        order=np.ones(n, np.int64),
+        kind=np.full(n, KIND_SPECULAR),
+        source_m=source,
+        length_m=length,
+        point_m=source,
+    )
+    rec = Recorder(config, device=device)
+    echoes = [echo_buffer(arrivals, 3, rec.device)]
+    got = rec.impulses(echoes, 3).numpy().astype(np.float64) / 2.0**32
+    for taps_per_thread in (1, 2, 8):  # the GPU's and the CPU's thread layouts, and one between
+        assert np.array_equal(rec.impulses(echoes, 3, taps_per_thread=taps_per_thread).numpy() / 2.0**32, got)
+
+    taps = fractional_delay_table(config).astype(np.float64)
+    expected = np.zeros_like(got)
+    first = np.floor(at).astype(int)
+    v = (at - first) * FRACTION_STEPS
+    i = np.minimum(v.astype(int), FRACTION_STEPS - 1)
+    w = (1 - (v - i))[..., None] * taps[i] + (v - i)[..., None] * taps[i + 1]  # (echo, mic, tap)
+    scale = amplitude[:, None] * gain[None] * np.exp(-rec._absorption_per_m * path)
+    rows = pose[:, None] * 32 + np.arange(32)[None]
+    columns = rec.block + first[..., None] - len(taps[0]) // 2 + 1 + np.arange(len(taps[0]))
+    np.add.at(expected, (rows[..., None].repeat(8, -1), columns), w * scale[..., None])
+    assert np.abs(expected).max() > 0.1 and not got[32:64].any()
+    np.testing.assert_allclose(got, expected, rtol=0, atol=2e-3)
+
+
 def test_scattered_arrivals_add_their_path_to_the_source_point(device):
     """An arrival whose path reaches its source point after 2 m more arrives 2 m / c later."""
     near = record(single_arrival([1.0, 0.0, 0.0]), CONFIG, absorption=False, device=device)
