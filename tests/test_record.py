@@ -114,6 +114,9 @@ def test_impulses_of_many_echoes_match_a_per_tap_reference(device):
     got = rec.impulses(echoes, 3).numpy().astype(np.float64) / 2.0**32
     for taps_per_thread in (1, 2, 8):  # the GPU's and the CPU's thread layouts, and one between
         assert np.array_equal(rec.impulses(echoes, 3, taps_per_thread=taps_per_thread).numpy() / 2.0**32, got)
+    assert np.array_equal(rec.impulses(echoes, 3, method="binned").numpy() / 2.0**32, got)
+    rec._margin = 2  # a window too narrow: the taps outside it take the direct path, same bits
+    assert np.array_equal(rec.impulses(echoes, 3, method="binned").numpy() / 2.0**32, got)
 
     taps = fractional_delay_table(config).astype(np.float64)
     expected = np.zeros_like(got)
