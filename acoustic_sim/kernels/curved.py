@@ -102,10 +102,10 @@ def curved_echoes(
         return
     start = point + n * SURFACE_STEP
     queries = int(1)
-    blocked = wp.mesh_query_ray(mesh, start, wp.normalize(e - start), wp.length(e - start)).result
+    blocked = wp.mesh_query_ray_anyhit(mesh, start, wp.normalize(e - start), wp.length(e - start), -1)
     if not blocked:
         queries += 1
-        blocked = wp.mesh_query_ray(mesh, start, wp.normalize(r - start), wp.length(r - start)).result
+        blocked = wp.mesh_query_ray_anyhit(mesh, start, wp.normalize(r - start), wp.length(r - start), -1)
     wp.atomic_add(ray_queries_out, p, queries)
     emit = wp.normalize(wp.transform_vector(inverse, point - e))
     if blocked or emit[0] < -BAFFLE_SLACK:  # the emitter is baffled: nothing leaves it backwards

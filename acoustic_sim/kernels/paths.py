@@ -57,8 +57,8 @@ def scattered_hit(
     if cosine <= 0.0:
         return 0
     start = hit + front * SURFACE_STEP
-    q = wp.mesh_query_ray(mesh, start, wp.normalize(receiver - start), wp.length(receiver - start))
-    if q.result:
+    # Only whether anything is in the way matters: any hit ends the search (no closest hit needed).
+    if wp.mesh_query_ray_anyhit(mesh, start, wp.normalize(receiver - start), wp.length(receiver - start), -1):
         return 1
     slot = wp.atomic_add(count_inout, p, 1)
     if slot < capacity:
@@ -338,10 +338,12 @@ def validate_sequences(
         distance = wp.length(leg)
         direction = leg / distance
         emit = wp.normalize(wp.transform_vector(inverse, -direction))
-        q = wp.mesh_query_ray(mesh, x + direction * SURFACE_STEP, direction, distance - 2.0 * SURFACE_STEP)
+        blocked = wp.mesh_query_ray_anyhit(
+            mesh, x + direction * SURFACE_STEP, direction, distance - 2.0 * SURFACE_STEP, -1
+        )
         queries += 1
         # The emitter is baffled in the sensor's y-z plane: nothing leaves it backwards.
-        if not q.result and emit[0] >= -BAFFLE_SLACK:
+        if not blocked and emit[0] >= -BAFFLE_SLACK:
             amplitude_out[p, s] = gain * lookup(directivity, emit[0]) / wp.length(image - receiver)
             image_out[p, s] = wp.transform_point(inverse, image)
             arrival_dir_out[p, s] = wp.normalize(wp.transform_vector(inverse, arrival))
