@@ -219,8 +219,9 @@ class PathTracer:
             for table in (b.key, specular.order, b.planes, b.image_table, b.overflow, b.ray_queries, scattered.count):
                 table.zero_()
             b.image_rank.fill_(kernels.RANK_NONE)
+            # Checked after the trace is queued: one wait for the GPU per batch, not two (a bad pose
+            # still raises before any of its echoes are used).
             wp.launch(lidar_kernels.pose_error, dim=n, inputs=[ws.mesh.id, b.poses], outputs=[b.errors, b.behind])
-            check_pose_results(b.errors.numpy(), b.behind.numpy())
             curved = self._curved_buffers_for(n, ws.curved.count)
             launch = device_calls(self.device)[2]  # trace_rows runs in worker threads too
 
@@ -336,5 +337,6 @@ class PathTracer:
             else:  # Warp runs a CPU launch on one core: slices of the batch in threads use them all
                 with ThreadPoolExecutor(threads) as pool:
                     list(pool.map(trace_rows, edges[:-1], edges[1:]))  # list(): raise a thread's error here
+        check_pose_results(b.errors.numpy(), b.behind.numpy())
         traced = TracedEchoes(specular=specular, scattered=scattered, curved=curved, ray_queries=b.ray_queries)
         return traced, b.overflow.numpy().copy()
