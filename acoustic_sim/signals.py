@@ -18,8 +18,6 @@ from .kernels import signals as kernels
 # the rows of its table.
 DELAY_TAPS = 8
 FRACTION_STEPS = 32
-# Time bin of the "binned" impulse accumulation [samples]: a bin's echoes are summed in shared memory.
-BIN_SAMPLES = 256
 # Smallest FFT of an absorption node [samples]: kernels.NODE_BLOCKS blocks of 1,024 samples (larger
 # for calls longer than half of it).
 NODE_FFT_MIN_SIZE = 4096
@@ -136,99 +134,41 @@ class Recorder:
             self._mics = wp.array(np.asarray(config.microphones_m, dtype=np.float32), dtype=wp.vec3)
             self._mic_gain = wp.array(config.channel_gain().astype(np.float32), dtype=float)
             self._mic_delay = wp.array((config.channel_delay_s() * fs).astype(np.float32), dtype=float)
-        # Binned accumulation: delays are binned at the array's centre; every microphone hears an
-        # echo within `_margin` samples of that (spread of the array, channel delays, half the taps).
-        mics = np.asarray(config.microphones_m, dtype=np.float64)
-        centre = mics.mean(axis=0)
-        spread = np.linalg.norm(mics - centre, axis=1).max() * fs / c + np.abs(config.channel_delay_s() * fs).max()
-        self._centre = wp.vec3(*centre.astype(np.float32))
-        self._margin = int(np.ceil(spread)) + DELAY_TAPS // 2 + 2
         self._convolve = kernels.node_convolution(size)
 
-    def impulses(
-        self, echoes, pings: int, *, method: str | None = None, taps_per_thread: int | None = None
-    ) -> wp.array:
+    def impulses(self, echoes, pings: int) -> wp.array:
         """The echoes' fractional-delay impulses, fixed point (2^32 per unit amplitude), int64.
 
         Row p * 2 * pairs + m is ping p's microphone m (pairs = ceil(mics / 2)); column
         `block` + n is sample n. Before them one block of zeros (node 0 reaches back one block),
         after them room for the last node's FFT.
-
-        `method` and `taps_per_thread` change the speed only, not a bit of the result: "atomic"
-        adds every tap to these rows with a global atomic (`taps_per_thread` of them per thread:
-        1 on a GPU, DELAY_TAPS on a CPU by default); "binned" sums the echoes of each ping and
-        time bin in shared memory first.
         """
         cfg = self.config
         mics = cfg.microphone_count
-        zeros, empty, launch, launch_tiled = device_calls(self.device)
+        zeros, _, launch, _ = device_calls(self.device)
         rows = pings * 2 * ((mics + 1) // 2)
         impulses = zeros((rows, (self.nodes - 1) * self.block + self._size), dtype=wp.int64)
-        method = method or "atomic"
-        if taps_per_thread is None:  # see the kernel: atomics bound a GPU, arithmetic a CPU
-            taps_per_thread = 1 if self.device.is_cuda else DELAY_TAPS
-        if DELAY_TAPS % taps_per_thread:
-            raise ValueError(f"taps_per_thread must divide {DELAY_TAPS}, got {taps_per_thread}")
-        samples_per_m = cfg.chirp.sample_rate_hz / cfg.atmosphere.speed_of_sound
-        shared = [self._mics, self._mic_gain, self._mic_delay, samples_per_m, self._absorption_per_m, self._taps]
         for e in echoes:
             if e.slots == 0:
                 continue
-            if method == "atomic":
-                launch(
-                    kernels.accumulate_echoes,
-                    dim=(pings, e.slots, mics * DELAY_TAPS // taps_per_thread),
-                    inputs=[
-                        e.source,
-                        e.extra_length,
-                        e.amplitude,
-                        e.count,
-                        *shared,
-                        taps_per_thread,
-                        cfg.record_samples,
-                        self.block,
-                    ],
-                    outputs=[impulses],
-                )
-                continue
-            bins = -(-cfg.record_samples // BIN_SAMPLES)
-            bin_count = zeros((pings, bins), dtype=wp.int32)
-            bin_of, rank = empty((pings, e.slots), dtype=wp.int32), empty((pings, e.slots), dtype=wp.int32)
             launch(
-                kernels.bin_echoes,
-                dim=(pings, e.slots),
+                kernels.accumulate_echoes,
+                dim=(pings, e.slots, mics),
                 inputs=[
                     e.source,
                     e.extra_length,
                     e.amplitude,
                     e.count,
-                    self._centre,
-                    samples_per_m,
-                    BIN_SAMPLES,
-                    float(cfg.record_samples + self._margin),
-                ],
-                outputs=[bin_of, rank, bin_count],
-            )
-            bin_start = empty(pings * bins, dtype=wp.int32)
-            wp.utils.array_scan(bin_count.flatten(), bin_start, inclusive=False)
-            order = empty(pings * e.slots, dtype=wp.int32)
-            launch(kernels.sort_echoes, dim=(pings, e.slots), inputs=[bin_of, rank, bin_start], outputs=[order])
-            launch_tiled(
-                kernels.binned_accumulation(mics, DELAY_TAPS, BIN_SAMPLES, self._margin),
-                dim=[pings, bins],
-                inputs=[
-                    e.source,
-                    e.extra_length,
-                    e.amplitude,
-                    *shared,
+                    self._mics,
+                    self._mic_gain,
+                    self._mic_delay,
+                    cfg.chirp.sample_rate_hz / cfg.atmosphere.speed_of_sound,
+                    self._absorption_per_m,
+                    self._taps,
                     cfg.record_samples,
                     self.block,
-                    bin_count,
-                    bin_start,
-                    order,
                 ],
                 outputs=[impulses],
-                block_dim=mics * DELAY_TAPS,
             )
         return impulses
 

@@ -78,8 +78,7 @@ def test_impulses_of_many_echoes_match_a_per_tap_reference(device):
     """Three pings of up to 60 echoes each (one ping silent), a mismatched array and air
     absorption: the fixed-point impulse rows equal the fractional-delay taps written out in
     float64 for every echo, microphone and tap, within the float32 rounding of the delay
-    (2e-3 of the amplitude), and bit for bit alike with 1, 2 or 8 taps per thread. Catches a tap,
-    microphone row or ping row put in the wrong place.
+    (2e-3 of the amplitude). Catches a tap, microphone row or ping row put in the wrong place.
     Echoes within 1e-3 sample of a whole sample at some microphone are left out: there float32
     and float64 may round to neighbouring samples, whose (equally valid) filters differ."""
     from acoustic_sim.signals import FRACTION_STEPS, Recorder, echo_buffer, fractional_delay_table
@@ -110,13 +109,7 @@ def test_impulses_of_many_echoes_match_a_per_tap_reference(device):
         point_m=source,
     )
     rec = Recorder(config, device=device)
-    echoes = [echo_buffer(arrivals, 3, rec.device)]
-    got = rec.impulses(echoes, 3).numpy().astype(np.float64) / 2.0**32
-    for taps_per_thread in (1, 2, 8):  # the GPU's and the CPU's thread layouts, and one between
-        assert np.array_equal(rec.impulses(echoes, 3, taps_per_thread=taps_per_thread).numpy() / 2.0**32, got)
-    assert np.array_equal(rec.impulses(echoes, 3, method="binned").numpy() / 2.0**32, got)
-    rec._margin = 2  # a window too narrow: the taps outside it take the direct path, same bits
-    assert np.array_equal(rec.impulses(echoes, 3, method="binned").numpy() / 2.0**32, got)
+    got = rec.impulses([echo_buffer(arrivals, 3, rec.device)], 3).numpy().astype(np.float64) / 2.0**32
 
     taps = fractional_delay_table(config).astype(np.float64)
     expected = np.zeros_like(got)
