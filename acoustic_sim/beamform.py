@@ -152,7 +152,7 @@ class Beamformer:
         images = empty((pings * elevations, *self.grid.shape), dtype=float)
         launch(
             kernels.envelope_on_grid,
-            dim=images.shape,
+            dim=(images.shape[0], images.shape[2], images.shape[1]),
             inputs=[envelope, self.baseband_samples, self._lowpass, self._range_m, self._samples_per_m, elevations],
             outputs=[images],
         )

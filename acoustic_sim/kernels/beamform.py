@@ -144,13 +144,15 @@ def envelope_on_grid(
     # out
     image_out: wp.array3d[float],
 ):
-    """One thread per (ping x elevation, range bin, azimuth); dim = image_out.shape.
+    """One thread per (ping x elevation, azimuth, range bin); dim = (image_out.shape[0],
+    image_out.shape[2], image_out.shape[1]).
 
     The envelope of beam row (p * elevations + e) * azimuths + a, low-passed by the zero-phase FIR
     `lowpass` and interpolated linearly at range r (sample r * samples_per_m); samples at or past
-    `valid` count as zero.
+    `valid` count as zero. Neighbouring threads take neighbouring range bins of one beam, so the
+    FIR's many reads share cache lines (the one write per thread is what strides).
     """
-    pe, r, a = wp.tid()
+    pe, a, r = wp.tid()
     row = pe * image_out.shape[2] + a
     x = range_m[r] * samples_per_m
     k0 = int(wp.floor(x))
