@@ -81,7 +81,7 @@ def test_impulses_of_many_echoes_match_a_per_tap_reference(device):
     (2e-3 of the amplitude). Catches a tap, microphone row or ping row put in the wrong place.
     Echoes within 1e-3 sample of a whole sample at some microphone are left out: there float32
     and float64 may round to neighbouring samples, whose (equally valid) filters differ."""
-    from acoustic_sim.signals import FRACTION_STEPS, Recorder, echo_buffer, fractional_delay_table
+    from acoustic_sim.signals import DELAY_TAPS, FRACTION_STEPS, Recorder, echo_buffer, fractional_delay_table
 
     rng = np.random.default_rng(11)
     gain, delay = rng.uniform(0.5, 1.5, 32), rng.uniform(0.0, 20e-6, 32)
@@ -117,10 +117,12 @@ def test_impulses_of_many_echoes_match_a_per_tap_reference(device):
     v = (at - first) * FRACTION_STEPS
     i = np.minimum(v.astype(int), FRACTION_STEPS - 1)
     w = (1 - (v - i))[..., None] * taps[i] + (v - i)[..., None] * taps[i + 1]  # (echo, mic, tap)
-    scale = amplitude[:, None] * gain[None] * np.exp(-rec._absorption_per_m * path)
+    centre_hz = 0.5 * (config.chirp.start_frequency_hz + config.chirp.stop_frequency_hz)
+    nepers_per_m = air_absorption_db_per_m(centre_hz) * np.log(10) / 20  # ISO 9613-1 at the call's centre
+    scale = amplitude[:, None] * gain[None] * np.exp(-nepers_per_m * path)
     rows = pose[:, None] * 32 + np.arange(32)[None]
-    columns = rec.block + first[..., None] - len(taps[0]) // 2 + 1 + np.arange(len(taps[0]))
-    np.add.at(expected, (rows[..., None].repeat(8, -1), columns), w * scale[..., None])
+    columns = rec.block + first[..., None] - DELAY_TAPS // 2 + 1 + np.arange(DELAY_TAPS)
+    np.add.at(expected, (rows[..., None].repeat(DELAY_TAPS, -1), columns), w * scale[..., None])
     assert np.abs(expected).max() > 0.1 and not got[32:64].any()
     np.testing.assert_allclose(got, expected, rtol=0, atol=2e-3)
 
