@@ -64,11 +64,9 @@ class Arrivals:
 
 @dataclass
 class TraceBuffers:
-    """A batch's device arrays (see `PathTracer._buffers_for`): poses and their checks, the
-    sequence and image tables, counters, and the echoes found."""
+    """A batch's device arrays (see `PathTracer._buffers_for`): pose checks, the sequence and
+    image tables, counters, the echoes found, and host copies of what the host reads."""
 
-    poses: wp.array  # (pings,) mat44 sensor-to-world
-    inverse_poses: wp.array  # (pings,) mat44 world-to-sensor
     errors: wp.array  # (pings,) float, pose_error
     behind: wp.array  # (pings,) int32, pose_error
     key: wp.array  # (pings, size) uint64 sequence hashes, 0 = empty slot
@@ -79,6 +77,8 @@ class TraceBuffers:
     image_rank: wp.array  # (pings, size) int32 lowest sequence rank per image source
     specular: SpecularEchoes
     scattered: PointEchoes
+    curved: PointEchoes  # (pings, curved surfaces) echoes off spheres and cylinders
+    host_checks: tuple[wp.array, wp.array, wp.array]  # errors, behind, overflow (page-locked on GPUs)
 
 
 @dataclass

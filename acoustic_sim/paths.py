@@ -12,7 +12,9 @@ echo.
 from __future__ import annotations
 
 import warnings
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 
 import numpy as np
 import warp as wp
@@ -87,8 +89,7 @@ class PathTracer:
             self._ray_energy = wp.array(ray_energy, dtype=float)
             self._ray_dirs = wp.array(directions.astype(np.float32), dtype=wp.vec3)
             self._directivity = wp.array(pattern.astype(np.float32), dtype=float)
-        self._buffers: dict[tuple[int, int], TraceBuffers] = {}  # (pings, table size) -> buffers
-        self._curved: PointEchoes | None = None  # echoes off curved surfaces, (pings, surfaces)
+        self._buffers: dict = {}  # "key": (pings, table size, curved surfaces), "sets": up to two TraceBuffers
 
     def trace(self, scene: Scene, poses: np.ndarray, *, batch: int = 64) -> Arrivals:
         """Echoes of one ping from each pose, specular and scattered (see the module docstring).
@@ -114,7 +115,12 @@ class PathTracer:
     def traced(self, scene: Scene, poses: np.ndarray, batch: int):
         """Trace checked poses in batches; yields (pose indices, rows to keep, echoes on the device).
 
-        The echoes live in buffers that a later batch reuses: use each before asking for the next.
+        The echoes live in buffers that a later batch reuses: use each (queue the work that reads
+        them) before asking for the next. The batches are pipelined: the next batch is queued
+        before this one's overflow counts are read, so on a GPU the host's wait for them leaves
+        the next trace running, and what the caller queues with this batch's echoes runs behind
+        it (two buffer sets take turns; a set is traced into again only behind the work the
+        caller queued with its echoes, in stream order).
 
         A ping whose sequence table overflowed would miss echoes, and which ones would depend on
         thread order: its row is left out and the ping traced again with twice the slots (in
@@ -124,38 +130,50 @@ class PathTracer:
         most = self.config.ray_count * (self.config.max_bounces + 1)
         limit = max(table_size, 1 << (2 * most - 1).bit_length())
         budget = batch * table_size  # slots a batch may hold
-        todo = [(np.arange(s, min(s + batch, len(poses))), table_size) for s in range(0, len(poses), batch)]
-        while todo:
-            index, size = todo.pop(0)
-            echoes, dropped = self._trace_batch(scene, poses[index], size)
+        on_device = PosesOnDevice.upload(poses, self.device)  # all at once: no copy per batch
+        todo = deque((np.arange(s, min(s + batch, len(poses))), table_size) for s in range(0, len(poses), batch))
+        queued: deque[QueuedBatch] = deque()
+        while todo or queued:
+            while todo and len(queued) < 2:  # this batch and the next
+                index, size = todo.popleft()
+                busy = queued[0].buffers if queued else None
+                queued.append(self._queue_batch(scene, on_device, index, size, busy))
+            done = queued.popleft()
+            index, size = done.index, done.size
+            dropped = self._checked(done)
             keep = dropped == 0
             if not keep.all() and size < limit:
                 again, per = index[~keep], max(1, budget // (2 * size))
-                todo[:0] = [(again[i : i + per], 2 * size) for i in range(0, len(again), per)]
+                todo.extendleft(reversed([(again[i : i + per], 2 * size) for i in range(0, len(again), per)]))
             elif not keep.all():
                 warnings.warn(
                     f"{dropped.sum()} reflection sequences did not fit the table of {size} per ping", stacklevel=3
                 )
                 keep[:] = True
             if keep.any():
-                yield index, keep, echoes
+                yield index, keep, done.echoes
 
-    def _buffers_for(self, n: int, size: int) -> TraceBuffers:
-        """Device buffers of a batch of `n` pings with tables of `size`, reused across batches.
+    def _buffers_for(self, n: int, size: int, surfaces: int, busy: TraceBuffers | None) -> TraceBuffers:
+        """Device buffers of a batch of `n` pings with tables of `size` and `surfaces` curved
+        surfaces, other than `busy` (the batch still in flight).
 
-        Only batches at the configured table size are cached, one shape at a time (a stream of
-        equal batches reuses memory): a batch's echoes live in these buffers until the next batch
-        of its shape is traced. Pings traced again with a larger table (rare) get buffers of their
-        own, so their echoes never share memory with any other batch's."""
-        key = (n, size)
-        if key in self._buffers:
-            return self._buffers[key]
+        Batches at the configured table size take turns in two cached sets, one shape at a
+        time (a stream of equal batches reuses memory): a batch's echoes live in its set until
+        the batch after the next is traced. Pings traced again with a larger table (rare) get
+        buffers of their own, so their echoes never share memory with any other batch's."""
+        key = (n, size, surfaces)
+        cached = size == self.config.table_size
+        if cached and self._buffers.get("key") != key:
+            self._buffers = {"key": key, "sets": []}  # a set in flight stays alive with its batch
+        if cached:
+            for buffers in self._buffers["sets"]:
+                if buffers is not busy:
+                    return buffers
         tracer = self.config
         capacity = tracer.ray_count * (tracer.max_bounces + 1) if tracer.scattering else 0
+        pinned = self.device.is_cuda  # host copies the GPU writes behind its work
         with wp.ScopedDevice(self.device):
             buffers = TraceBuffers(
-                poses=wp.empty(n, dtype=wp.mat44),
-                inverse_poses=wp.empty(n, dtype=wp.mat44),
                 errors=wp.empty(n, dtype=float),
                 behind=wp.empty(n, dtype=wp.int32),
                 key=wp.empty((n, size), dtype=wp.uint64),
@@ -180,49 +198,50 @@ class PathTracer:
                     count=wp.empty(n, dtype=wp.int32),
                     order=wp.empty((n, capacity), dtype=wp.int32),
                 ),
+                curved=PointEchoes(  # every slot counts; the kernel writes each
+                    source=wp.empty((n, surfaces), dtype=wp.vec3),
+                    extra_length=wp.empty((n, surfaces), dtype=float),
+                    amplitude=wp.empty((n, surfaces), dtype=float),
+                    count=wp.full(n, surfaces, dtype=wp.int32),
+                    order=wp.empty((n, surfaces), dtype=wp.int32),
+                ),
+                host_checks=(
+                    wp.empty(n, dtype=float, device="cpu", pinned=pinned),
+                    wp.empty(n, dtype=wp.int32, device="cpu", pinned=pinned),
+                    wp.empty(n, dtype=wp.int32, device="cpu", pinned=pinned),
+                ),
             )
-        if size == tracer.table_size:
-            self._buffers.clear()
-            self._buffers[key] = buffers
+        if cached:
+            self._buffers["sets"].append(buffers)
         return buffers
 
-    def _curved_buffers_for(self, n: int, surfaces: int) -> PointEchoes:
-        """Buffers of the echoes off a scene's curved surfaces, one slot per surface and ping
-        (every slot counts; the kernel writes each), reused while the shape stays."""
-        if self._curved is not None and self._curved.source.shape == (n, surfaces):
-            return self._curved
-        with wp.ScopedDevice(self.device):
-            self._curved = PointEchoes(
-                source=wp.empty((n, surfaces), dtype=wp.vec3),
-                extra_length=wp.empty((n, surfaces), dtype=float),
-                amplitude=wp.empty((n, surfaces), dtype=float),
-                count=wp.full(n, surfaces, dtype=wp.int32),
-                order=wp.empty((n, surfaces), dtype=wp.int32),
-            )
-        return self._curved
-
-    def _trace_batch(self, scene: Scene, poses: np.ndarray, size: int) -> tuple[TracedEchoes, np.ndarray]:
-        """Echoes of a batch of checked poses, left on the device (in buffers that the next batch
-        of the same shape reuses), and per pose the count of sequence insertions that found no
-        slot in its table of `size`."""
-        n = len(poses)
+    def _queue_batch(
+        self, scene: Scene, poses: PosesOnDevice, index: np.ndarray, size: int, busy: TraceBuffers | None
+    ) -> QueuedBatch:
+        """Queue the trace of the checked poses[index] with tables of `size` (into buffers other
+        than `busy`) and the copies of its pose checks and overflow counts to the host."""
+        n = len(index)
         ws = warp_scene(scene, self.device)
         tracer = self.config
-        b = self._buffers_for(n, size)
-        specular, scattered = b.specular, b.scattered
+        b = self._buffers_for(n, size, ws.curved.count, busy)
+        specular, scattered, curved = b.specular, b.scattered, b.curved
         emitter = wp.vec3(*self.sonar.emitter_m)
         with wp.ScopedDevice(self.device):
-            b.poses.assign(poses.astype(np.float32))
-            b.inverse_poses.assign(np.linalg.inv(poses).astype(np.float32))
+            if index[-1] - index[0] + 1 == n:  # a run of poses: a view of the uploaded ones
+                run = slice(int(index[0]), int(index[-1]) + 1)
+                batch_poses, batch_inverse = poses.poses[run], poses.inverse[run]
+            else:  # pings traced again (rare): gathered on the host
+                gathered = poses.host[index]
+                batch_poses = wp.array(gathered.astype(np.float32), dtype=wp.mat44)
+                batch_inverse = wp.array(np.linalg.inv(gathered).astype(np.float32), dtype=wp.mat44)
             # Tables and counters start at zero (ranks at RANK_NONE), as the kernels expect; every
             # other array is read only where a kernel of this batch wrote it.
             for table in (b.key, specular.order, b.planes, b.image_table, b.overflow, b.ray_queries, scattered.count):
                 table.zero_()
             b.image_rank.fill_(kernels.RANK_NONE)
-            # Checked after the trace is queued: one wait for the GPU per batch, not two (a bad pose
-            # still raises before any of its echoes are used).
-            wp.launch(lidar_kernels.pose_error, dim=n, inputs=[ws.mesh.id, b.poses], outputs=[b.errors, b.behind])
-            curved = self._curved_buffers_for(n, ws.curved.count)
+            # Read by the host after the trace (`_checked`): a bad pose still raises before any of
+            # its echoes are used.
+            wp.launch(lidar_kernels.pose_error, dim=n, inputs=[ws.mesh.id, batch_poses], outputs=[b.errors, b.behind])
             launch = device_calls(self.device)[2]  # trace_rows runs in worker threads too
 
             def trace_rows(first: int, last: int) -> None:
@@ -231,7 +250,7 @@ class PathTracer:
                 def rows(a: wp.array) -> wp.array:  # Warp cannot slice an array with an empty axis
                     return a if 0 in a.shape else a[first:last]
 
-                poses_in, inverse_in = rows(b.poses), rows(b.inverse_poses)
+                poses_in, inverse_in = rows(batch_poses), rows(batch_inverse)
                 launch(
                     kernels.discover_sequences,
                     dim=(last - first) * tracer.ray_count,
@@ -337,6 +356,49 @@ class PathTracer:
             else:  # Warp runs a CPU launch on one core: slices of the batch in threads use them all
                 with ThreadPoolExecutor(threads) as pool:
                     list(pool.map(trace_rows, edges[:-1], edges[1:]))  # list(): raise a thread's error here
-        check_pose_results(b.errors.numpy(), b.behind.numpy())
+            for device_array, host_array in zip((b.errors, b.behind, b.overflow), b.host_checks, strict=True):
+                wp.copy(host_array, device_array)  # behind the trace, in stream order
+            ready = wp.get_stream(self.device).record_event() if self.device.is_cuda else None
         traced = TracedEchoes(specular=specular, scattered=scattered, curved=curved, ray_queries=b.ray_queries)
-        return traced, b.overflow.numpy().copy()
+        return QueuedBatch(index, size, b, traced, ready)
+
+    @staticmethod
+    def _checked(batch: QueuedBatch) -> np.ndarray:
+        """Wait for a queued batch's trace (not for what was queued after it), check its poses,
+        and return per pose the count of sequence insertions that found no slot in its table."""
+        if batch.ready is not None:
+            wp.synchronize_event(batch.ready)
+        errors, behind, overflow = (a.numpy() for a in batch.buffers.host_checks)
+        check_pose_results(errors, behind)
+        return overflow.copy()
+
+
+@dataclass
+class PosesOnDevice:
+    """The checked poses of one trace (N, 4, 4) on the host, and uploaded once: sensor-to-world
+    and world-to-sensor, float32 mat44 (N,)."""
+
+    host: np.ndarray
+    poses: wp.array
+    inverse: wp.array
+
+    @staticmethod
+    def upload(poses: np.ndarray, device) -> PosesOnDevice:
+        with wp.ScopedDevice(device):
+            return PosesOnDevice(
+                poses,
+                wp.array(poses.astype(np.float32), dtype=wp.mat44),
+                wp.array(np.linalg.inv(poses).astype(np.float32), dtype=wp.mat44),
+            )
+
+
+@dataclass
+class QueuedBatch:
+    """A batch whose trace is queued: its pose indices, table size, buffers, echoes, and the
+    event after its host copies (None on the CPU, where launches finish before they return)."""
+
+    index: np.ndarray
+    size: int
+    buffers: TraceBuffers
+    echoes: TracedEchoes
+    ready: object | None

@@ -5,7 +5,8 @@
 
 Writes benchmarks/results/sonar_<cpu|cuda>.json and .md: for max_bounces 0, 1, 3 the path tracer's
 pings/s and BVH ray queries/s (counted by the kernels: bounce rays, scattering shadow rays and the
-image-source checks) and energyscapes/s end to end (`Sonar.simulate`); pings/s of `Sonar.trace`
+image-source checks) and energyscapes/s end to end (`Sonar.simulate` of `--batches` batches: the
+steady state of a trajectory, where each batch's copy back runs behind the next); pings/s of `Sonar.trace`
 to host Arrivals, recording and energyscapes at 3 bounces; on the CPU also end to end with one
 thread (`Sonar(cpu_threads=1)`) beside the default of every core (the stage rows record and
 beamform in one thread).
@@ -71,6 +72,12 @@ def main(argv=None) -> dict:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--pings", type=int, default=None, help="batch size; default 256 on CUDA, 8 on CPU")
     parser.add_argument("--rays", type=int, default=20_000)
+    parser.add_argument(
+        "--batches",
+        type=int,
+        default=None,
+        help="batches per end-to-end run (steady state); default 8 on CUDA, 1 on CPU",
+    )
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
     args = parser.parse_args(argv)
@@ -79,13 +86,16 @@ def main(argv=None) -> dict:
     wp.init()
     device = wp.get_device(args.device)
     pings = args.pings or (256 if device.is_cuda else 8)
+    batches = args.batches or (8 if device.is_cuda else 1)
     scene = load_office()
-    poses = random_poses(pings, 3)
+    drive = random_poses(pings * batches, 3)  # end to end: a run of batches, as a trajectory is simulated
+    poses = drive[:pings]  # the stage rows: one batch
     res = {
         "device": str(device),
         "device_name": device.name if device.is_cuda else platform.processor() or "CPU",
         "warp": wp.__version__,
         "pings": pings,
+        "batches_end_to_end": batches,
         "rays_per_ping": args.rays,
         "date": time.strftime("%Y-%m-%d"),
         "cpu_count": os.cpu_count(),
@@ -102,24 +112,26 @@ def main(argv=None) -> dict:
         # A ping that overflows its sequence table is traced again: the time includes that, the
         # query count only the kept traces (so queries/s errs low).
         _, dt, parts = timed(lambda s=sonar: list(s.tracer.traced(scene, checked, pings)), args.repeats, device)
-        queries = sum(int(echoes.ray_queries.numpy()[keep].sum()) for _, keep, echoes in parts)
-        _, end_s, _ = timed(lambda s=sonar: s.simulate(scene, poses, batch=pings), args.repeats, device)
+        queries = sum(int(echoes.ray_queries.numpy()[keep].sum()) for _, keep, echoes in parts)  # one batch
+        _, end_s, _ = timed(lambda s=sonar: s.simulate(scene, drive, batch=pings), args.repeats, device)
         res["trace"][bounces] = {
             "s": dt,
             "pings_per_s": pings / dt,
             "ray_queries_per_ping": queries / pings,
             "ray_queries_per_s": queries / dt,
             "end_to_end_s": end_s,
-            "energyscapes_per_s": pings / end_s,
+            "energyscapes_per_s": len(drive) / end_s,
         }
-        print(f"max_bounces={bounces}: trace {pings / dt:,.1f} pings/s, end to end {pings / end_s:,.1f}/s", flush=True)
+        print(
+            f"max_bounces={bounces}: trace {pings / dt:,.1f} pings/s, end to end {len(drive) / end_s:,.1f}/s",
+            flush=True,
+        )
     # Stages of the 3-bounce chain, and the host copy that `Sonar.trace` adds.
     _, host_s, arrivals = timed(lambda: sonar.trace(scene, poses), args.repeats, device)
     rec = recorder(sonar.config, True, str(device))
     former = Beamformer(sonar.config, samples=sonar.config.record_samples, device=device)
-    # The first traced batch of the 3-bounce run. The tracer reuses its buffers, so they hold the
-    # latest trace of these same poses (by trace/simulate above): the same echoes.
-    echoes = parts[0][2]
+    # The batch's echoes, traced again: the end-to-end runs above left other poses in the buffers.
+    echoes = next(iter(sonar.tracer.traced(scene, checked, pings)))[2]
     count = echoes.pose_count
     _, record_s, signals = timed(lambda: rec(echoes.buffers(), count), args.repeats, device)
     _, energy_s, _ = timed(lambda: former(signals), args.repeats, device)
@@ -136,8 +148,8 @@ def main(argv=None) -> dict:
     }
     if device.is_cpu:  # Warp runs a CPU launch on one core: `simulate` records and beamforms in threads
         one = sim.Sonar(sim.SonarConfig.ertis(), max_bounces=3, ray_count=args.rays, device=device, cpu_threads=1)
-        _, one_s, _ = timed(lambda: one.simulate(scene, poses, batch=pings), args.repeats, device)
-        res["end_to_end_3_bounces_one_thread"] = {"s": one_s, "energyscapes_per_s": pings / one_s}
+        _, one_s, _ = timed(lambda: one.simulate(scene, drive, batch=pings), args.repeats, device)
+        res["end_to_end_3_bounces_one_thread"] = {"s": one_s, "energyscapes_per_s": len(drive) / one_s}
         res["cpu_threads"] = sonar.cpu_threads
     peer = peer_pyroomacoustics(args.repeats)
     if peer:
@@ -149,7 +161,8 @@ def main(argv=None) -> dict:
     lines = [
         f"# Sonar throughput on {res['device_name']} ({res['device']})",
         "",
-        f"Reference office (84,612 triangles), {pings} pings per batch, {args.rays:,} rays per ping, warp "
+        f"Reference office (84,612 triangles), {pings} pings per batch ({batches} per end-to-end run), "
+        f"{args.rays:,} rays per ping, warp "
         f"{res['warp']}, {res['date']}. Medians of {args.repeats} runs.",
         "",
         "| stage | pings/s | note |",
@@ -171,7 +184,8 @@ def main(argv=None) -> dict:
         bold = "**" if bounces == 3 else ""
         lines.append(
             f"| {bold}end to end, max_bounces={bounces}{bold} | {bold}{r['energyscapes_per_s']:,.1f}{bold} | "
-            "`Sonar.simulate`: trace + record + energyscape, energyscapes copied to the host |"
+            f"`Sonar.simulate` of {batches} batch{'es' if batches > 1 else ''}: trace + record + energyscape, "
+            "energyscapes copied to the host |"
         )
     if "end_to_end_3_bounces_one_thread" in res:
         one = res["end_to_end_3_bounces_one_thread"]["energyscapes_per_s"]

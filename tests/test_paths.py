@@ -9,7 +9,7 @@ import pytest
 import acoustic_sim as sim
 import scenes
 from acoustic_sim.lidar import check_poses
-from acoustic_sim.paths import KIND_SCATTERED, KIND_SPECULAR
+from acoustic_sim.paths import KIND_SCATTERED, KIND_SPECULAR, PosesOnDevice
 from acoustic_sim.sonar import Sonar
 from scenes.scene import assemble, box_mesh
 
@@ -127,7 +127,8 @@ def test_pings_that_overflow_the_sequence_table_are_traced_again_larger(device):
     small, large = (
         Sonar(OMNI, max_bounces=3, ray_count=5_000, table_size=t, scattering=False, device=device) for t in (16, 32768)
     )
-    _, dropped = small.tracer._trace_batch(room, check_poses(poses), 16)
+    on_device = PosesOnDevice.upload(check_poses(poses), small.tracer.device)
+    dropped = small.tracer._checked(small.tracer._queue_batch(room, on_device, np.arange(3), 16, None))
     assert dropped[0] == dropped[2] == 0 and dropped[1] > 0
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -146,7 +147,8 @@ def test_pings_that_overflow_the_sequence_table_are_traced_again_larger(device):
 
 
 def test_simulate_equals_trace_record_energyscape_step_by_step(device):
-    """`simulate` (echoes, signals and images left on the device, batch after batch; on a GPU the
+    """`simulate` (echoes, signals and images left on the device, batch after batch; the next
+    batch is traced, into the other of two buffer sets, before this one is recorded; on a GPU the
     images come back on a side stream behind the next batch) gives the energyscapes of the
     host-side chain trace -> record -> energyscape, for 5 poses in batches of 2 (the last one
     short), with noise seeded per ping."""
