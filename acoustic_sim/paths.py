@@ -89,7 +89,8 @@ class PathTracer:
             self._ray_energy = wp.array(ray_energy, dtype=float)
             self._ray_dirs = wp.array(directions.astype(np.float32), dtype=wp.vec3)
             self._directivity = wp.array(pattern.astype(np.float32), dtype=float)
-        self._buffers: dict = {}  # "key": (pings, table size, curved surfaces), "sets": up to two TraceBuffers
+        self._buffer_key: tuple[int, int, int] | None = None  # (pings, table size, curved surfaces)
+        self._buffer_sets: list[TraceBuffers] = []  # up to two, taking turns
 
     def trace(self, scene: Scene, poses: np.ndarray, *, batch: int = 64) -> Arrivals:
         """Echoes of one ping from each pose, specular and scattered (see the module docstring).
@@ -163,10 +164,10 @@ class PathTracer:
         buffers of their own, so their echoes never share memory with any other batch's."""
         key = (n, size, surfaces)
         cached = size == self.config.table_size
-        if cached and self._buffers.get("key") != key:
-            self._buffers = {"key": key, "sets": []}  # a set in flight stays alive with its batch
+        if cached and self._buffer_key != key:
+            self._buffer_key, self._buffer_sets = key, []  # a set in flight stays alive with its batch
         if cached:
-            for buffers in self._buffers["sets"]:
+            for buffers in self._buffer_sets:
                 if buffers is not busy:
                     return buffers
         tracer = self.config
@@ -212,7 +213,7 @@ class PathTracer:
                 ),
             )
         if cached:
-            self._buffers["sets"].append(buffers)
+            self._buffer_sets.append(buffers)
         return buffers
 
     def _queue_batch(
