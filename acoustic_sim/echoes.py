@@ -80,6 +80,10 @@ class TraceBuffers:
     curved: PointEchoes  # (pings, curved surfaces) echoes off spheres and cylinders
     host_checks: tuple[wp.array, wp.array, wp.array]  # errors, behind, overflow (page-locked on GPUs)
 
+    @property
+    def echoes(self) -> TracedEchoes:
+        return TracedEchoes(self.specular, self.scattered, self.curved, self.ray_queries)
+
 
 @dataclass
 class SpecularEchoes(EchoBuffer):

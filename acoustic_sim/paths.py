@@ -31,7 +31,6 @@ from .echoes import (
     PointEchoes,
     SpecularEchoes,
     TraceBuffers,
-    TracedEchoes,
     concatenate,
 )
 from .kernels import curved as curved_kernels
@@ -152,7 +151,7 @@ class PathTracer:
                 )
                 keep[:] = True
             if keep.any():
-                yield index, keep, done.echoes
+                yield index, keep, done.buffers.echoes
 
     def _buffers_for(self, n: int, size: int, surfaces: int, busy: TraceBuffers | None) -> TraceBuffers:
         """Device buffers of a batch of `n` pings with tables of `size` and `surfaces` curved
@@ -360,8 +359,7 @@ class PathTracer:
             for device_array, host_array in zip((b.errors, b.behind, b.overflow), b.host_checks, strict=True):
                 wp.copy(host_array, device_array)  # behind the trace, in stream order
             ready = wp.get_stream(self.device).record_event() if self.device.is_cuda else None
-        traced = TracedEchoes(specular=specular, scattered=scattered, curved=curved, ray_queries=b.ray_queries)
-        return QueuedBatch(index, size, b, traced, ready)
+        return QueuedBatch(index, size, b, ready)
 
     @staticmethod
     def _checked(batch: QueuedBatch) -> np.ndarray:
@@ -395,11 +393,10 @@ class PosesOnDevice:
 
 @dataclass
 class QueuedBatch:
-    """A batch whose trace is queued: its pose indices, table size, buffers, echoes, and the
+    """A batch whose trace is queued: its pose indices, table size, buffers (and echoes), and the
     event after its host copies (None on the CPU, where launches finish before they return)."""
 
     index: np.ndarray
     size: int
     buffers: TraceBuffers
-    echoes: TracedEchoes
     ready: object | None
