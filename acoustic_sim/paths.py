@@ -36,7 +36,7 @@ from .echoes import (
 from .kernels import curved as curved_kernels
 from .kernels import lidar as lidar_kernels
 from .kernels import paths as kernels
-from .poses import check_pose_results, check_poses
+from .poses import check_poses, raise_for_bad_poses, warn_poses_behind
 from .scene import warp_scene
 
 DIRECTIVITY_STEPS = 1024  # steps of the emitter's directivity table over the cosine from its axis
@@ -90,6 +90,8 @@ class PathTracer:
             self._directivity = wp.array(pattern.astype(np.float32), dtype=float)
         self._buffer_key: tuple[int, int, int] | None = None  # (pings, table size, curved surfaces)
         self._buffer_sets: list[TraceBuffers] = []  # up to two, taking turns
+        self._retrace_checks: list[tuple[wp.array, wp.array, wp.array]] = []  # two, taking turns
+        self._retrace_turn = 0
 
     def trace(self, scene: Scene, poses: np.ndarray, *, batch: int = 64) -> Arrivals:
         """Echoes of one ping from each pose, specular and scattered (see the module docstring).
@@ -133,6 +135,7 @@ class PathTracer:
         on_device = PosesOnDevice.upload(poses, self.device)  # all at once: no copy per batch
         todo = deque((np.arange(s, min(s + batch, len(poses))), table_size) for s in range(0, len(poses), batch))
         queued: deque[QueuedBatch] = deque()
+        behind = np.zeros(len(poses), dtype=bool)  # warned about once, for the whole trace
         while todo or queued:
             while todo and len(queued) < 2:  # this batch and the next
                 index, size = todo.popleft()
@@ -140,7 +143,7 @@ class PathTracer:
                 queued.append(self._queue_batch(scene, on_device, index, size, busy))
             done = queued.popleft()
             index, size = done.index, done.size
-            dropped = self._checked(done)
+            dropped = self._checked(done, behind)
             keep = dropped == 0
             if not keep.all() and size < limit:
                 again, per = index[~keep], max(1, budget // (2 * size))
@@ -152,6 +155,7 @@ class PathTracer:
                 keep[:] = True
             if keep.any():
                 yield index, keep, done.buffers.echoes
+        warn_poses_behind(behind, stacklevel=4)
 
     def _buffers_for(self, n: int, size: int, surfaces: int, busy: TraceBuffers | None) -> TraceBuffers:
         """Device buffers of a batch of `n` pings with tables of `size` and `surfaces` curved
@@ -159,8 +163,10 @@ class PathTracer:
 
         Batches at the configured table size take turns in two cached sets, one shape at a
         time (a stream of equal batches reuses memory): a batch's echoes live in its set until
-        the batch after the next is traced. Pings traced again with a larger table (rare) get
-        buffers of their own, so their echoes never share memory with any other batch's."""
+        the batch after the next is traced. Pings traced again with a larger table get device
+        buffers of their own, so their echoes never share memory with any other batch's, and
+        host copies that take turns in two reused page-locked sets: at 3 bounces some pings of
+        nearly every batch are traced again, and freeing page-locked memory waits for the GPU."""
         key = (n, size, surfaces)
         cached = size == self.config.table_size
         if cached and self._buffer_key != key:
@@ -205,15 +211,29 @@ class PathTracer:
                     count=wp.full(n, surfaces, dtype=wp.int32),
                     order=wp.empty((n, surfaces), dtype=wp.int32),
                 ),
-                host_checks=(
-                    wp.empty(n, dtype=float, device="cpu", pinned=pinned),
-                    wp.empty(n, dtype=wp.int32, device="cpu", pinned=pinned),
-                    wp.empty(n, dtype=wp.int32, device="cpu", pinned=pinned),
-                ),
+                host_checks=self._host_checks(n, pinned) if cached else self._retrace_host_checks(n, pinned),
             )
         if cached:
             self._buffer_sets.append(buffers)
         return buffers
+
+    @staticmethod
+    def _host_checks(n: int, pinned: bool) -> tuple[wp.array, wp.array, wp.array]:
+        """Host arrays for a batch's pose errors, poses behind a surface and overflow counts."""
+        return (
+            wp.empty(n, dtype=float, device="cpu", pinned=pinned),
+            wp.empty(n, dtype=wp.int32, device="cpu", pinned=pinned),
+            wp.empty(n, dtype=wp.int32, device="cpu", pinned=pinned),
+        )
+
+    def _retrace_host_checks(self, n: int, pinned: bool) -> tuple[wp.array, wp.array, wp.array]:
+        """The first n rows of one of two reused sets of host arrays. At most two batches are in
+        flight and a batch's checks are read before the batch after the next is queued, so two
+        sets taking turns are never written while still unread."""
+        if not self._retrace_checks or self._retrace_checks[0][0].shape[0] < n:
+            self._retrace_checks = [self._host_checks(n, pinned) for _ in range(2)]
+        self._retrace_turn ^= 1
+        return tuple(a[:n] for a in self._retrace_checks[self._retrace_turn])
 
     def _queue_batch(
         self, scene: Scene, poses: PosesOnDevice, index: np.ndarray, size: int, busy: TraceBuffers | None
@@ -362,13 +382,16 @@ class PathTracer:
         return QueuedBatch(index, size, b, ready)
 
     @staticmethod
-    def _checked(batch: QueuedBatch) -> np.ndarray:
-        """Wait for a queued batch's trace (not for what was queued after it), check its poses,
-        and return per pose the count of sequence insertions that found no slot in its table."""
+    def _checked(batch: QueuedBatch, behind: np.ndarray | None = None) -> np.ndarray:
+        """Wait for a queued batch's trace (not for what was queued after it), check its poses
+        (an error names the pose by its index in the trace; those behind a surface are marked in
+        `behind`), and return per pose the count of sequence insertions that found no slot."""
         if batch.ready is not None:
             wp.synchronize_event(batch.ready)
-        errors, behind, overflow = (a.numpy() for a in batch.buffers.host_checks)
-        check_pose_results(errors, behind)
+        errors, behind_now, overflow = (a.numpy() for a in batch.buffers.host_checks)
+        raise_for_bad_poses(errors, batch.index)
+        if behind is not None:
+            behind[batch.index] |= behind_now > 0
         return overflow.copy()
 
 

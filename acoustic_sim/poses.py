@@ -30,21 +30,34 @@ def check_poses(poses: np.ndarray) -> np.ndarray:
 
 def check_pose_results(error: np.ndarray, behind: np.ndarray) -> None:
     """Raise ValueError naming the first bad pose, and warn about poses behind a surface, given the
-    per-pose outputs of `kernels.pose_error`."""
+    per-pose outputs of `kernels.pose_error` for every pose of a call."""
+    raise_for_bad_poses(error)
+    warn_poses_behind(behind > 0, stacklevel=4)
+
+
+def raise_for_bad_poses(error: np.ndarray, index: np.ndarray | None = None) -> None:
+    """Raise ValueError naming the first pose whose `kernels.pose_error` error is too large (or not
+    finite). `index`: the poses' indices in the caller's array, when `error` covers a batch of them."""
     bad = ~(error <= POSE_TOLERANCE)  # NaN counts as bad
-    if bad.any():
-        k = int(np.argmax(bad))
-        if not np.isfinite(error[k]):
-            raise ValueError(f"pose {k} contains NaN or inf")
-        raise ValueError(
-            f"pose {k} is not a rigid transform (rotation not orthonormal, a mirror with determinant -1, "
-            f"or last row not [0, 0, 0, 1]; error {error[k]:.2g})"
-        )
+    if not bad.any():
+        return
+    k = int(np.argmax(bad))
+    name = k if index is None else int(index[k])
+    if not np.isfinite(error[k]):
+        raise ValueError(f"pose {name} contains NaN or inf")
+    raise ValueError(
+        f"pose {name} is not a rigid transform (rotation not orthonormal, a mirror with determinant -1, "
+        f"or last row not [0, 0, 0, 1]; error {error[k]:.2g})"
+    )
+
+
+def warn_poses_behind(behind: np.ndarray, stacklevel: int = 3) -> None:
+    """One warning for the poses (bool, every pose of a call) that lie behind a surface."""
     if behind.any():
         k = int(np.argmax(behind))
         warnings.warn(
             f"{int(behind.sum())} of {len(behind)} poses (first: pose {k}) lie behind the surfaces around them "
             "(most axis rays hit the back of a face): inside an object or outside the room, their scans and "
             "echoes do not come from free space",
-            stacklevel=3,
+            stacklevel=stacklevel,
         )
