@@ -129,9 +129,9 @@ class Sonar:
             signals = recorder(rows, last - first, noise=noise, snr_db=snr_db, seeds=seeds[first:last])
             out = former(signals).reshape((last - first, *former.output_shape))
             mine, at = keep[first:last], index[first:last]
-            if copies is not None and mine.all():
-                copies.put(out, at, images)
-            else:  # CPU (out is host memory already), or a GPU batch with rows to trace again
+            if copies is not None:  # rows to trace again are left out when the copy lands
+                copies.put(out, at, images, mine)
+            else:  # CPU: out is host memory already
                 images[at[mine]] = out.numpy()[mine]
             if kept is not None:
                 kept[at[mine]] = signals.numpy()[mine]
@@ -163,17 +163,18 @@ class BatchCopies:
     def __init__(self, device, shape: tuple[int, ...]):
         self.stream = wp.Stream(device)
         self.buffers = [wp.empty(shape, dtype=float, device="cpu", pinned=True) for _ in range(2)]
-        self.pending = None  # (event, device array kept alive until copied, buffer, destination rows)
+        self.pending = None  # (event, device array kept alive until copied, buffer, destination rows, rows kept)
         self.turn = 0
 
-    def put(self, out: wp.array, rows: np.ndarray, images: np.ndarray) -> None:
-        """Queue the copy of `out` (n, ...) for images[rows] after the work queued so far, then land
-        the batch before (its copy ran beside this batch's computation)."""
+    def put(self, out: wp.array, rows: np.ndarray, images: np.ndarray, keep: np.ndarray) -> None:
+        """Queue the copy of `out` (n, ...) for images[rows[keep]] after the work queued so far,
+        then land the batch before (its copy ran beside this batch's computation). Rows not kept
+        (traced again later) are never written, so a batch with some never waits for the GPU."""
         buffer = self.buffers[self.turn]
         self.turn ^= 1
         self.stream.wait_stream(wp.get_stream(out.device))
         wp.copy(buffer[: out.shape[0]], out, stream=self.stream)
-        previous, self.pending = self.pending, (self.stream.record_event(), out, buffer, rows)
+        previous, self.pending = self.pending, (self.stream.record_event(), out, buffer, rows, keep)
         if previous is not None:
             self._land(previous, images)
 
@@ -191,9 +192,9 @@ class BatchCopies:
 
     @staticmethod
     def _land(pending, images: np.ndarray) -> None:
-        event, _, buffer, rows = pending
+        event, _, buffer, rows, keep = pending
         wp.synchronize_event(event)
-        images[rows] = buffer.numpy()[: len(rows)]
+        images[rows[keep]] = buffer.numpy()[: len(rows)][keep]
 
 
 @functools.lru_cache(maxsize=4)

@@ -114,6 +114,17 @@ def test_trace_is_deterministic_and_batched(device):
     np.testing.assert_array_equal(both.for_pose(0).length_m, sonar.trace(room, POSE).for_pose(0).length_m)
 
 
+def test_host_copies_of_pings_traced_again_take_turns(device):
+    """Two retraced groups can be in flight at once (one queued while the other's checks are
+    unread): their host copies must not share memory, while a third reuses the first's (no
+    page-locked memory is allocated, or freed, per retraced group)."""
+    tracer = Sonar(OMNI, max_bounces=1, ray_count=16, device=device).tracer
+    first, second, third = (tracer._retrace_host_checks(4, pinned=False) for _ in range(3))
+    assert {a.ptr for a in first}.isdisjoint(a.ptr for a in second)
+    assert [a.ptr for a in third] == [a.ptr for a in first]
+    assert tracer._retrace_host_checks(9, pinned=False)[0].shape == (9,)  # grows when a group is larger
+
+
 def test_pings_that_overflow_the_sequence_table_are_traced_again_larger(device):
     """Of three pings at a mirror box, one inside sees some 340 reflection sequences up to order
     4, one outside facing the box a few, one outside facing away none. With 16 slots per ping
