@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
@@ -35,7 +35,7 @@ ECHO_PEAK_LEVEL = 0.75  # normalised input (40 dB floor): within 10 dB of the fr
 BASELINE_THRESHOLD = 0.5  # baselines predict 0/1 images: any threshold in (0, 1] reads them alike
 
 
-def _predictions(predict: Callable, windows: Windows, indices: np.ndarray, batch_size: int):
+def predict_batches(predict: Callable, windows: Windows, indices: np.ndarray, batch_size: int = 32):
     """(prediction (B, R, A) float32 in [0, 1], label (B, R, A)) per batch of windows."""
     with torch.no_grad():
         for start in range(0, len(indices), batch_size):
@@ -61,18 +61,27 @@ def score(
 ) -> dict[str, np.ndarray]:
     """Per-window metrics (`learn.metrics.image_metrics`) of a predictor x (B, 1, K, R, A) -> image
     (B, 1, R, A) in [0, 1], whose cells >= threshold are returns. `progress` names a progress bar."""
+    bar = tqdm(total=len(indices), desc=progress, unit="win", disable=progress is None, leave=False)
+    per = score_predictions(predict_batches(predict, windows, indices, batch_size), windows, threshold, bar.update)
+    bar.close()
+    return per
+
+
+def score_predictions(
+    predictions: Iterable, windows: Windows, threshold: float, done: Callable[[int], object] | None = None
+) -> dict[str, np.ndarray]:
+    """`score` of (prediction, label) batches made already (see `predict_batches`); `done` is told
+    how many windows each batch held."""
     if not 0 < threshold <= 1:
         raise ValueError(f"the return threshold must lie in (0, 1], got {threshold}")
     range_m, azimuth_rad = _axes(windows)
     per: dict[str, list] = {}
-    batches = _predictions(predict, windows, indices, batch_size)
-    bar = tqdm(total=len(indices), desc=progress, unit="win", disable=progress is None, leave=False)
-    for pred, y in batches:
+    for pred, y in predictions:
         for k, v in image_metrics(pred, y, range_m, azimuth_rad, threshold=threshold).items():
-            per.setdefault(k, []).append(v.cpu().numpy())
-        bar.update(len(y))
-    bar.close()
-    return {k: np.concatenate(v) for k, v in per.items()}
+            per.setdefault(k, []).append(v)
+        if done:
+            done(len(y))
+    return {k: torch.cat(v).cpu().numpy() for k, v in per.items()}  # one copy per metric, not per batch
 
 
 def calibrate_threshold(
@@ -83,11 +92,20 @@ def calibrate_threshold(
     Returns:
         (threshold, mean scan_f1 per threshold of `thresholds`); ties go to the lower threshold.
     """
+    return calibrate_on_predictions(predict_batches(predict, windows, indices, batch_size), windows, thresholds)
+
+
+def calibrate_on_predictions(
+    predictions: Iterable, windows: Windows, thresholds=CALIBRATION_THRESHOLDS
+) -> tuple[float, np.ndarray]:
+    """`calibrate_threshold` on (prediction, label) batches made already (see `predict_batches`)."""
     range_m, _ = _axes(windows)
     total = torch.zeros(len(thresholds), dtype=torch.float64, device=windows.device)
-    for pred, y in _predictions(predict, windows, indices, batch_size):
+    count = 0
+    for pred, y in predictions:
         total += scan_f1_sweep(pred, y, range_m, thresholds).sum(dim=1)
-    mean = (total / max(len(indices), 1)).cpu().numpy()
+        count += len(y)
+    mean = (total / max(count, 1)).cpu().numpy()
     return float(thresholds[int(np.argmax(mean))]), mean
 
 

@@ -204,5 +204,8 @@ def _ratio(num: torch.Tensor, den: torch.Tensor, agree) -> torch.Tensor:
     """num / den in float64; where den == 0, 1 if `agree` (bool, or (B,)) else 0."""
     num, den = num.double(), den.double()
     defined = den > 0
-    fallback = torch.as_tensor(agree, device=den.device).double().expand_as(den)
+    if isinstance(agree, bool):  # no host-to-device copy, which would wait for the GPU
+        fallback = torch.full_like(den, float(agree))
+    else:
+        fallback = agree.double().expand_as(den)
     return torch.where(defined, num / torch.where(defined, den, 1.0), fallback)

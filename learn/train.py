@@ -31,7 +31,7 @@ from tqdm.auto import tqdm
 from .augment import AugmentConfig, augmented_batch
 from .checkpoint import check_compatible, save_checkpoint
 from .data import FORMAT_VERSION, DataConfig, Frames, Windows, load_frames, split_groups, torch_device, validation_split
-from .evaluate import calibrate_threshold, model_predictor, score
+from .evaluate import calibrate_on_predictions, model_predictor, predict_batches, score_predictions
 from .models import ModelConfig, build_model, parameter_count
 from .progress import epoch_line, warn_if_silent, write_fold_summary, write_history
 from .tensorboard import TensorBoardLog, summary_writer
@@ -110,6 +110,9 @@ def loss_fn(model, x: torch.Tensor, y: torch.Tensor, config: TrainConfig) -> tor
     return F.mse_loss(image.float(), y)
 
 
+# Validation keeps each window's prediction and label (float32) on the device for both the
+# threshold sweep and the scores, up to this many bytes (2,000 paper-suite windows: 0.7 GB).
+VALIDATION_KEEP_BYTES = 2 << 30
 CHECK_EVERY = 50  # training steps between reads of the summed loss (each read waits for the GPU)
 
 
@@ -156,8 +159,12 @@ def validate(model, windows: Windows, indices: np.ndarray, *, amp: bool = True) 
     """Mean metrics of the model on the given windows (see learn.evaluate.score), read at the
     return threshold calibrated on them ("threshold")."""
     predict = model_predictor(_unwrap(model), amp=amp)
-    threshold, _ = calibrate_threshold(predict, windows, indices)
-    per = score(predict, windows, indices, threshold=threshold)
+    cells = len(windows.frames.range_m) * len(windows.frames.azimuth_rad)
+    kept = None  # else the windows are predicted twice, for the sweep and for the scores
+    if len(indices) * cells * 8 <= VALIDATION_KEEP_BYTES:
+        kept = list(predict_batches(predict, windows, indices))
+    threshold, _ = calibrate_on_predictions(kept or predict_batches(predict, windows, indices), windows)
+    per = score_predictions(kept or predict_batches(predict, windows, indices), windows, threshold)
     means = {k: float(np.nanmean(v)) if np.isfinite(v).any() else float("nan") for k, v in per.items()}
     return means | {"threshold": threshold}
 

@@ -120,6 +120,34 @@ def test_train_checkpoint_resume_and_evaluate(tiny_dataset, tmp_path):
     assert float(pred["threshold"]) == report["thresholds"]["model"] == kept["threshold"]
 
 
+def test_validation_predicts_once_and_scores_as_evaluation_does(tiny_dataset, monkeypatch):
+    """`validate` keeps the windows' predictions for both the threshold sweep and the scores (one
+    forward pass); it equals `calibrate_threshold` + `score`, and so does its two-pass fallback
+    when the windows would not fit its memory budget."""
+    import learn.train as train_module
+    from learn.evaluate import calibrate_threshold, model_predictor, score
+    from learn.models import build_model
+
+    torch.manual_seed(0)
+    model = build_model(MODEL)
+    windows, indices = Windows(load_frames(tiny_dataset), DATA), np.arange(10)
+    predict = model_predictor(model)
+    calls = []
+    monkeypatch.setattr(model, "forward", lambda x, f=model.forward: calls.append(len(x)) or f(x))
+    threshold, _ = calibrate_threshold(predict, windows, indices)
+    per = score(predict, windows, indices, threshold=threshold)
+    want = {k: float(np.nanmean(v)) if np.isfinite(v).any() else float("nan") for k, v in per.items()}
+    want["threshold"] = threshold
+    assert sum(calls) == 20
+    for budget, passes in ((train_module.VALIDATION_KEEP_BYTES, 1), (0, 2)):
+        calls.clear()
+        monkeypatch.setattr(train_module, "VALIDATION_KEEP_BYTES", budget)
+        got = train_module.validate(model, windows, indices)
+        assert sum(calls) == 10 * passes
+        assert got.keys() == want.keys()
+        np.testing.assert_allclose([got[k] for k in want], [want[k] for k in want], rtol=1e-12, equal_nan=True)
+
+
 def test_predict_reads_scans_at_the_threshold(tiny_dataset, tmp_path):
     """predict's scans are the nearest cell >= the checkpoint's threshold of each predicted image
     (inf where none), and --threshold overrides it."""
