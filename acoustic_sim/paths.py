@@ -155,7 +155,7 @@ class PathTracer:
                 keep[:] = True
             if keep.any():
                 yield index, keep, done.buffers.echoes
-        warn_poses_behind(behind, stacklevel=4)
+        warn_poses_behind(behind)
 
     def _buffers_for(self, n: int, size: int, surfaces: int, busy: TraceBuffers | None) -> TraceBuffers:
         """Device buffers of a batch of `n` pings with tables of `size` and `surfaces` curved

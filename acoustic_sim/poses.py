@@ -4,7 +4,9 @@ scan or trace."""
 
 from __future__ import annotations
 
+import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 
@@ -32,7 +34,7 @@ def check_pose_results(error: np.ndarray, behind: np.ndarray) -> None:
     """Raise ValueError naming the first bad pose, and warn about poses behind a surface, given the
     per-pose outputs of `kernels.pose_error` for every pose of a call."""
     raise_for_bad_poses(error)
-    warn_poses_behind(behind > 0, stacklevel=4)
+    warn_poses_behind(behind > 0)
 
 
 def raise_for_bad_poses(error: np.ndarray, index: np.ndarray | None = None) -> None:
@@ -51,13 +53,23 @@ def raise_for_bad_poses(error: np.ndarray, index: np.ndarray | None = None) -> N
     )
 
 
-def warn_poses_behind(behind: np.ndarray, stacklevel: int = 3) -> None:
-    """One warning for the poses (bool, every pose of a call) that lie behind a surface."""
+def warn_poses_behind(behind: np.ndarray) -> None:
+    """One warning for the poses (bool, every pose of a call) that lie behind a surface, shown at
+    the caller's line outside this package (the LiDAR and the sonar reach here at other depths)."""
     if behind.any():
         k = int(np.argmax(behind))
         warnings.warn(
             f"{int(behind.sum())} of {len(behind)} poses (first: pose {k}) lie behind the surfaces around them "
             "(most axis rays hit the back of a face): inside an object or outside the room, their scans and "
             "echoes do not come from free space",
-            stacklevel=stacklevel,
+            stacklevel=_first_level_outside_package(),
         )
+
+
+def _first_level_outside_package() -> int:
+    """`stacklevel` (counted from the caller) of the nearest frame outside acoustic_sim: what Python
+    3.12's `warnings.warn(skip_file_prefixes=...)` does."""
+    package, level, frame = str(Path(__file__).parent), 1, sys._getframe(1)
+    while frame is not None and frame.f_code.co_filename.startswith(package):
+        frame, level = frame.f_back, level + 1
+    return level

@@ -71,13 +71,20 @@ def test_the_sonar_warns_as_well(device):
 
 def test_the_sonar_names_poses_of_a_trajectory_not_of_a_batch(device):
     """Five poses traced two at a time, the fourth inside the box: one warning for the whole
-    trajectory that names pose 3 of 5 (not pose 1 of its batch of 2); a mirror at pose 3 raises
-    naming pose 3."""
+    trajectory that names pose 3 of 5 (not pose 1 of its batch of 2), shown at the caller's line
+    for the sonar's trace and simulate and the LiDAR alike; a mirror at pose 3 raises naming pose 3."""
     scene = room_with_box()
     sonar = sim.Sonar(sim.SonarConfig.ertis(), max_bounces=1, ray_count=256, device=device)
     poses = at(np.array([[1.0, 1.0, 0.3], [1.5, 1.0, 0.3], [2.0, 1.0, 0.3], BOX_CENTER, [1.0, 3.0, 0.3]]))
-    (message,) = behind_warnings(lambda: sonar.trace(scene, poses, batch=2))
-    assert "1 of 5 poses (first: pose 3)" in message
+    lidar = sim.Lidar(HOKUYO, device=device)
+    for call in (lambda: sonar.trace(scene, poses, batch=2), lambda: sonar.simulate(scene, poses, batch=2)):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            call()
+            lidar.scan(scene, poses)
+        shown = [w for w in caught if BEHIND.search(str(w.message))]
+        assert [w.filename for w in shown] == [__file__] * 2
+        assert ["1 of 5 poses (first: pose 3)" in str(w.message) for w in shown] == [True, True]
     mirrored = poses.copy()
     mirrored[3, :3, :3] = np.diag([1.0, 1.0, -1.0])
     with pytest.raises(ValueError, match="pose 3 is not a rigid transform"):
