@@ -4,14 +4,11 @@ scan or trace."""
 
 from __future__ import annotations
 
-import sys
-import warnings
-from pathlib import Path
-
 import numpy as np
 
 from .kernels.lidar import POSE_TOLERANCE
 from .scene import warn_if_far
+from .user_warning import warn_user
 
 
 def check_poses(poses: np.ndarray) -> np.ndarray:
@@ -58,18 +55,8 @@ def warn_poses_behind(behind: np.ndarray) -> None:
     the caller's line outside this package (the LiDAR and the sonar reach here at other depths)."""
     if behind.any():
         k = int(np.argmax(behind))
-        warnings.warn(
+        warn_user(
             f"{int(behind.sum())} of {len(behind)} poses (first: pose {k}) lie behind the surfaces around them "
             "(most axis rays hit the back of a face): inside an object or outside the room, their scans and "
-            "echoes do not come from free space",
-            stacklevel=_first_level_outside_package(),
+            "echoes do not come from free space"
         )
-
-
-def _first_level_outside_package() -> int:
-    """`stacklevel` (counted from the caller) of the nearest frame outside acoustic_sim: what Python
-    3.12's `warnings.warn(skip_file_prefixes=...)` does."""
-    package, level, frame = str(Path(__file__).parent), 1, sys._getframe(1)
-    while frame is not None and frame.f_code.co_filename.startswith(package):
-        frame, level = frame.f_back, level + 1
-    return level

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import warnings
 import weakref
 from dataclasses import dataclass
 
@@ -10,6 +9,8 @@ import numpy as np
 import warp as wp
 
 from scenes import Scene
+
+from .user_warning import warn_user
 
 
 @dataclass
@@ -125,11 +126,10 @@ def warn_if_far(coordinates: np.ndarray, what: str) -> None:
     coordinates = np.abs(np.asarray(coordinates, dtype=np.float64))
     far = float(coordinates[np.isfinite(coordinates)].max(initial=0.0))  # non-finite ones are refused elsewhere
     if far > FLOAT32_SAFE_M:
-        warnings.warn(
+        warn_user(
             f"{what} reach {far:,.0f} m from the origin, where float32 (the GPU's precision) resolves only "
             f"{1e3 * float(np.spacing(np.float32(far))):.2g} mm: move them near the origin (subtract a local "
-            "reference point) for sub-millimetre ranges",
-            stacklevel=3,
+            "reference point) for sub-millimetre ranges"
         )
 
 

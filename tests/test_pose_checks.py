@@ -103,12 +103,17 @@ def test_no_warning_along_the_trajectories_of_every_builder(builder, device):
 
 
 def test_scenes_and_poses_far_from_the_origin_are_warned(device):
-    """A room moved 100 km away (UTM-like coordinates): float32 resolves 7.8 mm there."""
+    """A room moved 100 km away (UTM-like coordinates): float32 resolves 7.8 mm there. The
+    warnings are shown at the caller's line, whichever sensor reaches them."""
     far = room_with_box()
     far.mesh.apply_translation((100_000.0, 0.0, 0.0))
     pose = at(np.array([[100_001.0, 1.0, 0.3]]))
-    with pytest.warns(UserWarning, match=r"vertices of 'room_with_box' reach 100,006 m .* only 7\.8 mm"):
+    with pytest.warns(UserWarning, match=r"vertices of 'room_with_box' reach 100,006 m .* only 7\.8 mm") as caught:
         sim.Lidar(HOKUYO, device=device).scan(far, pose)
+    assert {w.filename for w in caught if "reach" in str(w.message)} == {__file__}
+    with pytest.warns(UserWarning, match=r"sensor positions reach 100,001 m") as caught:
+        sim.Sonar(sim.SonarConfig.ertis(), max_bounces=0, ray_count=64, device=device).trace(far, pose)
+    assert {w.filename for w in caught if "reach" in str(w.message)} == {__file__}
     with pytest.warns(UserWarning, match=r"sensor positions reach 100,001 m"):
         sim.check_poses(pose)
     with warnings.catch_warnings():
