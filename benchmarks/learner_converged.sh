@@ -18,7 +18,8 @@
 # warning) and with convolution/linear weights in bfloat16, the precision autocast computes them
 # in (batch-norm and bias tensors stay float32); `train` then resumes them. Naming RUNs (folder
 # names under WORKDIR/runs) packs only their checkpoints, so finished runs travel without theirs;
-# every run's history, reports and logs always travel. A best.pt that is the same checkpoint as
+# every run's history, reports and logs always travel. A RUN may be nested (sim2real_ablation_seed0
+# packs all three of its variants, sim2real_ablation_seed0/bounces_1 one of them). A best.pt that is the same checkpoint as
 # last.pt (the last sub-epoch improved) travels once, as last.pt (the paper network's are 27 MB).
 #
 # The pretrained model shipped in learn/pretrained/ is polar_unet seed 0's best.pt without its
@@ -92,10 +93,17 @@ from pathlib import Path
 
 import torch
 
-work, keep = Path(sys.argv[1]), set(sys.argv[2:])
+work, keep = Path(sys.argv[1]), sys.argv[2:]
+
+
+def kept(run):  # a RUN names a folder under runs/ and everything below it (sim2real runs nest their variants)
+    rel = run.relative_to(work / "runs").as_posix()
+    return not keep or any(rel == k or rel.startswith(k + "/") for k in keep)
+
+
 for src in sorted(p for p in [*work.glob("runs/**/*"), *work.glob("logs/*")] if p.is_file()):
     dst = work / "packed" / src.relative_to(work)
-    if src.suffix == ".pt" and keep and src.parent.name not in keep:
+    if src.suffix == ".pt" and not kept(src.parent):
         continue
     if src.name == "best.pt" and (src.parent / "last.pt").exists():
         state = torch.load(src.parent / "last.pt", map_location="cpu", weights_only=True)["state"]
@@ -119,9 +127,7 @@ unpack)
   src=$1
   mkdir -p "$W"
   cat "$src"/state.tgz.part* | tar -C "$W" -xzf -
-  for m in "$W"/runs/*/best_is_last; do
-    if [ -e "$m" ]; then cp "${m%/*}/last.pt" "${m%/*}/best.pt" && rm "$m"; fi
-  done
+  find "$W/runs" -name best_is_last | while read -r m; do cp "${m%/*}/last.pt" "${m%/*}/best.pt" && rm "$m"; done
   ;;
 *)
   echo "usage: $0 gen|train|eval|pack|unpack WORKDIR [MODEL SEED...]" >&2

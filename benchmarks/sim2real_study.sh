@@ -19,7 +19,9 @@
 # once on an 80 GB H100 (e.g. two seeds of one suite per call); the GPU is shared by time slices,
 # so fewer processes do not train fewer windows in all.
 # Environment: FRAMES (50000), MINUTES (budget per call and run, 8), DEVICE (cuda), GEN_DEVICE,
-# WORKERS (generation processes, 8), TRAIN_OPTS (more `learn train` options, e.g. --set augment.mirror=0.5).
+# WORKERS (generation processes, 8), REALITY_FRAMES (its suite's 1,500), CROSS_FRAMES (1000),
+# CROSS_WORKERS (14), EPOCHS (100), PATIENCE (4), TRAIN_OPTS (more `learn train` options, e.g.
+# --set augment.mirror=0.5).
 set -euo pipefail
 phase=$1 W=$2
 shift 2
@@ -37,7 +39,7 @@ gen)
       --out "$D/$what" "${GEN[@]}"
     ;;
   tests)
-    python -m acoustic_sim generate --suite reality --out "$D/reality" "${GEN[@]}"
+    python -m acoustic_sim generate --suite reality ${REALITY_FRAMES:+--frames "$REALITY_FRAMES"} --out "$D/reality" "${GEN[@]}"
     python -m acoustic_sim generate --suite crossengine --frames "${CROSS_FRAMES:-1000}" --out "$D/crossengine" \
       --workers "${CROSS_WORKERS:-14}" --device cpu --seed 0 --quiet
     ;;
