@@ -18,9 +18,10 @@
 # warning) and with convolution/linear weights in bfloat16, the precision autocast computes them
 # in (batch-norm and bias tensors stay float32); `train` then resumes them. Naming RUNs (folder
 # names under WORKDIR/runs) packs only their checkpoints, so finished runs travel without theirs;
-# every run's history, reports and logs always travel. A RUN may be nested (sim2real_ablation_seed0
-# packs all three of its variants, sim2real_ablation_seed0/bounces_1 one of them). A best.pt that is the same checkpoint as
-# last.pt (the last sub-epoch improved) travels once, as last.pt (the paper network's are 27 MB).
+# every run's history, reports and logs always travel. A RUN may be nested: sim2real_ablation_seed0
+# packs all three of its variants, sim2real_ablation_seed0/bounces_1 one of them. A best.pt that is
+# the same checkpoint as last.pt (the last sub-epoch improved) travels once, as last.pt (the paper
+# network's are 27 MB).
 #
 # The pretrained model shipped in learn/pretrained/ is polar_unet seed 0's best.pt without its
 # optimizer state (`python -c "from learn.checkpoint import strip_checkpoint; strip_checkpoint(A, B)"`).
@@ -96,7 +97,7 @@ import torch
 work, keep = Path(sys.argv[1]), sys.argv[2:]
 
 
-def kept(run):  # a RUN names a folder under runs/ and everything below it (sim2real runs nest their variants)
+def kept(run):  # a RUN and every folder below it
     rel = run.relative_to(work / "runs").as_posix()
     return not keep or any(rel == k or rel.startswith(k + "/") for k in keep)
 
