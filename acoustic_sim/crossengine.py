@@ -5,7 +5,8 @@ engine, pyroomacoustics' image-source method (order 4; an optional extra, `pip i
 
 Nothing of our tracer or recorder is used, so a model scored here meets echoes it has never seen
 the like of: for scoring only, never for training, early stopping or choosing a threshold.
-Floor plans (L, T, U, corridor junctions, irregular halls) are families no suite of ours builds.
+Floor plans (L, T, U, corridor junctions, irregular halls) are the families of our `randomised`
+suite's empty rooms: what differs is the engine that makes their echoes.
 """
 
 from __future__ import annotations
