@@ -24,7 +24,7 @@
 # Environment: FRAMES (50000), MINUTES (budget per call and run, 8), DEVICE (cuda), GEN_DEVICE,
 # WORKERS (generation processes, 8), REALITY_FRAMES (its suite's 1,500), CROSS_FRAMES (1000),
 # CROSS_WORKERS (10), EPOCHS (100), PATIENCE (4), TRAIN_OPTS (more `learn train` options, e.g.
-# --set augment.mirror=0.5), TAG.
+# --set augment.mirror=0.5), TAG, VARIANTS (to train and score, e.g. bounces_3; all three by default).
 set -euo pipefail
 phase=$1 W=$2
 shift 2
@@ -32,7 +32,7 @@ export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
 D=$W/data
 STUDY=${TAG:+_$TAG}
 GRAPHS=$([[ ${DEVICE:-cuda} == cuda* ]] && echo --cuda-graphs || true)
-VARIANTS=bounces_0,bounces_1,bounces_3
+VARIANTS=${VARIANTS:-bounces_0,bounces_1,bounces_3}
 mkdir -p "$W/logs" "$W/runs"
 case $phase in
 gen)
@@ -74,7 +74,7 @@ score)
   for s in "$@"; do
     run=$W/runs/sim2real_${suite}${STUDY}_seed$s
     python -m learn sim2real --ablation "$D/$suite" --reality "$D/reality" --test "crossengine=$D/crossengine" \
-      --out "$run" --score-only --device "${DEVICE:-cuda}" --quiet >> "$W/logs/score_${suite}${STUDY}_seed$s.log" 2>&1
+      --out "$run" --score-only --variants "$VARIANTS" --device "${DEVICE:-cuda}" --quiet >> "$W/logs/score_${suite}${STUDY}_seed$s.log" 2>&1
     runs+=("$run")
   done
   if [ ${#runs[@]} -ge 2 ]; then

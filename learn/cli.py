@@ -201,6 +201,7 @@ def _sim2real(args) -> int:
         device=args.device,
         progress=not args.quiet,
         score_only=args.score_only,
+        variants=args.variants.split(",") if args.variants else None,
     )
     print(f"wrote {args.out}/sim2real.md")
     return 0
@@ -373,6 +374,7 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="train nothing: score the runs already in OUT/VARIANT (trained by `learn train`)",
     )
+    p.add_argument("--variants", help="comma-separated variants to train or score (default: every one in --ablation)")
     p.add_argument("--out", required=True)
     _training_options(p)
     p.set_defaults(handler=_sim2real)

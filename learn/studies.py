@@ -134,6 +134,7 @@ def sim2real(
     device: str = "cpu",
     progress: bool = True,
     score_only: bool = False,
+    variants: list[str] | None = None,
 ) -> dict:
     """One model per variant of a training suite with bounce variants (`ablation`, `randomised`:
     max_bounces 0, 1, 3, ...), each scored on its own held-out episodes (in-domain) and on every
@@ -143,11 +144,14 @@ def sim2real(
 
     `score_only`: train nothing; score the runs already in `out/VARIANT` (e.g. trained side by side
     by `learn train` on a GPU, as benchmarks/sim2real_study.sh does), whose checkpoints name their
-    own model and settings."""
+    own model and settings. `variants` limits it to those named (all of `ablation`'s by default)."""
     out, root = Path(out), Path(ablation)
-    variants = sorted(p.name for p in root.iterdir() if p.is_dir() and any(p.glob("shard-*.h5")))
-    if not variants:
+    present = sorted(p.name for p in root.iterdir() if p.is_dir() and any(p.glob("shard-*.h5")))
+    if not present:
         raise ValueError(f"{root} holds no variant folders with shards (expected bounces_0, bounces_1, ...)")
+    if variants is not None and (not variants or set(variants) - set(present)):
+        raise ValueError(f"variants {variants} are not all in {root}, which holds {present}")
+    variants = present if variants is None else list(variants)
     tests = {"reality": reality} if isinstance(reality, str | Path) else dict(reality)
     if not tests or "in_domain" in tests or any(name.endswith(ECHO_PEAK) for name in tests):
         raise ValueError(f"name the test sets (not in_domain or ...{ECHO_PEAK}), got {list(tests)}")

@@ -322,6 +322,22 @@ def test_sim2real_table_matches_its_reports_and_summarises_runs(tiny_dataset, tm
     with pytest.raises(ValueError, match="at least two"):
         sim2real_summary(runs[:1], tmp_path / "one")
 
+    # one named variant (part 4 of the study trains only its best), scored as in the full table
+    one = sim2real(
+        ablation, tiny_dataset, runs[1], score_only=True, train_config=config, progress=False, variants=["bounces_3"]
+    )
+    assert list(one) == ["bounces_3"] and _same(one["bounces_3"], table["bounces_3"])
+    with pytest.raises(ValueError, match=r"not all in .*holds \['bounces_0', 'bounces_3'\]"):
+        sim2real(
+            ablation,
+            tiny_dataset,
+            runs[1],
+            score_only=True,
+            train_config=config,
+            progress=False,
+            variants=["bounces_1"],
+        )
+
 
 def test_table2_scores_every_row_on_the_same_held_out_episodes(tiny_dataset, tmp_path):
     """K = 1, 3, 5 models and the fine-tuned K = 5 rows are scored on each case's held-out
