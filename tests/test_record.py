@@ -81,7 +81,7 @@ def test_impulses_of_many_echoes_match_a_per_tap_reference(device):
     (2e-3 of the amplitude). Catches a tap, microphone row or ping row put in the wrong place.
     Echoes within 1e-3 sample of a whole sample at some microphone are left out: there float32
     and float64 may round to neighbouring samples, whose (equally valid) filters differ."""
-    from acoustic_sim.signals import DELAY_TAPS, FRACTION_STEPS, Recorder, echo_buffer, fractional_delay_table
+    from acoustic_sim.signals import FRACTION_STEPS, Recorder, echo_buffer, fractional_delay_table
 
     rng = np.random.default_rng(11)
     gain, delay = rng.uniform(0.5, 1.5, 32), rng.uniform(0.0, 20e-6, 32)
@@ -112,6 +112,7 @@ def test_impulses_of_many_echoes_match_a_per_tap_reference(device):
     got = rec.impulses([echo_buffer(arrivals, 3, rec.device)], 3).numpy().astype(np.float64) / 2.0**32
 
     taps = fractional_delay_table(config).astype(np.float64)
+    count = taps.shape[1]
     expected = np.zeros_like(got)
     first = np.floor(at).astype(int)
     v = (at - first) * FRACTION_STEPS
@@ -121,8 +122,8 @@ def test_impulses_of_many_echoes_match_a_per_tap_reference(device):
     nepers_per_m = air_absorption_db_per_m(centre_hz) * np.log(10) / 20  # ISO 9613-1 at the call's centre
     scale = amplitude[:, None] * gain[None] * np.exp(-nepers_per_m * path)
     rows = pose[:, None] * 32 + np.arange(32)[None]
-    columns = rec.block + first[..., None] - DELAY_TAPS // 2 + 1 + np.arange(DELAY_TAPS)
-    np.add.at(expected, (rows[..., None].repeat(DELAY_TAPS, -1), columns), w * scale[..., None])
+    columns = rec.block + first[..., None] - count // 2 + 1 + np.arange(count)
+    np.add.at(expected, (rows[..., None].repeat(count, -1), columns), w * scale[..., None])
     assert np.abs(expected).max() > 0.1 and not got[32:64].any()
     np.testing.assert_allclose(got, expected, rtol=0, atol=2e-3)
 
@@ -160,3 +161,20 @@ def test_noise_level_and_kind(device):
     assert np.abs(flat).max() <= np.sqrt(3) * np.abs(clean).max() / 10.0 * 1.001
     with pytest.raises(ValueError, match="noise"):
         record(arrival, CONFIG, noise="pink")
+
+
+@pytest.mark.parametrize(("chirp", "taps"), [(sim.ChirpConfig(), 4), (sim.ChirpConfig.band_20_80khz(), 6)])
+def test_delay_filters_are_pure_delays_across_the_band(chirp, taps):
+    """Each row of the fractional-delay table delays every tone of the call's band by its
+    fraction of a sample: response exp(-2 pi i f tau) within -60 dB, with the fewest taps that
+    allow it (each tap is an atomic add per echo and microphone)."""
+    from acoustic_sim.signals import FRACTION_STEPS, fractional_delay_table
+
+    table = fractional_delay_table(sim.SonarConfig.ertis(chirp=chirp)).astype(np.float64)
+    assert table.shape == (FRACTION_STEPS + 1, taps)
+    f = np.linspace(chirp.stop_frequency_hz, chirp.start_frequency_hz, 101)[:, None]
+    for j, fraction in enumerate(np.linspace(0.0, 1.0, FRACTION_STEPS + 1)):
+        # tap k sits k - taps / 2 + 1 samples after the arrival's whole sample; the arrival is `fraction` after it
+        offsets = np.arange(taps) - taps // 2 + 1 - fraction
+        response = np.exp(-2j * np.pi * f * offsets / chirp.sample_rate_hz) @ table[j]
+        assert np.abs(response - 1.0).max() < 1e-3
