@@ -7,20 +7,22 @@ threshold), and the configs, dataset identity and grid it was trained with.
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import torch
 
-from .data import FORMAT_VERSION, torch_device
+from .data import FORMAT_VERSION, DataConfig, torch_device
 from .models import ModelConfig, build_model
 
 
 def check_compatible(ckpt: dict, model_config, data_config, windows) -> None:
-    """Refuse to resume from a checkpoint of another model, window or dataset."""
-    if ckpt["model_config"] != dataclasses.asdict(model_config) or ckpt["data_config"] != dataclasses.asdict(
-        data_config
-    ):
+    """Refuse to resume from a checkpoint of another model, window or dataset. Configs are compared
+    as configs, so a field added since the checkpoint was written counts at its default."""
+    try:
+        saved = ModelConfig(**ckpt["model_config"]), DataConfig(**ckpt["data_config"])
+    except TypeError as err:  # a field this version does not know
+        raise ValueError(f"--resume: the checkpoint's configs are not this version's: {err}") from None
+    if saved != (model_config, data_config):
         raise ValueError("--resume: the checkpoint was trained with another model or data config")
     if ckpt["dataset"]["plan_id"] != windows.frames.info.get("plan_id"):
         raise ValueError("--resume: the checkpoint was trained on another dataset")

@@ -33,11 +33,17 @@ class ModelConfig:
         frames: Window length K, the number of energyscapes in one input. The paper network
             needs an odd K (its time kernels are centred); the paper uses 1, 3 and 5.
         width: Base channel count of polar_unet (ignored by "paper").
+        row_contrast: polar_unet only: K more input channels, each frame less the median of its
+            range row over azimuth (clamped at 0), the part of an echo that not every azimuth
+            shares. Floor and ceiling bands and array sidelobes span all azimuths and are strong
+            in another engine's or a real sensor's frames; walls do not. Part of the network, so
+            an exported model computes it too.
     """
 
     name: str = "polar_unet"
     frames: int = 5
     width: int = 16
+    row_contrast: bool = False
 
     def __post_init__(self) -> None:
         if self.name not in MODEL_NAMES:
@@ -48,6 +54,8 @@ class ModelConfig:
             raise ValueError(f"the paper network needs an odd number of frames (1, 3, 5), got {self.frames}")
         if self.width < 1:
             raise ValueError(f"width must be >= 1, got {self.width}")
+        if self.row_contrast and self.name != "polar_unet":
+            raise ValueError(f"row_contrast is a polar_unet input, not one of {self.name!r}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -186,15 +194,17 @@ class PolarUNet(nn.Module):
     Args:
         frames: Window length K.
         width: Channel count w of the first level.
+        row_contrast: Add each frame less its per-range-row median over azimuth (see ModelConfig).
     """
 
     output = "logits"
 
-    def __init__(self, frames: int = 5, width: int = 16):
+    def __init__(self, frames: int = 5, width: int = 16, row_contrast: bool = False):
         super().__init__()
         w = width
         self.frames = frames
-        self.enc_0 = polar_block(frames + 2, w)
+        self.row_contrast = row_contrast
+        self.enc_0 = polar_block(frames * (2 if row_contrast else 1) + 2, w)
         self.enc_1 = polar_block(w, 2 * w)
         self.enc_2 = polar_block(2 * w, 4 * w)
         self.context = PolarContext(4 * w)
@@ -210,12 +220,21 @@ class PolarUNet(nn.Module):
         b, _, _, r, a = x.shape
         rng = torch.linspace(0.0, 1.0, r, device=x.device, dtype=x.dtype).view(1, 1, r, 1).expand(b, 1, r, a)
         azi = torch.linspace(-1.0, 1.0, a, device=x.device, dtype=x.dtype).view(1, 1, 1, a).expand(b, 1, r, a)
-        h0 = self.enc_0(torch.cat([x[:, 0], rng, azi], dim=1))  # (B, w, R, A)
+        frames = [x[:, 0], row_contrast(x[:, 0])] if self.row_contrast else [x[:, 0]]  # (B, K or 2K, R, A)
+        h0 = self.enc_0(torch.cat([*frames, rng, azi], dim=1))  # (B, w, R, A)
         h1 = self.enc_1(F.max_pool2d(h0, 2, ceil_mode=True))  # (B, 2w, ceil(R/2), ceil(A/2))
         h2 = self.context(self.enc_2(F.max_pool2d(h1, 2, ceil_mode=True)))  # (B, 4w, R/4, A/4)
         h = self.dec_1(torch.cat([_upsample_to(h2, h1), h1], dim=1))  # (B, 2w, R/2, A/2)
         h = self.dec_0(torch.cat([_upsample_to(h, h0), h0], dim=1))  # (B, w, R, A)
         return self.head(h)
+
+
+def row_contrast(frames: torch.Tensor) -> torch.Tensor:
+    """(..., R, A) frames less the median of each range row over azimuth, clamped at 0: what
+    echoes from some directions and not from all. The median comes from a sort, which exports to
+    ONNX (TopK); torch.median does not."""
+    median = frames.sort(dim=-1).values[..., frames.shape[-1] // 2 :][..., :1]
+    return (frames - median).clamp_min(0.0)
 
 
 def _upsample_to(x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
@@ -229,7 +248,7 @@ def _upsample_to(x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
 # --model choices and ModelConfig's check; a new network is one line here.
 MODELS: dict[str, Callable[[ModelConfig], nn.Module]] = {
     "paper": lambda config: PaperNet(frames=config.frames),
-    "polar_unet": lambda config: PolarUNet(frames=config.frames, width=config.width),
+    "polar_unet": lambda config: PolarUNet(frames=config.frames, width=config.width, row_contrast=config.row_contrast),
 }
 MODEL_NAMES = tuple(MODELS)
 

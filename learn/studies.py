@@ -31,6 +31,7 @@ FRAME_COUNTS = (1, 3, 5)
 SIM2REAL_KEYS = (("scan_f1", "scan F1"), ("beam_accuracy", "beam acc."), ("chamfer_m", "Chamfer [m]"), ("iou", "IoU"))
 
 DEFAULT_DATA = DataConfig()  # frozen: safe to share as a default
+DEFAULT_MODEL = ModelConfig()
 ECHO_PEAK = "_echo_peak"  # a sim2real table's key for the baseline on a test set: "reality_echo_peak"
 
 
@@ -54,8 +55,7 @@ def table2(
     test_data: str | Path,
     out: str | Path,
     *,
-    model: str = "polar_unet",
-    width: int = 16,
+    model_config: ModelConfig = DEFAULT_MODEL,
     train_config: TrainConfig,
     data_config: DataConfig = DEFAULT_DATA,
     device: str = "cpu",
@@ -64,7 +64,8 @@ def table2(
     """Models with K = 1, 3, 5 trained on `train_data`; then the K = 5 model fine-tuned on each
     Table 2 case's training episodes (`test_data`/minimal, many, noisy) at a tenth of the learning
     rate. Every row is scored on the same held-out episodes of each case. Mean / std over windows.
-    `data_config` gives the window settings other than K (label frame, input floor)."""
+    `model_config` and `data_config` give the settings other than K (network and width; label
+    frame, input floor)."""
     out, test_root = Path(out), Path(test_data)
     frames = load_frames(train_data)
     cases = {c: load_frames(_variant_folder(test_root, c)) for c in TABLE2_CASES}
@@ -74,7 +75,7 @@ def table2(
         train(
             frames,
             run,
-            model_config=ModelConfig(name=model, frames=k, width=width),
+            model_config=dataclasses.replace(model_config, frames=k),
             data_config=dataclasses.replace(data_config, frames=k),
             train_config=train_config,
             device=device,
@@ -86,7 +87,7 @@ def table2(
         train(
             cases[c],
             run,
-            model_config=ModelConfig(name=model, frames=5, width=width),
+            model_config=dataclasses.replace(model_config, frames=5),
             data_config=dataclasses.replace(data_config, frames=5),
             train_config=dataclasses.replace(train_config, lr=train_config.lr / 10),
             device=device,
@@ -103,7 +104,7 @@ def table2(
     rows = {name: {c: scored(run, c, c) for c in TABLE2_CASES} for name, run in runs.items()}
     rows["K = 5 fine-tuned"] = {c: scored(run, c, "eval") for c, run in tuned.items()}
     lines = [
-        f"# Table 2 layout: {model}, trained on `{train_data}`, scored on `{test_data}`",
+        f"# Table 2 layout: {model_config.name}, trained on `{train_data}`, scored on `{test_data}`",
         "",
         "scan F1 at 0.10 m mean / std over windows; the paper's MSE in the second table. Rows K = 1, 3, 5 "
         "are trained on the first dataset only; the fine-tuned row is the K = 5 model trained further "
@@ -126,9 +127,7 @@ def sim2real(
     reality: str | Path,
     out: str | Path,
     *,
-    model: str = "polar_unet",
-    width: int = 16,
-    frames: int = 5,
+    model_config: ModelConfig = DEFAULT_MODEL,
     train_config: TrainConfig,
     data_config: DataConfig = DEFAULT_DATA,
     device: str = "cpu",
@@ -139,8 +138,8 @@ def sim2real(
     """One model per variant of a training suite with bounce variants (`ablation`, `randomised`:
     max_bounces 0, 1, 3, ...), each scored on its own held-out episodes (in-domain) and on every
     window of each test set, beside the echo-peak baseline there. `reality` is one folder (named
-    "reality") or {name: folder}, e.g. {"reality": ..., "crossengine": ...}. `data_config` gives
-    the window settings other than K, which is `frames`.
+    "reality") or {name: folder}, e.g. {"reality": ..., "crossengine": ...}. `model_config` is the
+    network to train (K included); `data_config` gives the window settings other than K.
 
     `score_only`: train nothing; score the runs already in `out/VARIANT` (e.g. trained side by side
     by `learn train` on a GPU, as benchmarks/sim2real_study.sh does), whose checkpoints name their
@@ -160,13 +159,13 @@ def sim2real(
     for v in variants:
         run = out / v
         if score_only:
-            model, frames = _trained_model(run)
+            model_config = _trained_model(run)
         else:
             train(
                 _variant_folder(root, v),
                 run,
-                model_config=ModelConfig(name=model, frames=frames, width=width),
-                data_config=dataclasses.replace(data_config, frames=frames),
+                model_config=model_config,
+                data_config=dataclasses.replace(data_config, frames=model_config.frames),
                 train_config=train_config,
                 device=device,
                 progress=progress,
@@ -186,7 +185,8 @@ def sim2real(
     _write_sim2real(
         table,
         out,
-        f"Sim-to-real: {model} (K = {frames}) trained per multipath setting, scored on {', '.join(tests)}",
+        f"Sim-to-real: {model_config.name} (K = {model_config.frames}) trained per multipath setting, "
+        f"scored on {', '.join(tests)}",
         header,
     )
     return table
@@ -223,8 +223,8 @@ def typical_windows(runs: dict[str, Path], test: str, frames, out: Path, *, devi
     return plot_examples(rows, frames.range_m, frames.azimuth_rad, out)
 
 
-def _trained_model(run: Path) -> tuple[str, int]:
-    """(model name, K) of a run to score, refused when it has no best.pt; a run whose training has
+def _trained_model(run: Path) -> ModelConfig:
+    """The network of a run to score, refused when it has no best.pt; a run whose training has
     not stopped (neither early stopping nor its epoch limit) is scored with a warning."""
     if not (run / "best.pt").is_file():
         raise ValueError(f"{run} has no best.pt to score: train it first (learn train --out {run} ...)")
@@ -236,7 +236,7 @@ def _trained_model(run: Path) -> tuple[str, int]:
             f"{config['patience']}); scoring its best.pt so far",
             stacklevel=3,
         )
-    return last["model_config"]["name"], last["model_config"]["frames"]
+    return ModelConfig(**last["model_config"])
 
 
 def _test_sets(table: dict) -> list[str]:

@@ -71,7 +71,7 @@ def test_bad_dataset_folders(tmp_path, tiny_dataset):
 def test_train_checkpoint_resume_and_evaluate(tiny_dataset, tmp_path):
     """Two epochs write last/best checkpoints, history.csv and curves.png; the checkpoint restores
     the same predictions; --resume to 3 epochs adds one epoch (and to 4 from a checkpoint without
-    optimizer state, with a warning); evaluate writes its report."""
+    optimizer state, with a warning, written before a model field existed); evaluate writes its report."""
     run = tmp_path / "run"
     summary = train(tiny_dataset, run, model_config=MODEL, data_config=DATA, train_config=QUICK, progress=False)
     assert summary["epochs"] == 2 and summary["val_windows"] > 0
@@ -90,6 +90,9 @@ def test_train_checkpoint_resume_and_evaluate(tiny_dataset, tmp_path):
     )
     assert summary["epochs"] == 3 and len(open(run / "history.csv").read().strip().splitlines()) == 4
     strip_checkpoint(run / "last.pt", run / "last.pt")  # as packed to move between machines
+    older = torch.load(run / "last.pt", weights_only=True)
+    del older["model_config"]["row_contrast"]  # as written before that field existed: it resumes at its default
+    torch.save(older, run / "last.pt")
     with pytest.warns(UserWarning, match="no optimizer state"):
         summary = train(
             tiny_dataset,
@@ -288,8 +291,11 @@ def test_sim2real_table_matches_its_reports_and_summarises_runs(tiny_dataset, tm
     runs = [tmp_path / f"seed{s}" for s in (0, 1)]
     for seed, run in enumerate(runs):
         train_config = dataclasses.replace(config, seed=seed)
-        sim2real(ablation, tiny_dataset, run, width=4, frames=3, train_config=train_config, progress=False)
+        model = ModelConfig(width=4, frames=3, row_contrast=True)
+        sim2real(ablation, tiny_dataset, run, model_config=model, train_config=train_config, progress=False)
     table = json.loads((runs[1] / "sim2real.json").read_text())
+    trained = torch.load(runs[0] / "bounces_3" / "best.pt", weights_only=True)["model_config"]
+    assert trained == dataclasses.asdict(model)  # the whole network config reaches every variant's run
     assert list(table) == ["bounces_0", "bounces_3"]
     report = json.loads((runs[1] / "bounces_3" / "reality" / "metrics.json").read_text())
     assert _same(table["bounces_3"]["reality"], report["results"]["model"]["all"])
@@ -348,7 +354,8 @@ def test_table2_scores_every_row_on_the_same_held_out_episodes(tiny_dataset, tmp
     cases.mkdir()
     for c in TABLE2_CASES:
         (cases / c).symlink_to(tiny_dataset, target_is_directory=True)
-    rows = table2(tiny_dataset, cases, tmp_path / "t2", width=4, train_config=dataclasses.replace(QUICK, epochs=1))
+    quick = dataclasses.replace(QUICK, epochs=1)
+    rows = table2(tiny_dataset, cases, tmp_path / "t2", model_config=ModelConfig(width=4), train_config=quick)
     assert list(rows) == ["K = 1", "K = 3", "K = 5", "K = 5 fine-tuned"]
     held = torch.load(tmp_path / "t2" / "k5_finetuned_noisy" / "best.pt", weights_only=True)["dataset"]["val_episodes"]
     k5 = json.loads((tmp_path / "t2" / "k5" / "noisy" / "metrics.json").read_text())
@@ -399,11 +406,12 @@ def test_set_reaches_fields_no_option_names_and_the_run_records_them(tiny_datase
     argv = ["train", "--data", str(tiny_dataset), "--out", str(run), "--frames", "3", "--width", "4", "--epochs", "1"]
     argv += ["--batch-size", "4", "--loss", "bce", "--val-fraction", "0.5", "--max-val-windows", "8", "--quiet"]
     argv += ["--set", "train.pos_weight=5", "--set", "data.floor_db=50", "--set", "train.max_val_windows=none"]
+    argv += ["--set", "model.row_contrast=true"]
     assert main(argv) == 0
     written = json.loads((run / "config.json").read_text())
     assert written["train_config"]["pos_weight"] == 5.0 and written["train_config"]["max_val_windows"] is None
     assert written["data_config"] == {"frames": 3, "label": "middle", "floor_db": 50.0}
-    assert written["model_config"] == {"name": "polar_unet", "frames": 3, "width": 4}
+    assert written["model_config"] == {"name": "polar_unet", "frames": 3, "width": 4, "row_contrast": True}
     assert written["dataset"]["plan_id"] == load_frames(tiny_dataset).info["plan_id"] and not written["resumed"]
 
 

@@ -172,14 +172,14 @@ def test_paper_overfits_one_batch(flush_denormal):
     assert hit.float().mean() >= 0.9
 
 
-@pytest.mark.parametrize("name", ["paper", "polar_unet"])
-def test_onnx_matches_torch(name, tmp_path):
+@pytest.mark.parametrize(("name", "contrast"), [("paper", False), ("polar_unet", False), ("polar_unet", True)])
+def test_onnx_matches_torch(name, contrast, tmp_path):
     """ONNX export (K = 3, 40 x 30) checks itself; onnxruntime on another batch size (3) equals torch."""
     pytest.importorskip("onnxruntime")
     from learn.export import export_onnx
 
     torch.manual_seed(0)
-    model = build_model(ModelConfig(name=name, frames=3, width=8))
+    model = build_model(ModelConfig(name=name, frames=3, width=8, row_contrast=contrast))
     with torch.no_grad():  # non-trivial batch-norm statistics, so eval mode differs from train mode
         for module in model.modules():
             if isinstance(module, torch.nn.modules.batchnorm._BatchNorm):
@@ -209,6 +209,7 @@ def test_onnx_matches_torch(name, tmp_path):
         {"frames": 0},
         {"width": 0},
         {"name": "paper", "frames": 4},
+        {"name": "paper", "row_contrast": True},
     ],
 )
 def test_bad_config_raises(kwargs):
@@ -232,3 +233,22 @@ def test_export_is_quiet_unless_verbose(tmp_path):
     if importlib.util.find_spec("torchvision") is None:  # the exporter warns about it once per process
         loud = [*command, "--out", str(tmp_path / "v.onnx"), "--verbose"]
         assert "torchvision" in subprocess.run(loud, capture_output=True, text=True, timeout=300).stderr
+
+
+def test_row_contrast_removes_what_every_azimuth_shares():
+    """A floor band across all 181 azimuths vanishes from the contrast channel; a wall echo over
+    20 azimuths keeps its height above the row's background, and the background is 0."""
+    from learn.models import row_contrast
+
+    frame = torch.full((2, 1, 60, 181), 0.1)
+    frame[:, :, 12] = 0.8  # floor band
+    frame[:, :, 30, 40:60] = 0.9  # wall
+    frame[1, :, 30, 100:110] = 0.4  # second sample: a fainter echo in the same row
+    got = row_contrast(frame)
+    assert got.shape == frame.shape and got[:, :, 12].abs().max() == 0
+    torch.testing.assert_close(got[:, :, 30, 40:60], torch.full((2, 1, 20), 0.8))
+    torch.testing.assert_close(got[1, :, 30, 100:110], torch.full((1, 10), 0.3))
+    assert got[0, :, 30, 100:110].abs().max() == 0 and got[:, :, :12].abs().max() == 0
+    model = build_model(ModelConfig(frames=3, width=4, row_contrast=True))
+    assert model.enc_0[0].conv.in_channels == 3 + 3 + 2  # frames, their contrast, range and azimuth
+    assert model(torch.rand(2, 1, 3, 60, 181)).shape == (2, 1, 60, 181)
