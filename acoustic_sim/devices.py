@@ -22,6 +22,11 @@ def check_device(name: str, *, allow_auto: bool = False) -> str:
         choices = "auto, cpu, cuda or cuda:i" if allow_auto else "cpu, cuda or cuda:i"
         raise ValueError(f"device {name!r} is not a Warp device: use {choices}")
     if name == "cpu":
+        if not wp.is_cpu_available():  # GPU-only builds: their kernel compile would fail on a None library
+            raise ValueError(
+                "device 'cpu': this Warp build cannot compile CPU kernels (its LLVM/Clang library is missing); "
+                "use cuda or cuda:i, or install warp-lang from PyPI"
+            )
         return name
     count = wp.get_cuda_device_count()
     if count == 0:

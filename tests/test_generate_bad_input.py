@@ -61,3 +61,14 @@ def test_cli_errors_are_one_line_and_debug_shows_the_trace(tmp_path, capsys):
         timeout=120,
     )
     assert done.returncode != 0 and "Traceback" in done.stderr
+
+
+def test_cpu_refused_by_a_warp_build_without_a_cpu_compiler(monkeypatch, tmp_path):
+    """A GPU-only Warp build (as on some lent GPU machines) cannot compile CPU kernels: `--device
+    cpu` says so before any work, instead of an AttributeError from inside Warp's compiler."""
+    import warp as wp
+
+    monkeypatch.setattr(wp, "is_cpu_available", lambda: False)
+    with pytest.raises(ValueError, match="cannot compile CPU kernels"):
+        generate(SUITES["tiny"], tmp_path / "out", frames=3, device="cpu", progress=False)
+    assert not (tmp_path / "out").exists()
