@@ -91,7 +91,8 @@ def main() -> None:
     _, peak = found(echo_peak_predictor(windows.config.label_offset), windows, BASELINE_THRESHOLD)
     angle = incidence_deg(true, np.asarray(frames.azimuth_rad))
     has = np.isfinite(true)
-    families = ["all", *sorted(set(frames.scenarios[s] for s in windows.scenario))]
+    family_of = np.asarray(frames.scenarios)[windows.scenario]  # per window
+    families = ["all", *sorted(set(family_of))]
     heads = [f"{lo}-{hi} deg" for lo, hi in itertools.pairwise(BANDS_DEG)] + ["no angle"]
     lines = [
         f"# Recall by incidence angle on `{name}`",
@@ -107,7 +108,7 @@ def main() -> None:
         "|---|" + "---|" * len(heads),
     ]
     for family in families:
-        mask = has if family == "all" else has & (np.asarray(frames.scenarios)[windows.scenario] == family)[:, None]
+        mask = has if family == "all" else has & (family_of == family)[:, None]
         model_rows = [banded(angle, h, mask) for h in hits]
         peak_rows = banded(angle, peak, mask)
         cells = []

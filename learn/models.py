@@ -233,7 +233,8 @@ def row_contrast(frames: torch.Tensor) -> torch.Tensor:
     """(..., R, A) frames less the median of each range row over azimuth, clamped at 0: what
     echoes from some directions and not from all. The median comes from a sort, which exports to
     ONNX (TopK); torch.median does not."""
-    median = frames.sort(dim=-1).values[..., frames.shape[-1] // 2 :][..., :1]
+    middle = frames.shape[-1] // 2
+    median = frames.sort(dim=-1).values[..., middle : middle + 1]
     return (frames - median).clamp_min(0.0)
 
 
