@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from learn.checkpoint import load_checkpoint
+from learn.cli import named_folder
 from learn.data import DataConfig, Windows, load_frames
 from learn.evaluate import BASELINE_THRESHOLD, echo_peak_predictor, model_predictor, predict_batches
 from learn.scan import LABEL_THRESHOLD, SCAN_TOLERANCE_M, first_return_ranges
@@ -75,11 +76,11 @@ def banded(angle: np.ndarray, hit: np.ndarray, mask: np.ndarray) -> list[tuple[i
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("runs", nargs="+", type=Path, help="run folders with best.pt (their recall is averaged)")
-    p.add_argument("--test", required=True, help="NAME=FOLDER of the test set")
+    p.add_argument("--test", type=named_folder, required=True, help="NAME=FOLDER of the test set")
     p.add_argument("--out", type=Path, required=True, help="markdown file to write")
     p.add_argument("--device", default="cpu")
     args = p.parse_args()
-    name, _, folder = args.test.partition("=")
+    name, folder = args.test
     frames = load_frames(folder)
     hits, windows = [], None
     for run in args.runs:

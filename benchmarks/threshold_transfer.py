@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from learn.checkpoint import load_checkpoint
+from learn.cli import named_folder
 from learn.data import DataConfig, Windows, load_frames
 from learn.evaluate import CALIBRATION_THRESHOLDS, calibrate_on_predictions, model_predictor, predict_batches
 
@@ -27,18 +28,11 @@ def sweep(run: Path, frames, device: str) -> tuple[float, np.ndarray]:
     return float(ckpt["threshold"]), calibrate_on_predictions(batches, windows)[1]
 
 
-def _named(text: str) -> tuple[str, Path]:
-    name, sep, folder = text.partition("=")
-    if not sep or not name or not folder:
-        raise argparse.ArgumentTypeError(f"give NAME=FOLDER, got {text!r}")
-    return name, Path(folder)
-
-
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("runs", nargs="+", type=Path, help="run folders with best.pt")
-    p.add_argument("--choose", type=_named, required=True, help="NAME=FOLDER: the set a threshold may be chosen on")
-    p.add_argument("--report", type=_named, required=True, help="NAME=FOLDER: the set reported")
+    p.add_argument("--choose", type=named_folder, required=True, help="NAME=FOLDER: the set a threshold is chosen on")
+    p.add_argument("--report", type=named_folder, required=True, help="NAME=FOLDER: the set reported")
     p.add_argument("--device", default="cpu")
     p.add_argument("--out", type=Path, help="also write the table here (markdown)")
     args = p.parse_args()

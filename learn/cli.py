@@ -204,11 +204,23 @@ def _sim2real(args) -> int:
     return 0
 
 
+def named_folder(text: str) -> tuple[str, str]:
+    """A named test set from the command line, `NAME=FOLDER`, as (name, folder); ValueError
+    when either part is missing. The study analyses in benchmarks/ read theirs with it too."""
+    name, sep, folder = text.partition("=")
+    if not sep or not name or not folder:
+        raise ValueError(f"give NAME=FOLDER, got {text!r}")
+    return name, folder
+
+
 def _named_folders(items: list[str]) -> dict:
     named = {}
     for item in items:
-        name, sep, folder = item.partition("=")
-        if not sep or not name or not folder or name in named or name == "reality":
+        try:
+            name, folder = named_folder(item)
+        except ValueError:
+            name = folder = ""
+        if not name or name in named or name == "reality":
             raise ValueError(f"--test wants NAME=FOLDER with a new name (not reality), got {item!r}")
         named[name] = folder
     return named
