@@ -29,7 +29,8 @@
 # by side ran an 80 GB H100 out of memory; keep to seven at most.
 # Environment: K (window length, 5; runs of other K are named MODEL_kK_seedS), FRAMES (60000),
 # MINUTES (time budget per call and run), DEVICE (cuda), GEN_DEVICE,
-# TRAIN_OPTS (more `learn train` options, e.g. --channels-last).
+# TRAIN_OPTS (more `learn train` options, e.g. --channels-last). Runs train on the windows as simulated
+# (--no-augment), as the shipped model did.
 set -euo pipefail
 phase=$1 W=$2
 shift 2
@@ -56,7 +57,7 @@ train)
   for s in "$@"; do
     name=$(run_name "$model" "$s")
     python -m learn train --data "$D/paper" --out "$W/runs/$name" --model "$model" --frames "$K" --seed "$s" \
-      "${OPTS[@]}" ${TRAIN_OPTS:-} --epochs "${EPOCHS:-100}" --patience "${PATIENCE:-4}" --max-train-windows "${WINDOWS:-12000}" \
+      "${OPTS[@]}" --no-augment ${TRAIN_OPTS:-} --epochs "${EPOCHS:-100}" --patience "${PATIENCE:-4}" --max-train-windows "${WINDOWS:-12000}" \
       --max-val-windows 2000 --max-minutes "${MINUTES:-8}" --resume --device "$DEVICE" --quiet \
       >> "$W/logs/$name.log" 2>&1 &
   done

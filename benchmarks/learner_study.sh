@@ -8,7 +8,8 @@ export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=2
 python benchmarks/bench_learn.py --device cuda --out $W/bench
 gen() { python -m acoustic_sim generate --suite "$1" --out "$D/$1" --workers 8 --device cuda:0 --quiet "${@:2}"; }
 gen paper
-C=(--device cuda --quiet --max-val-windows 1000)
+# --no-augment: these results predate augmentation as the default (sim2real study, part 4)
+C=(--device cuda --quiet --max-val-windows 1000 --no-augment)
 # The paper's recipe (MSE, Adam 1e-4, batch 12, early stopping on SSIM) against ours (MSE, lr 1e-3).
 python -m learn train --data $D/paper --out $W/runs/paper_k5 --model paper --frames 5 --epochs 40 --patience 6 \
   --max-train-windows 3000 --max-minutes 10.6 "${C[@]}" > $L/paper_k5.log 2>&1 &

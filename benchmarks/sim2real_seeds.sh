@@ -15,7 +15,7 @@ for s in "$@"; do
   else
     python -m learn sim2real --ablation "$D/ablation" --reality "$D/reality" --out "$W/runs/sim2real_seed$s" \
       --model polar_unet --frames 5 --epochs 20 --patience 4 --lr 1e-3 --max-train-windows 3000 --max-minutes 1.2 \
-      --seed "$s" --device cuda --quiet --max-val-windows 1000 > "$W/logs/sim2real_seed$s.log" 2>&1 &
+      --seed "$s" --device cuda --quiet --max-val-windows 1000 --no-augment > "$W/logs/sim2real_seed$s.log" 2>&1 &
   fi
 done
 wait

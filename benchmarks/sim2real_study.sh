@@ -19,8 +19,9 @@
 # rate of one polar UNet process on an H200; nine processes together trained ~2,300 windows/s
 # there). Each training process holds its dataset on the GPU (~10 GB at 50,000 frames): nine fit a
 # 139 GB H200, seven an 80 GB H100 (e.g. two seeds of one suite per call).
-# TAG names a second study of the same suite (e.g. TAG=mirror with TRAIN_OPTS="--set
-# augment.mirror=0.5"): its runs go to sim2real_SUITE_TAG_seedS.
+# Runs train on the windows as simulated (--no-augment), as the committed study did; TAG names a
+# second study of the same suite (e.g. TAG=mirror with TRAIN_OPTS="--set augment.mirror=0.5", which
+# come after and so win): its runs go to sim2real_SUITE_TAG_seedS.
 # Environment: FRAMES (50000), MINUTES (budget per call and run, 8), DEVICE (cuda), GEN_DEVICE,
 # WORKERS (generation processes, 8), REALITY_FRAMES (its suite's 1,500), CROSS_FRAMES (1000),
 # CROSS_WORKERS (10), EPOCHS (100), PATIENCE (4), TRAIN_OPTS (more `learn train` options, e.g.
@@ -60,7 +61,7 @@ train)
   for s in "$@"; do
     for v in ${VARIANTS//,/ }; do
       python -m learn train --data "$D/$suite/$v" --out "$W/runs/sim2real_${suite}${STUDY}_seed$s/$v" --model polar_unet \
-        --frames 5 --seed "$s" --loss bce --lr 1e-3 --batch-size 16 $GRAPHS ${TRAIN_OPTS:-} --epochs "${EPOCHS:-100}" \
+        --frames 5 --seed "$s" --loss bce --lr 1e-3 --batch-size 16 $GRAPHS --no-augment ${TRAIN_OPTS:-} --epochs "${EPOCHS:-100}" \
         --patience "${PATIENCE:-4}" --max-train-windows 12000 --max-val-windows 2000 --max-minutes "${MINUTES:-8}" \
         --resume --device "${DEVICE:-cuda}" --quiet >> "$W/logs/${suite}${STUDY}_${v}_seed$s.log" 2>&1 &
     done

@@ -15,7 +15,10 @@ from .data import Windows, normalise
 
 @dataclass(frozen=True, kw_only=True)
 class AugmentConfig:
-    """What `augmented_batch` changes (all off by default; stored with every checkpoint).
+    """What `augmented_batch` changes (stored with every checkpoint). The defaults are what the
+    sim-to-real study kept (benchmarks/results/sim2real_study/randomised_part4/): trained with
+    them, the polar UNet scored higher on another engine's echoes in every seed pair (+0.018 to
+    +0.047 scan F1) and no lower on `reality`. `AugmentConfig.none()` turns all of it off.
 
     Attributes:
         mirror: Probability of mirroring a window and its label in azimuth (the grid is
@@ -27,10 +30,10 @@ class AugmentConfig:
         band_masks: Range bands per window (each up to a tenth of the grid) set to the floor.
     """
 
-    mirror: float = 0.0
-    floor_jitter_db: float = 0.0
-    range_tilt_db: float = 0.0
-    band_masks: int = 0
+    mirror: float = 0.5
+    floor_jitter_db: float = 5.0
+    range_tilt_db: float = 6.0
+    band_masks: int = 2
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.mirror <= 1.0:
@@ -38,6 +41,11 @@ class AugmentConfig:
         values = (self.floor_jitter_db, self.range_tilt_db, self.band_masks)
         if min(values) < 0 or not all(math.isfinite(v) for v in values):
             raise ValueError(f"augment sizes must be finite and >= 0, got {values}")
+
+    @classmethod
+    def none(cls) -> AugmentConfig:
+        """No augmentation: the paper's training, and every run's before the study kept it."""
+        return cls(mirror=0.0, floor_jitter_db=0.0, range_tilt_db=0.0, band_masks=0)
 
     @property
     def active(self) -> bool:

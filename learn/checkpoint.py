@@ -7,23 +7,45 @@ threshold), and the configs, dataset identity and grid it was trained with.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import torch
 
+from .augment import AugmentConfig
 from .data import FORMAT_VERSION, DataConfig, torch_device
 from .models import ModelConfig, build_model
 
+# What a resumed run may change: how long it runs and how its steps execute, not what it learns.
+RESUME_MAY_CHANGE = ("epochs", "patience", "max_minutes", "amp", "cuda_graphs")
 
-def check_compatible(ckpt: dict, model_config, data_config, windows) -> None:
-    """Refuse to resume from a checkpoint of another model, window or dataset. Configs are compared
-    as configs, so a field added since the checkpoint was written counts at its default."""
+
+def check_compatible(ckpt: dict, model_config, data_config, train_config, windows) -> None:
+    """Refuse to resume from a checkpoint of another model, window, dataset or training recipe
+    (loss, optimiser, split, augmentation: all but RESUME_MAY_CHANGE). Configs are compared as
+    configs, so a field added since the checkpoint was written counts at its default; augmentation
+    absent from a checkpoint counts as none, which is what such a run trained with."""
+    from .train import TrainConfig
+
     try:
         saved = ModelConfig(**ckpt["model_config"]), DataConfig(**ckpt["data_config"])
+        recipe = dict(ckpt["train_config"])
+        augment = AugmentConfig(**{**dataclasses.asdict(AugmentConfig.none()), **recipe.pop("augment", {})})
+        saved_train = TrainConfig(**recipe, augment=augment)
     except TypeError as err:  # a field this version does not know
         raise ValueError(f"--resume: the checkpoint's configs are not this version's: {err}") from None
     if saved != (model_config, data_config):
         raise ValueError("--resume: the checkpoint was trained with another model or data config")
+    changed = [
+        f"{f.name} {getattr(saved_train, f.name)} -> {getattr(train_config, f.name)}"
+        for f in dataclasses.fields(TrainConfig)
+        if f.name not in RESUME_MAY_CHANGE and getattr(saved_train, f.name) != getattr(train_config, f.name)
+    ]
+    if changed:
+        raise ValueError(
+            f"--resume: the run was trained with another recipe ({'; '.join(changed)}); resume it with the "
+            "settings in its config.json, or start a new run"
+        )
     if ckpt["dataset"]["plan_id"] != windows.frames.info.get("plan_id"):
         raise ValueError("--resume: the checkpoint was trained on another dataset")
 

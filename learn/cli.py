@@ -12,6 +12,7 @@ from . import MissingExtra
 
 
 def _configs(args):
+    from .augment import AugmentConfig
     from .data import DataConfig
     from .models import ModelConfig
     from .train import TrainConfig
@@ -36,7 +37,7 @@ def _configs(args):
         "model": ModelConfig(name=args.model, frames=args.frames, width=args.width),
         "data": DataConfig(frames=args.frames, label=args.label),
         "train": train,
-        "augment": train.augment,
+        "augment": AugmentConfig.none() if args.no_augment else train.augment,
     }
     configs = apply_settings(configs, args.set or ())
     if configs["model"].frames != configs["data"].frames:
@@ -282,6 +283,11 @@ def _training_options(p) -> None:
     p.add_argument("--no-amp", action="store_true", help="no bfloat16 autocast on GPUs")
     p.add_argument(
         "--cuda-graphs", action="store_true", help="training steps as CUDA graphs (torch.compile; GPUs only)"
+    )
+    p.add_argument(
+        "--no-augment",
+        action="store_true",
+        help="train on the windows as simulated (the paper's way); --set augment.* then adds single ones",
     )
     p.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
     p.add_argument("--quiet", action="store_true", help="no progress bars (the per-epoch lines stay)")

@@ -58,7 +58,8 @@ class TrainConfig:
         amp: bfloat16 autocast on GPUs.
         max_minutes: Time budget: no new epoch starts once this many minutes have passed since
             the run (or its resumption) began.
-        augment: Training-time augmentation (`learn.augment`; off by default).
+        augment: Training-time augmentation (`learn.augment`; on by default, as the sim-to-real
+            study kept it).
         cuda_graphs: Run the training steps' forward and backward as CUDA graphs
             (`torch.compile(mode="reduce-overhead")`; GPUs only, ~25 s of compiling first): a
             small network spends most of an eager step launching kernels.
@@ -271,7 +272,7 @@ def _train_one(
     last = out / "last.pt"
     if resume and last.exists():
         ckpt = torch.load(last, map_location=dev, weights_only=True)
-        check_compatible(ckpt, model_config, data_config, windows)
+        check_compatible(ckpt, model_config, data_config, config, windows)
         model.load_state_dict(ckpt["model"])
         if "optimizer" in ckpt:
             optimizer.load_state_dict(ckpt["optimizer"])

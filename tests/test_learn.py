@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 import torch
 
+from learn.augment import AugmentConfig
 from learn.checkpoint import load_checkpoint, strip_checkpoint
 from learn.data import DataConfig, DataError, Windows, load_frames, normalise, split_groups, validation_split
 from learn.evaluate import evaluate
@@ -89,17 +90,31 @@ def test_train_checkpoint_resume_and_evaluate(tiny_dataset, tmp_path):
         tiny_dataset, run, model_config=MODEL, data_config=DATA, train_config=more, resume=True, progress=False
     )
     assert summary["epochs"] == 3 and len(open(run / "history.csv").read().strip().splitlines()) == 4
+    for other in ({"lr": 2e-3}, {"augment": AugmentConfig.none()}):  # what it learns may not change on resume
+        with pytest.raises(ValueError, match="another recipe"):
+            train(
+                tiny_dataset,
+                run,
+                model_config=MODEL,
+                data_config=DATA,
+                train_config=dataclasses.replace(more, **other),
+                resume=True,
+                progress=False,
+            )
     strip_checkpoint(run / "last.pt", run / "last.pt")  # as packed to move between machines
     older = torch.load(run / "last.pt", weights_only=True)
     del older["model_config"]["row_contrast"]  # as written before that field existed: it resumes at its default
+    del older["train_config"]["augment"]  # ... and before augmentation: it trained with none, and resumes so
     torch.save(older, run / "last.pt")
+    with pytest.raises(ValueError, match="augment"):
+        train(tiny_dataset, run, model_config=MODEL, data_config=DATA, train_config=more, resume=True, progress=False)
     with pytest.warns(UserWarning, match="no optimizer state"):
         summary = train(
             tiny_dataset,
             run,
             model_config=MODEL,
             data_config=DATA,
-            train_config=dataclasses.replace(QUICK, epochs=4),
+            train_config=dataclasses.replace(QUICK, epochs=4, augment=AugmentConfig.none()),
             resume=True,
             progress=False,
         )
@@ -441,7 +456,7 @@ def test_bad_learner_settings_are_refused_by_name(setting, message, capsys):
 def test_augmentations_change_training_windows_as_stated(tiny_dataset):
     """Off: the plain batch. Mirror: input and label flipped together. Floor jitter, range tilt
     and band masks: other inputs in [0, 1], the label untouched, the same draws from the same seed."""
-    from learn.augment import AugmentConfig, augmented_batch
+    from learn.augment import augmented_batch
 
     windows = Windows(load_frames(tiny_dataset), DATA)
     x, y = windows.batch([0, 1, 2])
@@ -449,20 +464,25 @@ def test_augmentations_change_training_windows_as_stated(tiny_dataset):
     def draw(config, seed=0):
         return augmented_batch(windows, [0, 1, 2], config, torch.Generator().manual_seed(seed))
 
-    plain = draw(AugmentConfig())
+    plain = draw(AugmentConfig.none())
     torch.testing.assert_close(plain[0], x)
     torch.testing.assert_close(plain[1], y)
-    mirrored = draw(AugmentConfig(mirror=1.0))
+    only = AugmentConfig.none()
+    mirrored = draw(dataclasses.replace(only, mirror=1.0))
     torch.testing.assert_close(mirrored[0], x.flip(-1))
     torch.testing.assert_close(mirrored[1], y.flip(-1))
     assert not torch.equal(x, x.flip(-1)) and not torch.equal(y, y.flip(-1))  # so the comparison can fail
-    for config in (AugmentConfig(floor_jitter_db=10.0), AugmentConfig(range_tilt_db=6.0), AugmentConfig(band_masks=3)):
+    for config in (
+        dataclasses.replace(only, floor_jitter_db=10.0),
+        dataclasses.replace(only, range_tilt_db=6.0),
+        dataclasses.replace(only, band_masks=3),
+    ):
         changed, label = draw(config)
         assert changed.min() >= 0 and changed.max() <= 1 and not torch.equal(changed, x)
         torch.testing.assert_close(label, y)
         torch.testing.assert_close(draw(config)[0], changed)
         assert not torch.equal(draw(config, seed=1)[0], changed)
-    masked, _ = draw(AugmentConfig(band_masks=3))
+    masked, _ = draw(dataclasses.replace(only, band_masks=3))
     assert ((masked == 0).all(dim=-1).sum() > (x == 0).all(dim=-1).sum()).item()  # whole rows at the floor
     with pytest.raises(ValueError, match="probability"):
         AugmentConfig(mirror=1.5)
@@ -475,10 +495,19 @@ def test_training_with_augmentation_records_it(tiny_dataset, tmp_path):
     run = tmp_path / "run"
     argv = ["train", "--data", str(tiny_dataset), "--out", str(run), "--frames", "3", "--width", "4", "--epochs", "1"]
     argv += ["--batch-size", "4", "--loss", "bce", "--val-fraction", "0.5", "--max-val-windows", "8", "--quiet"]
-    assert main([*argv, "--set", "augment.mirror=0.5", "--set", "augment.band_masks=2"]) == 0
+    assert main([*argv, "--set", "augment.mirror=0.25", "--set", "augment.floor_jitter_db=0"]) == 0
     augment = json.loads((run / "config.json").read_text())["train_config"]["augment"]
-    assert augment == {"mirror": 0.5, "floor_jitter_db": 0.0, "range_tilt_db": 0.0, "band_masks": 2}
-    assert load_checkpoint(run / "best.pt")[1]["train_config"]["augment"]["mirror"] == 0.5
+    assert augment == {
+        "mirror": 0.25,
+        "floor_jitter_db": 0.0,
+        "range_tilt_db": 6.0,
+        "band_masks": 2,
+    }  # the rest: defaults
+    assert load_checkpoint(run / "best.pt")[1]["train_config"]["augment"]["mirror"] == 0.25
+    plain = tmp_path / "plain"  # --no-augment starts from none; a --set after it adds one back
+    assert main([*argv[:4], str(plain), *argv[5:], "--no-augment", "--set", "augment.mirror=0.5"]) == 0
+    augment = json.loads((plain / "config.json").read_text())["train_config"]["augment"]
+    assert augment == {"mirror": 0.5, "floor_jitter_db": 0.0, "range_tilt_db": 0.0, "band_masks": 0}
 
 
 @pytest.mark.filterwarnings("ignore:.*predicts no return")
