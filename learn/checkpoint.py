@@ -25,20 +25,18 @@ def check_compatible(ckpt: dict, model_config, data_config, train_config, window
     (loss, optimiser, split, augmentation: all but RESUME_MAY_CHANGE). Configs are compared as
     configs, so a field added since the checkpoint was written counts at its default; augmentation
     absent from a checkpoint counts as none, which is what such a run trained with."""
-    from .train import TrainConfig
-
     try:
         saved = ModelConfig(**ckpt["model_config"]), DataConfig(**ckpt["data_config"])
         recipe = dict(ckpt["train_config"])
         augment = AugmentConfig(**{**dataclasses.asdict(AugmentConfig.none()), **recipe.pop("augment", {})})
-        saved_train = TrainConfig(**recipe, augment=augment)
+        saved_train = type(train_config)(**recipe, augment=augment)
     except TypeError as err:  # a field this version does not know
         raise ValueError(f"--resume: the checkpoint's configs are not this version's: {err}") from None
     if saved != (model_config, data_config):
         raise ValueError("--resume: the checkpoint was trained with another model or data config")
     changed = [
         f"{f.name} {getattr(saved_train, f.name)} -> {getattr(train_config, f.name)}"
-        for f in dataclasses.fields(TrainConfig)
+        for f in dataclasses.fields(train_config)
         if f.name not in RESUME_MAY_CHANGE and getattr(saved_train, f.name) != getattr(train_config, f.name)
     ]
     if changed:

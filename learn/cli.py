@@ -296,7 +296,7 @@ def _training_options(p) -> None:
         action="append",
         metavar="SECTION.FIELD=VALUE",
         help="any config field, after the options above (repeatable; e.g. train.pos_weight=5, data.floor_db=50, "
-        "augment.mirror=0.5, augment.floor_jitter_db=10, augment.range_tilt_db=6, augment.band_masks=2)",
+        "augment.floor_jitter_db=10, augment.band_masks=0, model.row_contrast=true)",
     )
 
 
