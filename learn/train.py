@@ -134,6 +134,7 @@ class _Dist:
     rank: int = 0
     world: int = 1
     local: int = 0
+    joined: bool = False  # in a process group (launched by torchrun), even of one process
 
     @property
     def main(self) -> bool:
@@ -141,10 +142,11 @@ class _Dist:
 
 
 def _init_distributed(device: str) -> tuple[_Dist, torch.device]:
-    """Under torchrun: join the process group and take this rank's GPU (or the CPU with gloo)."""
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    if world == 1:
+    """Under torchrun: join the process group and take this rank's GPU (or the CPU with gloo). A
+    torchrun of one process joins too, so it runs the same path (NCCL, DDP) as a larger one."""
+    if "LOCAL_RANK" not in os.environ:  # torchrun sets it for every process it starts
         return _Dist(), torch_device(device)
+    world = int(os.environ.get("WORLD_SIZE", "1"))
     import torch.distributed as dist
 
     local = int(os.environ.get("LOCAL_RANK", "0"))
@@ -153,7 +155,16 @@ def _init_distributed(device: str) -> tuple[_Dist, torch.device]:
         dist.init_process_group("nccl" if cuda else "gloo")
     if cuda:
         torch.cuda.set_device(local)
-    return _Dist(dist.get_rank(), world, local), torch.device(f"cuda:{local}" if cuda else "cpu")
+    return _Dist(dist.get_rank(), world, local, joined=True), torch.device(f"cuda:{local}" if cuda else "cpu")
+
+
+def _process_group(dist_info: _Dist) -> dict | None:
+    """The torchrun process group a run trained in (backend and size), None outside torchrun."""
+    if not dist_info.joined:
+        return None
+    import torch.distributed as dist
+
+    return {"backend": dist.get_backend(), "processes": dist_info.world}
 
 
 def validate(model, windows: Windows, indices: np.ndarray, *, amp: bool = True) -> dict[str, float]:
@@ -221,7 +232,7 @@ def train(
     else:
         held = validation_split(groups, train_config.val_fraction, seed=train_config.seed)
         result = _train_one(windows, ~held, held, out, *common, tensorboard=tensorboard)
-    if dist_info.world > 1:
+    if dist_info.joined:
         import torch.distributed as dist
 
         dist.barrier()  # rank 0 writes the summaries last; leaving without this aborts gloo ranks at exit
@@ -283,7 +294,7 @@ def _train_one(
     elif init_from is not None:  # fine-tuning: weights only
         ckpt = torch.load(init_from, map_location=dev, weights_only=True)
         model.load_state_dict(ckpt["model"])
-    if dist_info.world > 1:
+    if dist_info.joined:
         from torch.nn.parallel import DistributedDataParallel
 
         model = DistributedDataParallel(model, device_ids=[dist_info.local] if dev.type == "cuda" else None)
@@ -316,6 +327,7 @@ def _train_one(
         run = {k: meta[k] for k in ("model_config", "data_config", "train_config", "dataset", "parameters")}
         resumed = bool(resume and last.exists())
         run |= {"device": str(dev), "resumed": resumed, "init_from": None if init_from is None else str(init_from)}
+        run["process_group"] = _process_group(dist_info)
         (out / "config.json").write_text(json.dumps(run, indent=1))
     board = TensorBoardLog(out, val_idx) if tensorboard and dist_info.main else None
     rng = np.random.default_rng(config.seed + 1000 * state["epoch"])
@@ -391,7 +403,7 @@ def _train_one(
             stop[0] = float(state["stale"] >= config.patience or out_of_time)
         else:
             state["epoch"] = epoch + 1
-        if dist_info.world > 1:
+        if dist_info.joined:
             import torch.distributed as dist
 
             dist.broadcast(stop, 0)

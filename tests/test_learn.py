@@ -257,10 +257,22 @@ def test_train_help_shows_every_default():
     assert "(default: scan_f1)" in flat
 
 
-def test_ddp_under_torchrun_on_cpu(tiny_dataset, tmp_path):
-    """Two gloo processes under torchrun train one epoch; rank 0 writes the checkpoint."""
-    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", "-m", "learn"]
-    cmd += ["train", "--data", str(tiny_dataset), "--out", str(tmp_path / "ddp"), "--model", "polar_unet"]
+@pytest.mark.parametrize("processes", [2, 1])
+def test_ddp_under_torchrun_on_cpu(tiny_dataset, tmp_path, processes):
+    """gloo processes under torchrun train one epoch; rank 0 writes the checkpoint. One process
+    joins a process group too (the path a one-GPU NCCL check must take); a plain run joins none."""
+    cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(processes)]
+    cmd += [
+        "-m",
+        "learn",
+        "train",
+        "--data",
+        str(tiny_dataset),
+        "--out",
+        str(tmp_path / "ddp"),
+        "--model",
+        "polar_unet",
+    ]
     cmd += ["--width", "4", "--frames", "3", "--epochs", "1", "--batch-size", "2", "--loss", "bce"]
     cmd += ["--val-fraction", "0.5", "--quiet"]
     env = dict(os.environ, OMP_NUM_THREADS="1")
@@ -268,6 +280,12 @@ def test_ddp_under_torchrun_on_cpu(tiny_dataset, tmp_path):
     assert done.returncode == 0, done.stderr[-3000:]
     summary = json.loads((tmp_path / "ddp" / "summary.json").read_text())
     assert summary["epochs"] == 1
+    group = json.loads((tmp_path / "ddp" / "config.json").read_text())["process_group"]
+    assert group == {"backend": "gloo", "processes": processes}
+    if processes == 1:
+        plain = tmp_path / "plain"
+        train(tiny_dataset, plain, model_config=MODEL, data_config=DATA, train_config=QUICK, progress=False)
+        assert json.loads((plain / "config.json").read_text())["process_group"] is None
 
 
 def test_monitor_picks_best_checkpoint_by_chamfer(tiny_dataset, tmp_path):
