@@ -44,10 +44,12 @@ check)
   torchrun --standalone --nproc_per_node 1 -m learn train "${OPTS[@]}" --out "$W/ddp" | tee -a "$R/one_gpu_check.txt"
   python -m learn train "${OPTS[@]}" --out "$W/single" | tee -a "$R/one_gpu_check.txt"
   python - "$W" <<'PY' | tee -a "$R/one_gpu_check.txt"
-import csv, sys
+import csv, json, sys
 for key in ("train_loss", "val_scan_f1"):
     runs = {k: [r[key] for r in csv.DictReader(open(f"{sys.argv[1]}/{k}/history.csv"))] for k in ("ddp", "single")}
     print(key, runs)
+for k in ("ddp", "single"):  # the torchrun run must have joined an NCCL group of one process
+    print(k, "process_group", json.load(open(f"{sys.argv[1]}/{k}/config.json"))["process_group"])
 PY
   ;;
 *)
