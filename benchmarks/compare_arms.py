@@ -52,14 +52,17 @@ def compare(arms: dict[str, dict[int, dict]], reference: str, sets: list[str]) -
     for name, runs in arms.items():
         if sorted(runs) != seeds:
             raise ValueError(f"arm {name!r} has seeds {sorted(runs)}, the reference {reference!r} has {seeds}")
-    out = {}
-    for name, runs in arms.items():
-        out[name] = {}
-        for s in sets:
-            values = np.array([runs[seed][s][METRIC]["mean"] for seed in seeds])
-            ref = np.array([arms[reference][seed][s][METRIC]["mean"] for seed in seeds])
-            out[name][s] = {"seeds": values, "mean": values.mean(), "std": values.std(), "paired": values - ref}
-    return out
+    scores = {
+        name: {s: np.array([runs[seed][s][METRIC]["mean"] for seed in seeds]) for s in sets}
+        for name, runs in arms.items()
+    }
+    return {
+        name: {
+            s: {"seeds": v, "mean": v.mean(), "std": v.std(), "paired": v - scores[reference][s]}
+            for s, v in by_set.items()
+        }
+        for name, by_set in scores.items()
+    }
 
 
 def choose(table: dict, choose_set: str) -> str:
