@@ -6,18 +6,18 @@ A speed change is only trusted beside the code it replaces measured on the same 
 same run (lent GPUs of one kind differ by ~10 %). Each revision's `acoustic_sim` and `scenes` are
 taken with `git archive` into a temporary folder and timed in a process of their own, through the
 public interface only (`Sonar(SonarConfig.ertis(), max_bounces, ray_count).simulate(scene, poses,
-batch)`), which every revision since the first benchmark keeps. The workload is bench_sonar's: the
-reference office, a drive of `--batches` batches of 256 pings (the steady state of a trajectory),
-3 bounces, at each `--rays`. Rounds alternate the revisions (base, now, base, now, ...) so drift of
-the machine falls on all of them; each figure is the median over rounds. Writes
-sonar_same_job_<device>.json and .md under --out.
+batch)`), which every revision since the first benchmark keeps. A revision is a commit (`HEAD` is
+the last commit, not uncommitted edits). The workload is bench_sonar's: the reference office, a
+drive of `--batches` batches of 256 pings (the steady state of a trajectory), 3 bounces, at each
+`--rays`. Each round times every revision once, and the order turns by one each round (a b c,
+b c a, c a b), so neither drift nor going first falls on one revision; each figure is the median
+over rounds. Writes sonar_same_job_<device>.json and .md under --out.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -29,19 +29,32 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def child(rays: list[int], bounces: int, pings: int, batches: int, device: str) -> dict:
-    """Runs inside one revision's tree (first on sys.path): energyscapes/s per ray count, after a
-    first call (kernel compile or cache load) that is reported apart."""
+def load_simulator(tree: Path) -> tuple[str, str]:
+    """Imports `acoustic_sim` and `scenes` from `tree`, ahead of anything else on sys.path (the
+    working directory or an installed copy), and returns the folders they came from."""
+    sys.path.insert(0, str(tree))
+    import acoustic_sim
+    import scenes
+
+    return str(Path(acoustic_sim.__file__).parent), str(Path(scenes.__file__).parent)
+
+
+def child(tree: Path, rays: list[int], bounces: int, pings: int, batches: int, device: str) -> dict:
+    """Runs in a process of its own for the revision exported to `tree`: energyscapes/s per ray
+    count, after a first call (kernel compile or cache load) that is reported apart, and where
+    the simulator was imported from."""
+    imported = load_simulator(tree)
     import warp as wp
 
-    wp.config.quiet = True
-    sys.path.append(str(ROOT))  # after the revision's tree: bench_lidar gets the revision's modules
     import acoustic_sim as sim
+
+    wp.config.quiet = True
+    sys.path.append(str(ROOT))  # the office and poses of the working tree; they use the revision's simulator
     from benchmarks.bench_lidar import load_office, random_poses
 
     scene = load_office()
     drive = random_poses(pings * batches, 3)
-    out = {"acoustic_sim": str(Path(sim.__file__).parent)}
+    out = {"imported": list(imported)}
     for count in rays:
         sonar = sim.Sonar(sim.SonarConfig.ertis(), max_bounces=bounces, ray_count=count, device=device)
         times = []
@@ -54,29 +67,58 @@ def child(rays: list[int], bounces: int, pings: int, batches: int, device: str) 
     return out
 
 
+def run_checked(cmd: list[str], what: str, **kwargs) -> subprocess.CompletedProcess:
+    """subprocess.run that ends the benchmark with the command's own error output when it fails."""
+    done = subprocess.run(cmd, capture_output=True, **kwargs)
+    if done.returncode:
+        err = done.stderr if isinstance(done.stderr, str) else done.stderr.decode(errors="replace")
+        raise SystemExit(f"{what} failed (exit {done.returncode}):\n{err.strip()}")
+    return done
+
+
 def export(rev: str, into: Path) -> str:
     """The revision's simulator (acoustic_sim, scenes) under `into`; returns its full commit id."""
-    commit = subprocess.run(
-        ["git", "rev-parse", "--verify", rev + "^{commit}"], cwd=ROOT, check=True, capture_output=True, text=True
+    commit = run_checked(
+        ["git", "rev-parse", "--verify", "--quiet", rev + "^{commit}"], f"revision {rev!r}", cwd=ROOT, text=True
     ).stdout.strip()
     into.mkdir(parents=True)
-    archive = subprocess.run(
-        ["git", "archive", commit, "acoustic_sim", "scenes"], cwd=ROOT, check=True, capture_output=True
-    ).stdout
-    subprocess.run(["tar", "-x", "-C", str(into)], input=archive, check=True)
+    archive = run_checked(["git", "archive", commit, "acoustic_sim", "scenes"], f"git archive {rev}", cwd=ROOT).stdout
+    run_checked(["tar", "-x", "-C", str(into)], f"unpacking {rev}", input=archive)
     return commit
 
 
+def imported_from(result: dict, tree: Path) -> bool:
+    return all(Path(folder).is_relative_to(tree) for folder in result["imported"])
+
+
 def parse_revs(items: list[str]) -> dict[str, str]:
+    """{name: revision} from NAME=REV items, in order; names are identifiers (they become folders)."""
     revs = {}
     for item in items:
         name, sep, rev = item.partition("=")
-        if not sep or not name or not rev or name in revs:
-            raise SystemExit(f"--revs wants distinct NAME=REV, got {item!r}")
+        if not sep or not name.isidentifier() or not rev or name in revs:
+            raise SystemExit(f"--revs wants distinct NAME=REV with NAME an identifier, got {item!r}")
         revs[name] = rev
     if len(revs) < 2:
         raise SystemExit("--revs: name at least two revisions to compare (e.g. base=8debdf9 now=HEAD)")
     return revs
+
+
+def ray_counts(text: str) -> list[int]:
+    try:
+        counts = [int(part) for part in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"rays per ping, comma-separated integers, got {text!r}") from None
+    if not counts or min(counts) < 1:
+        raise argparse.ArgumentTypeError(f"rays per ping must be >= 1, got {text!r}")
+    return counts
+
+
+def positive(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
 
 
 def main(argv=None) -> dict:
@@ -86,49 +128,36 @@ def main(argv=None) -> dict:
         action="append",
         default=[],
         metavar="NAME=REV",
-        help="a revision to time (repeatable; the first is the reference of the ratios)",
+        help="a revision to time, oldest first (repeatable; each is compared with every earlier one)",
     )
     parser.add_argument("--device", default="cuda:0")
-    parser.add_argument("--rays", default="20000,100000", help="rays per ping, comma-separated")
+    parser.add_argument("--rays", type=ray_counts, default="20000,100000", help="rays per ping, comma-separated")
     parser.add_argument("--bounces", type=int, default=3)
     parser.add_argument("--pings", type=int, default=256, help="batch size")
     parser.add_argument("--batches", type=int, default=8, help="batches per end-to-end run")
-    parser.add_argument("--rounds", type=int, default=3, help="timed runs per revision, alternating")
+    parser.add_argument("--rounds", type=positive, default=3, help="timed runs per revision, in turning order")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
-    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--child", type=Path, help=argparse.SUPPRESS)  # an exported tree to time
     args = parser.parse_args(argv)
-    rays = [int(r) for r in args.rays.split(",")]
+    rays = args.rays
     if args.child:  # one revision, in its own process
-        print(json.dumps(child(rays, args.bounces, args.pings, args.batches, args.device)))
+        print(json.dumps(child(args.child, rays, args.bounces, args.pings, args.batches, args.device)))
         return {}
     revs = parse_revs(args.revs)
     runs: dict[str, list[dict]] = {name: [] for name in revs}
     with tempfile.TemporaryDirectory() as tmp:
         commits = {name: export(rev, Path(tmp) / name) for name, rev in revs.items()}
+        names = list(revs)
         for r in range(args.rounds):
-            for name in revs:
-                env = dict(
-                    os.environ, PYTHONPATH=os.pathsep.join([str(Path(tmp) / name), os.environ.get("PYTHONPATH", "")])
-                )
-                cmd = [
-                    sys.executable,
-                    __file__,
-                    "--child",
-                    "--device",
-                    args.device,
-                    "--rays",
-                    args.rays,
-                    "--bounces",
-                    str(args.bounces),
-                    "--pings",
-                    str(args.pings),
-                    "--batches",
-                    str(args.batches),
-                ]
-                done = subprocess.run(cmd, env=env, check=True, capture_output=True, text=True)
+            for name in names[r % len(names) :] + names[: r % len(names)]:
+                tree = Path(tmp) / name
+                cmd = [sys.executable, __file__, "--child", str(tree), "--device", args.device]
+                cmd += ["--rays", ",".join(map(str, rays))]
+                cmd += ["--bounces", str(args.bounces), "--pings", str(args.pings), "--batches", str(args.batches)]
+                done = run_checked(cmd, f"{name} ({revs[name]}), round {r + 1}", text=True)
                 result = json.loads(done.stdout.strip().splitlines()[-1])
-                if not result["acoustic_sim"].startswith(tmp):
-                    raise SystemExit(f"{name}: imported {result['acoustic_sim']}, not the revision's tree")
+                if not imported_from(result, tree):
+                    raise SystemExit(f"{name}: imported {result['imported']}, not the revision's tree {tree}")
                 runs[name].append(result)
                 rates = ", ".join(f"{c:,} rays {result[str(c)]['energyscapes_per_s']:,.0f}/s" for c in rays)
                 print(f"round {r + 1}, {name}: {rates}", flush=True)
@@ -141,7 +170,6 @@ def write(args, revs: dict, commits: dict, runs: dict, rays: list[int]) -> dict:
     wp.config.quiet = True
     wp.init()
     device = wp.get_device(args.device)
-    first = next(iter(revs))
     res = {
         "device": str(device),
         "device_name": device.name if device.is_cuda else "CPU",
@@ -167,30 +195,26 @@ def write(args, revs: dict, commits: dict, runs: dict, rays: list[int]) -> dict:
     stem = f"sonar_same_job_{'cuda' if device.is_cuda else 'cpu'}"
     (out / f"{stem}.json").write_text(json.dumps(res, indent=1))
     names = list(revs)
+    pairs = [(later, earlier) for i, later in enumerate(names) for earlier in names[:i]]
     lines = [
         f"# `Sonar.simulate` end to end, {len(names)} revisions in one job, on {res['device_name']} ({res['device']})",
         "",
         f"Reference office, max_bounces={args.bounces}, {args.batches} batches of {args.pings} pings per run, warp "
-        f"{res['warp']}, {res['date']}. Energyscapes/s, median of {args.rounds} rounds (revisions alternate); "
-        f"ratios against `{first}`.",
+        f"{res['warp']}, {res['date']}. Energyscapes/s, median of {args.rounds} rounds (the order turns each "
+        "round); ratios of the medians, each revision against every earlier one.",
         "",
         "| revision | commit |",
         "|---|---|",
         *(f"| {name} | {revs[name]} = {commits[name][:10]} |" for name in names),
         "",
-        "| rays per ping | " + " | ".join(names) + " | " + " | ".join(f"{n} / {first}" for n in names[1:]) + " |",
-        "|---|" + "---|" * (2 * len(names) - 1),
+        "| rays per ping | " + " | ".join(names) + " | " + " | ".join(f"{a} / {b}" for a, b in pairs) + " |",
+        "|---|" + "---|" * (len(names) + len(pairs)),
     ]
     for count in rays:
-        row = res["energyscapes_per_s"][str(count)]
-        ref = row[first]["median"]
-        lines.append(
-            f"| {count:,} | "
-            + " | ".join(f"{row[n]['median']:,.0f}" for n in names)
-            + " | "
-            + " | ".join(f"{row[n]['median'] / ref:.2f}x" for n in names[1:])
-            + " |"
-        )
+        median = {n: m["median"] for n, m in res["energyscapes_per_s"][str(count)].items()}
+        rates = [f"{median[n]:,.0f}" for n in names]
+        ratios = [f"{median[a] / median[b]:.2f}x" for a, b in pairs]
+        lines.append(f"| {count:,} | " + " | ".join(rates + ratios) + " |")
     (out / f"{stem}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return res

@@ -1,48 +1,102 @@
 """benchmarks/sonar_same_job.py without a GPU: revisions are named and exported as git has them,
-and the table reports medians over rounds with ratios against the first revision."""
+a child process imports the exported simulator and not the working tree's, and the table reports
+medians over rounds with ratios of each revision to every earlier one."""
 
 import argparse
 import json
 import subprocess
+import sys
 
 import pytest
 
 from benchmarks import sonar_same_job
 
 ROOT = sonar_same_job.ROOT
+OLDER = "a1936a1"  # the last commit recording with 8 taps: its acoustic_sim/signals.py differs from today's
 
 
-@pytest.mark.parametrize("items", [["base=HEAD"], ["base=HEAD", "base=HEAD~1"], ["base=HEAD", "now"], ["=HEAD", "a=b"]])
-def test_revisions_need_distinct_names_and_two_at_least(items):
+def git(*args):
+    return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, check=True).stdout
+
+
+def test_revisions_keep_their_order_and_names():
+    assert list(sonar_same_job.parse_revs(["base=8debdf9", "now=HEAD", "x=a=b"]).items()) == [
+        ("base", "8debdf9"),
+        ("now", "HEAD"),
+        ("x", "a=b"),
+    ]
+
+
+@pytest.mark.parametrize(
+    "items", [["base=HEAD"], ["base=HEAD", "base=HEAD~1"], ["base=HEAD", "now"], ["../up=HEAD", "a=b"]]
+)
+def test_revisions_need_distinct_identifier_names_and_two_at_least(items):
     with pytest.raises(SystemExit):
         sonar_same_job.parse_revs(items)
 
 
-def test_export_is_the_commits_simulator(tmp_path):
-    commit = sonar_same_job.export("HEAD", tmp_path / "now")
-    assert (
-        commit == subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-    )
-    for path in ("acoustic_sim/sonar.py", "scenes/__init__.py"):
-        at_head = subprocess.run(["git", "show", f"HEAD:{path}"], cwd=ROOT, capture_output=True, check=True).stdout
-        assert (tmp_path / "now" / path).read_bytes() == at_head
-    assert not (tmp_path / "now" / "learn").exists()  # the simulator only
-    with pytest.raises(subprocess.CalledProcessError):
+@pytest.mark.parametrize("rev", ["HEAD", OLDER])
+def test_export_is_the_commits_simulator(tmp_path, rev):
+    try:
+        git("cat-file", "-e", f"{OLDER}^{{commit}}")
+    except subprocess.CalledProcessError:
+        pytest.fail(f"commit {OLDER} is not in this clone (a shallow clone?): the comparison needs history")
+    commit = sonar_same_job.export(rev, tmp_path / "tree")
+    assert commit == git("rev-parse", rev).decode().strip()
+    for path in ("acoustic_sim/signals.py", "scenes/__init__.py"):
+        assert (tmp_path / "tree" / path).read_bytes() == git("show", f"{rev}:{path}")
+    assert not (tmp_path / "tree" / "learn").exists()  # the simulator only
+
+
+def test_the_older_commit_really_differs():
+    """Keeps the export test meaningful: a copy of the working tree would fail it for OLDER."""
+    assert git("show", f"{OLDER}:acoustic_sim/signals.py") != git("show", "HEAD:acoustic_sim/signals.py")
+
+
+def test_a_bad_revision_is_one_clear_error(tmp_path):
+    with pytest.raises(SystemExit, match="no-such-revision"):
         sonar_same_job.export("no-such-revision", tmp_path / "bad")
 
 
-def test_table_is_median_of_rounds_with_ratios_to_the_first(tmp_path):
+@pytest.mark.parametrize("outer", [None, str(ROOT)])
+def test_the_child_imports_the_exported_tree(tmp_path, monkeypatch, outer):
+    """Run from the working tree (its own acoustic_sim first on sys.path), with or without it on
+    PYTHONPATH, the child's simulator comes from the export."""
+    sonar_same_job.export(OLDER, tmp_path / "tree")
+    if outer is None:
+        monkeypatch.delenv("PYTHONPATH", raising=False)
+    else:
+        monkeypatch.setenv("PYTHONPATH", outer)
+    code = f"from benchmarks.sonar_same_job import load_simulator; print(*load_simulator({str(tmp_path / 'tree')!r}))"
+    printed = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
+    result = {"imported": printed.stdout.split()}
+    assert len(result["imported"]) == 2
+    assert sonar_same_job.imported_from(result, tmp_path / "tree")
+    assert not sonar_same_job.imported_from(
+        {"imported": [str(ROOT / "acoustic_sim"), str(ROOT / "scenes")]}, tmp_path / "tree"
+    )
+
+
+def test_table_is_median_of_rounds_with_ratios_to_every_earlier_revision(tmp_path):
     args = argparse.Namespace(device="cpu", bounces=3, pings=256, batches=8, rounds=3, out=str(tmp_path))
-    revs = {"base": "8debdf9", "now": "HEAD"}
-    commits = {"base": "a" * 40, "now": "b" * 40}
+    revs = {"base": "8debdf9", "mid": "a1936a1", "now": "HEAD"}
+    commits = {name: c * 40 for name, c in zip(revs, "abc", strict=True)}
 
     def rounds(*rates):
         return [{"20000": {"energyscapes_per_s": r}} for r in rates]
 
-    runs = {"base": rounds(90.0, 100.0, 400.0), "now": rounds(150.0, 140.0, 160.0)}
+    runs = {"base": rounds(90.0, 100.0, 400.0), "mid": rounds(120.0, 125.0, 130.0), "now": rounds(150.0, 140.0, 160.0)}
     sonar_same_job.write(args, revs, commits, runs, [20000])
     table = (tmp_path / "sonar_same_job_cpu.md").read_text()
-    assert "| 20,000 | 100 | 150 | 1.50x |" in table
+    assert "| rays per ping | base | mid | now | mid / base | now / base | now / mid |" in table
+    assert "| 20,000 | 100 | 125 | 150 | 1.25x | 1.50x | 1.20x |" in table
     saved = json.loads((tmp_path / "sonar_same_job_cpu.json").read_text())
     assert saved["energyscapes_per_s"]["20000"]["base"]["rounds"] == [90.0, 100.0, 400.0]
-    assert saved["revisions"]["now"] == {"rev": "HEAD", "commit": "b" * 40}
+    assert saved["revisions"]["now"] == {"rev": "HEAD", "commit": "c" * 40}
+
+
+@pytest.mark.parametrize("bad", [["--rounds", "0"], ["--rays", "20000,,1"], ["--rays", "0"]])
+def test_bad_settings_are_refused_before_any_work(bad, capsys):
+    with pytest.raises(SystemExit):
+        sonar_same_job.main(["--revs", "a=HEAD", "--revs", "b=HEAD", *bad])
+    assert "error" in capsys.readouterr().err
