@@ -148,7 +148,8 @@ def _report(summary: dict) -> int:
     parts = summary.get("seconds_by_part")
     if parts and summary["shards_written"]:
         workers = " summed over workers" if summary.get("workers", 1) > 1 else ""
-        print(f"time by part{workers}: " + ", ".join(f"{k} {v:.1f} s" for k, v in parts.items()))
+        shown = {k: v for k, v in parts.items() if k != "start-up" or v}  # no workers started: no start-up
+        print(f"time by part{workers}: " + ", ".join(f"{k} {v:.1f} s" for k, v in shown.items()))
     return 0
 
 

@@ -19,6 +19,7 @@ import socket
 import threading
 import time
 import warnings
+from collections.abc import Iterable
 from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
 from pathlib import Path
 
@@ -35,33 +36,35 @@ from .suites import Suite
 
 PLAN_FILE = "plan.json"
 LOCK_FILE = ".generate.lock"  # "pid host" of the run writing the folder
-PARTS = ("prepare", "lidar", "sonar", "write", "waiting")  # where a run's time goes (run_tasks)
+# Where a run's time goes: a worker process's start (launch to ready: interpreter, imports, Warp and
+# its device; 0 in this process), then run_tasks's parts.
+PARTS = ("start-up", "prepare", "lidar", "sonar", "write", "waiting")
 
 
-def run_tasks(tasks: list[ShardTask], device=None, on_frames=None, *, overlap: bool = True) -> tuple[list[dict], dict]:
+def run_tasks(
+    tasks: Iterable[ShardTask], device=None, on_frames=None, *, overlap: bool = True
+) -> tuple[list[dict], dict]:
     """Simulate and write shards, in order; returns (their manifest entries, seconds per part).
 
-    With `overlap` (the default) the device never waits for host work that can run beside it: one
-    thread prepares the next episode (scene, drive, drawn physics; across shard boundaries too)
-    while the device renders this one, and another compresses and writes each finished shard while
-    the next is rendered (one write in flight: at most two shards in memory). The arrays are the
-    same either way. Seconds per part: "prepare", "lidar", "sonar", "write" (time each took,
-    wherever it ran) and "waiting" (the rendering thread blocked on a preparation or a write).
-    `on_frames(n)` reports progress."""
+    `tasks` is read lazily (a worker's may come from a shared queue): the next task is taken only
+    when its first episode is due to be prepared, during the last episode of the one before, so
+    a worker holds at most one task it has not started. With `overlap` (the default) the device
+    never waits for host work that can run beside it: one thread prepares the next episode (scene,
+    drive, drawn physics; across shard boundaries too) while the device renders this one, and
+    another compresses and writes each finished shard while the next is rendered (one write in
+    flight: at most two shards in memory). The arrays are the same either way. Seconds per part:
+    "prepare", "lidar", "sonar", "write" (time each took, wherever it ran) and "waiting" (the
+    rendering thread blocked on a preparation or a write). `on_frames(n)` reports progress."""
     import warp as wp
 
     quiet_warp()
     device = str(wp.get_device(device))
     rigs = {}  # task path -> (physics, the variant's rig before per-episode draws)
-    for task in tasks:
-        physics = Physics(**task.physics)
-        rigs[task.path] = physics, rig(physics, tuple(task.suite.get("settings", ())))
-    jobs = [(task, episode) for task in tasks for episode in task.episodes]
+    jobs = ((task, episode) for task in tasks for episode in task.episodes)
     seconds = dict.fromkeys(PARTS, 0.0)
 
-    def prepare(i: int):
+    def prepare(task: ShardTask, episode):
         t0 = time.perf_counter()
-        task, episode = jobs[i]
         ready = prepare_episode(episode, *rigs[task.path], task.suite)
         return ready, time.perf_counter() - t0
 
@@ -83,39 +86,56 @@ def run_tasks(tasks: list[ShardTask], device=None, on_frames=None, *, overlap: b
         seconds["write"] += took
 
     with ThreadPoolExecutor(1) as preparer, ThreadPoolExecutor(1) as writer:
-        ahead = preparer.submit(prepare, 0) if overlap and jobs else None
-        writing = None
-        i = 0
-        for task in tasks:
-            physics, nominal = rigs[task.path]
-            frames, records = ShardFrames(), []
-            for episode in task.episodes:
-                ready = episode  # simulate_episode prepares it, unless the preparer has
-                if overlap:
-                    ready, took = collect(ahead)
-                    seconds["prepare"] += took
-                    ahead = preparer.submit(prepare, i + 1) if i + 1 < len(jobs) else None
-                arrays, record = simulate_episode(
-                    ready,
-                    physics,
-                    nominal,
-                    task.suite,
-                    device=device,
-                    keep_signals=task.keep_signals,
-                    keep_arrivals=task.keep_arrivals,
-                    on_frames=on_frames,
-                    seconds=seconds,
-                )
-                _add_episode(frames, arrays, episode, task)
-                records.append(record)
-                i += 1
+
+        def take_next():
+            """The next (task, episode) and its preparation, queued when overlapping; None at the end."""
+            job = next(jobs, None)
+            if job is None:
+                return None
+            task = job[0]
+            if task.path not in rigs:  # built here, before the preparer thread reads it
+                physics = Physics(**task.physics)
+                rigs[task.path] = physics, rig(physics, tuple(task.suite.get("settings", ())))
+            return job, preparer.submit(prepare, *job) if overlap else None
+
+        def finish(task: ShardTask, frames: ShardFrames, records: list, writing):
+            """Hand a finished shard to the writer (after the one in flight); returns the new write."""
             if writing is not None:  # one write in flight
                 wrote(*collect(writing))
-                writing = None
             if overlap:
-                writing = writer.submit(write, task, frames, records)
-            else:
-                wrote(*write(task, frames, records))
+                return writer.submit(write, task, frames, records)
+            wrote(*write(task, frames, records))
+            return None
+
+        upcoming, writing = take_next(), None
+        task = frames = records = None
+        while upcoming is not None:
+            (this, episode), ahead = upcoming
+            if this is not task:
+                if task is not None:
+                    writing = finish(task, frames, records, writing)
+                task, frames, records = this, ShardFrames(), []
+            physics, nominal = rigs[task.path]
+            ready = episode  # simulate_episode prepares it, unless the preparer has
+            if overlap:
+                ready, took = collect(ahead)
+                seconds["prepare"] += took
+            upcoming = take_next()  # the next preparation runs beside this rendering
+            arrays, record = simulate_episode(
+                ready,
+                physics,
+                nominal,
+                task.suite,
+                device=device,
+                keep_signals=task.keep_signals,
+                keep_arrivals=task.keep_arrivals,
+                on_frames=on_frames,
+                seconds=seconds,
+            )
+            _add_episode(frames, arrays, episode, task)
+            records.append(record)
+        if task is not None:
+            writing = finish(task, frames, records, writing)
         if writing is not None:
             wrote(*collect(writing))
     return entries, seconds
@@ -254,13 +274,15 @@ def _check_plan_file(out: Path, tasks: list[ShardTask], meta: dict) -> None:
 
 
 _WORKER_DEVICE = None
+_WORKER_TASKS = None  # the shared queue of shard tasks, ended by one None per worker
 _WORKER_PROGRESS = None  # a queue of finished frame counts, read by the parent's progress bar
+_WORKER_LAUNCHED = 0.0  # time.time() when the parent started the pool
 
 
-def _init_worker(devices, progress, parent: int, cpu_threads: int) -> None:
-    global _WORKER_DEVICE, _WORKER_PROGRESS
+def _init_worker(devices, tasks, progress, parent: int, cpu_threads: int, launched: float) -> None:
+    global _WORKER_DEVICE, _WORKER_TASKS, _WORKER_PROGRESS, _WORKER_LAUNCHED
     _WORKER_DEVICE = devices.get()
-    _WORKER_PROGRESS = progress
+    _WORKER_TASKS, _WORKER_PROGRESS, _WORKER_LAUNCHED = tasks, progress, launched
     os.environ["SONAR2LIDAR_CPU_THREADS"] = str(cpu_threads)  # the workers share the cores (devices.cpu_cores)
     threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
 
@@ -272,15 +294,19 @@ def _exit_with_parent(parent: int) -> None:
     os._exit(1)
 
 
-def _run_in_worker(tasks: list[ShardTask], overlap: bool) -> dict:
-    return run_tasks(tasks, _WORKER_DEVICE, on_frames=_WORKER_PROGRESS.put, overlap=overlap)[1]
+def _run_in_worker(overlap: bool) -> dict:
+    """One worker's whole share: shard tasks from the shared queue until its None, so its preparing
+    and writing overlap its rendering across all its shards, and the workers, each taking the
+    next shard when it is ready for one, finish within about one shard of each other."""
+    import warp as wp
 
-
-def chains(tasks: list[ShardTask], workers: int) -> list[list[ShardTask]]:
-    """The tasks in runs of a few for each worker call: long enough that a worker's preparing and
-    writing overlap its rendering (`run_tasks`), short enough that workers finish together."""
-    size = max(1, min(8, len(tasks) // (2 * workers)))
-    return [tasks[i : i + size] for i in range(0, len(tasks), size)]
+    quiet_warp()
+    wp.get_device(_WORKER_DEVICE)  # Warp and its device up: the end of the start-up
+    started = time.time() - _WORKER_LAUNCHED
+    seconds = run_tasks(iter(_WORKER_TASKS.get, None), _WORKER_DEVICE, on_frames=_WORKER_PROGRESS.put, overlap=overlap)[
+        1
+    ]
+    return seconds | {"start-up": started}
 
 
 def _show_progress(counts, bar) -> None:
@@ -354,18 +380,19 @@ def generate(
             add(run_tasks(todo, devices[0], on_frames=bar.update, overlap=overlap)[1])
         else:
             context = multiprocessing.get_context("spawn")
-            queue = context.Queue()  # handed to each worker at its start; no manager process to outlive us
+            device_queue = context.Queue()  # handed to each worker at its start; no manager process to outlive us
             for d in devices:
-                queue.put(d)
+                device_queue.put(d)
             counts = context.Queue()  # frames as the workers simulate them, not per finished shard
             reader = threading.Thread(target=_show_progress, args=(counts, bar), daemon=True)
             reader.start()
-            init = (queue, counts, os.getpid(), max(1, cpu_cores() // workers))
+            shard_queue = context.Queue()  # each worker takes the next shard when it is ready for one
+            for task in [*todo, *[None] * workers]:
+                shard_queue.put(task)
+            init = (device_queue, shard_queue, counts, os.getpid(), max(1, cpu_cores() // workers), time.time())
             try:
                 with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker, initargs=init) as pool:
-                    for future in as_completed(
-                        [pool.submit(_run_in_worker, c, overlap) for c in chains(todo, workers)]
-                    ):
+                    for future in as_completed([pool.submit(_run_in_worker, overlap) for _ in range(workers)]):
                         add(future.result())
             finally:
                 counts.put(None)

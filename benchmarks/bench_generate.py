@@ -116,13 +116,14 @@ def markdown(res: dict, suite: str, args) -> str:
         f"({res['warmup_s']:.1f} s). *in turn*: each worker prepares an episode (scene, drive, draws), "
         "renders it (LiDAR, sonar) and writes each shard one after another; *overlapped* (the default): "
         "the next episode is prepared and the last shard written beside the rendering. Parts are seconds "
-        "summed over workers; *waiting* is the rendering thread blocked on a preparation or a write. "
+        "summed over workers; *start-up* is a worker process from its launch to Warp and its device ready; "
+        "*waiting* is the rendering thread blocked on a preparation or a write. "
         "*simulator* is frames over the LiDAR + sonar seconds of one worker: the rate the device work "
         "alone allows.",
         "",
-        "| workers | parts | seconds | frames/s | prepare | LiDAR | sonar | write | waiting | simulator frames/s | "
-        "vs simulator | MB |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "| workers | parts | seconds | frames/s | " + " | ".join(PARTS).replace("lidar", "LiDAR") + " | "
+        "simulator frames/s | vs simulator | MB |",
+        "|---|---|---|---|" + "---|" * len(PARTS) + "---|---|---|",
     ]
     simulator = {r["overlap"]: r["simulator_frames_per_s"] for r in res["runs"] if r["workers"] == 1}
     for r in res["runs"]:

@@ -144,7 +144,8 @@ def test_overlapped_parts_change_nothing_but_the_time(reference, tmp_path, devic
             np.testing.assert_array_equal(got[key], want[key], err_msg=f"{folder}: {key}")
     for summary in (overlapped, in_turn):
         parts = summary["seconds_by_part"]
-        assert set(parts) == set(gen.PARTS) == {"prepare", "lidar", "sonar", "write", "waiting"}
+        assert set(parts) == set(gen.PARTS) == {"start-up", "prepare", "lidar", "sonar", "write", "waiting"}
+        assert parts["start-up"] == 0  # one process: no worker to start
         assert all(parts[k] > 0 for k in ("prepare", "lidar", "sonar", "write"))
         assert parts["lidar"] + parts["sonar"] < summary["seconds"]
     assert in_turn["seconds_by_part"]["waiting"] == 0
@@ -242,7 +243,8 @@ def test_parallel_workers_write_the_same_shards(reference, tmp_path, device, mon
     summary = generate(tmp_path, device, workers=2)
     assert summary["shards_written"] == 2
     assert sum(BarSteps.steps) == FRAMES and len(BarSteps.steps) == 3, BarSteps.steps
-    assert summary["seconds_by_part"]["sonar"] > 0 and summary["seconds_by_part"]["write"] > 0  # sent back
+    parts = summary["seconds_by_part"]
+    assert parts["sonar"] > 0 and parts["write"] > 0 and parts["start-up"] > 0  # sent back
     got, want = shard_arrays(tmp_path), shard_arrays(reference[0])
     assert got.keys() == want.keys()
     for key in want:
@@ -260,12 +262,32 @@ def test_ray_tasks_write_the_same_shards(reference, tmp_path, device):
         np.testing.assert_array_equal(got[key], want[key], err_msg=key)
 
 
-def test_workers_get_runs_of_tasks_long_enough_to_overlap():
-    """Each worker call takes a run of tasks (so preparing and writing overlap the rendering),
-    at most 8 and at least one, every task exactly once, in order."""
-    for tasks, workers in ((list(range(240)), 8), (list(range(2)), 2), (list(range(7)), 1), ([], 3)):
-        runs = gen.chains(tasks, workers)
-        assert [t for run in runs for t in run] == tasks
-        assert all(1 <= len(run) <= 8 for run in runs)
-        if len(tasks) >= 2 * workers:
-            assert len(runs) >= workers and min(map(len, runs[:-1])) >= 2
+def test_a_worker_takes_its_next_shard_only_during_the_last_episode_of_this_one(tmp_path, device, monkeypatch):
+    """run_tasks reads its tasks lazily (in a worker, from the queue all workers share): the next
+    shard is taken while the last episode of the current one renders, never earlier, so a worker
+    holds at most one shard it has not started and the workers finish close together."""
+    tasks = gen.plan(SUITE, tmp_path, frames=FRAMES, shards=2, seed=7)
+    assert [len(t.episodes) for t in tasks] == [2, 1]
+    events = []
+    real_simulate = gen.simulate_episode
+
+    def taken():
+        for task in tasks:
+            events.append(("take", task.shard))
+            yield task
+
+    def simulate(ready, *args, **kwargs):
+        events.append(("render", ready.episode.index))
+        return real_simulate(ready, *args, **kwargs)
+
+    monkeypatch.setattr(gen, "simulate_episode", simulate)
+    entries, _ = gen.run_tasks(taken(), device)
+    episodes = [e.index for t in tasks for e in t.episodes]
+    assert events == [
+        ("take", 0),
+        ("render", episodes[0]),
+        ("take", 1),  # to prepare its first episode beside the render of shard 0's last
+        ("render", episodes[1]),
+        ("render", episodes[2]),
+    ]
+    assert [e["file"] for e in entries] == ["shard-00000.h5", "shard-00001.h5"]
