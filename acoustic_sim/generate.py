@@ -303,9 +303,8 @@ def _run_in_worker(overlap: bool) -> dict:
     quiet_warp()
     wp.get_device(_WORKER_DEVICE)  # Warp and its device up: the end of the start-up
     started = time.time() - _WORKER_LAUNCHED
-    seconds = run_tasks(iter(_WORKER_TASKS.get, None), _WORKER_DEVICE, on_frames=_WORKER_PROGRESS.put, overlap=overlap)[
-        1
-    ]
+    tasks = iter(_WORKER_TASKS.get, None)
+    _, seconds = run_tasks(tasks, _WORKER_DEVICE, on_frames=_WORKER_PROGRESS.put, overlap=overlap)
     return seconds | {"start-up": started}
 
 
