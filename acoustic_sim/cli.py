@@ -103,7 +103,7 @@ def _render_sonar(args, rig, scene, pose, lidar, t0) -> int:
 def _generate(args) -> int:
     from .devices import quiet_warp
 
-    quiet_warp(not args.verbose)
+    quiet_warp(not args.verbose, start=False)  # generate's worker processes start Warp (forked, they must)
     from .generate import generate
     from .suites import load_suite
 
@@ -147,7 +147,8 @@ def _report(summary: dict) -> int:
     )
     parts = summary.get("seconds_by_part")
     if parts and summary["shards_written"]:
-        workers = " summed over workers" if summary.get("workers", 1) > 1 else ""
+        started = {"fork": " forked", "spawn": " spawned"}.get(summary.get("worker_start"), "")
+        workers = f" summed over {summary['workers']}{started} workers" if summary.get("workers", 1) > 1 else ""
         shown = {k: v for k, v in parts.items() if k != "start-up" or v}  # no workers started: no start-up
         print(f"time by part{workers}: " + ", ".join(f"{k} {v:.1f} s" for k, v in shown.items()))
     return 0

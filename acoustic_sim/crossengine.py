@@ -201,7 +201,8 @@ def generate_crossengine(
 
     from . import __version__
     from .dataset import FORMAT, FORMAT_VERSION, ShardFrames, read_attrs, verify_shard, write_shard
-    from .generate import output_lock, worker_devices
+    from .devices import resolve_device
+    from .generate import output_lock
 
     if frames < 1 or workers < 1:
         raise ValueError(f"frames and workers must be >= 1, got {frames} and {workers}")
@@ -211,7 +212,7 @@ def generate_crossengine(
     lengths = [min(EPISODE_FRAMES, frames - start) for start in range(0, frames, EPISODE_FRAMES)]
     paths = [out / f"shard-{i:05d}.h5" for i in range(len(lengths))]
     grid = ProcessingConfig().grid
-    device = worker_devices(device, 1)[0]
+    device = resolve_device(device)
     out.mkdir(parents=True, exist_ok=True)
     with output_lock(out):
         todo = []

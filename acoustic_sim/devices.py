@@ -18,6 +18,7 @@ def check_device(name: str, *, allow_auto: bool = False) -> str:
 
     if allow_auto and name == "auto":
         return name
+    quiet_warp()
     if not isinstance(name, str) or not _NAME.fullmatch(name):
         choices = "auto, cpu, cuda or cuda:i" if allow_auto else "cpu, cuda or cuda:i"
         raise ValueError(f"device {name!r} is not a Warp device: use {choices}")
@@ -37,23 +38,74 @@ def check_device(name: str, *, allow_auto: bool = False) -> str:
     return name
 
 
-_warp_voice_set = False
+_voice: bool | None = None  # quiet or not: the first quiet_warp call's choice
 
 
-def quiet_warp(quiet: bool = True) -> None:
+def quiet_warp(quiet: bool = True, *, start: bool = True) -> None:
     """Warp's start-up banner, per-module compile/load lines and missing-driver notice off
     (warnings and errors stay); the one place the package sets Warp's logging. The first call in
-    a process decides, so a command's `--verbose` holds for the library code it runs."""
-    global _warp_voice_set
-    if _warp_voice_set:
-        return
-    _warp_voice_set = True
+    a process decides, so a command's `--verbose` holds for the library code it runs. `start`
+    starts Warp now (with the driver notice caught); `start=False` only sets the voice, for a
+    parent that will fork worker processes and so must not start CUDA itself."""
+    global _voice
     import warp as wp
 
-    if quiet:
-        wp.config.quiet = True
-        wp.config.log_level = wp.LOG_WARNING
+    if _voice is None:
+        _voice = quiet
+        if quiet:
+            wp.config.quiet = True
+            wp.config.log_level = wp.LOG_WARNING
+    runtime = _warp_runtime()
+    if start and _voice and (runtime is None or runtime is _UNKNOWN):  # wp.init is idempotent; the catch is not free
         _init_without_driver_notice(wp)
+
+
+def warp_voice() -> bool:
+    """Whether Warp is kept quiet in this process (the package's default until quiet_warp is called)."""
+    return True if _voice is None else _voice
+
+
+def cuda_started() -> bool:
+    """Whether this process has started CUDA (through Warp or torch). A process forked from one
+    that has cannot use CUDA, so worker processes are spawned then. Unknown Warp internals count
+    as started: spawning is always safe, only slower."""
+    import sys
+
+    torch = sys.modules.get("torch")
+    if torch is not None and torch.cuda.is_initialized():
+        return True
+    if "warp" not in sys.modules:
+        return False
+    runtime = _warp_runtime()
+    if runtime is _UNKNOWN:
+        return True
+    return runtime is not None and bool(getattr(runtime, "cuda_devices", True))
+
+
+_UNKNOWN = "unknown"
+
+
+def _warp_runtime():
+    """Warp's runtime object once Warp has started in this process, None before; _UNKNOWN where a
+    later Warp keeps it elsewhere than warp._src.context (1.19)."""
+    import importlib
+
+    try:
+        return importlib.import_module("warp._src.context").runtime
+    except (ImportError, AttributeError):
+        return _UNKNOWN
+
+
+def resolve_device(name: str, index: int = 0) -> str:
+    """The Warp device worker `index` of a run uses: `name` checked (check_device), or for
+    "auto" the GPUs in turn, the CPU where there is none."""
+    import warp as wp
+
+    if name != "auto":
+        return check_device(name)
+    quiet_warp()
+    gpus = wp.get_cuda_device_count()
+    return f"cuda:{index % gpus}" if gpus else "cpu"
 
 
 NO_DRIVER = "Could not find or load the NVIDIA CUDA driver"

@@ -12,27 +12,27 @@ that are already complete.
 from __future__ import annotations
 
 import contextlib
+import functools
 import json
-import multiprocessing
 import os
 import socket
-import threading
 import time
 import warnings
 from collections.abc import Iterable
-from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor, as_completed
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
 from tqdm.auto import tqdm
 
 from .dataset import FORMAT, FORMAT_VERSION, DatasetError, ShardFrames, read_attrs, verify_shard, write_shard
-from .devices import check_device, cpu_cores, quiet_warp
+from .devices import quiet_warp, resolve_device
 from .episode import prepare_episode, simulate_episode
 from .manifest import shard_entry, write_manifest
 from .physics import Physics, rig
 from .plan import ShardTask, plan
 from .suites import Suite
+from .workers import LocalWorkers
 
 PLAN_FILE = "plan.json"
 LOCK_FILE = ".generate.lock"  # "pid host" of the run writing the folder
@@ -273,55 +273,9 @@ def _check_plan_file(out: Path, tasks: list[ShardTask], meta: dict) -> None:
     tmp.replace(path)
 
 
-_WORKER_DEVICE = None
-_WORKER_TASKS = None  # the shared queue of shard tasks, ended by one None per worker
-_WORKER_PROGRESS = None  # a queue of finished frame counts, read by the parent's progress bar
-_WORKER_LAUNCHED = 0.0  # time.time() when the parent started the pool
-
-
-def _init_worker(devices, tasks, progress, parent: int, cpu_threads: int, launched: float) -> None:
-    global _WORKER_DEVICE, _WORKER_TASKS, _WORKER_PROGRESS, _WORKER_LAUNCHED
-    _WORKER_DEVICE = devices.get()
-    _WORKER_TASKS, _WORKER_PROGRESS, _WORKER_LAUNCHED = tasks, progress, launched
-    os.environ["SONAR2LIDAR_CPU_THREADS"] = str(cpu_threads)  # the workers share the cores (devices.cpu_cores)
-    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
-
-
-def _exit_with_parent(parent: int) -> None:
-    """A worker whose parent died (even by SIGKILL) exits too, instead of simulating on for nobody."""
-    while os.getppid() == parent:
-        time.sleep(0.5)
-    os._exit(1)
-
-
-def _run_in_worker(overlap: bool) -> dict:
-    """One worker's whole share: shard tasks from the shared queue until its None, so its preparing
-    and writing overlap its rendering across all its shards, and the workers, each taking the
-    next shard when it is ready for one, finish within about one shard of each other."""
-    import warp as wp
-
-    quiet_warp()
-    wp.get_device(_WORKER_DEVICE)  # Warp and its device up: the end of the start-up
-    started = time.time() - _WORKER_LAUNCHED
-    tasks = iter(_WORKER_TASKS.get, None)
-    _, seconds = run_tasks(tasks, _WORKER_DEVICE, on_frames=_WORKER_PROGRESS.put, overlap=overlap)
-    return seconds | {"start-up": started}
-
-
-def _show_progress(counts, bar) -> None:
-    """Move the bar by the frame counts the workers send, until None arrives."""
-    for n in iter(counts.get, None):
-        bar.update(n)
-
-
-def worker_devices(device: str, workers: int) -> list[str]:
-    """One device per worker: 'auto' spreads workers over the GPUs (or uses the CPU)."""
-    import warp as wp
-
-    if device != "auto":
-        return [device] * workers
-    gpus = wp.get_cuda_device_count()
-    return [f"cuda:{i % gpus}" for i in range(workers)] if gpus else ["cpu"] * workers
+def _share(tasks: Iterable[ShardTask], device: str, on_frames, overlap: bool) -> dict:
+    """A worker process's share of a run (shards from the queue all workers share); its seconds by part."""
+    return run_tasks(tasks, device, on_frames, overlap=overlap)[1]
 
 
 def generate(
@@ -347,59 +301,43 @@ def generate(
     out = Path(out)
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
-    check_device(device, allow_auto=True)
-    tasks = plan(
-        suite,
-        out,
-        frames=frames,
-        shards=shards,
-        seed=seed,
-        keep_signals=keep_signals,
-        keep_arrivals=keep_arrivals,
-    )
-    frames = sum(t.frame_count for t in tasks) // len(suite.variants)
-    meta = {"suite": suite.name, "frames": frames, "shards": len(tasks) // len(suite.variants), "seed": seed}
-    _check_plan_file(out, tasks, meta | {"variants": list(suite.variants), "suite_config": suite.to_json()})
-    with output_lock(out):  # one writer per folder
-        todo = [t for t in tasks if not is_complete(t)]
-        done_frames = sum(t.frame_count for t in tasks) - sum(t.frame_count for t in todo)
-        bar = tqdm(total=sum(t.frame_count for t in tasks), initial=done_frames, unit="frame", disable=not progress)
-        bar.set_description(f"{suite.name}")
-        devices = worker_devices(device, workers)
-        parts = dict.fromkeys(PARTS, 0.0)
-
-        def add(seconds: dict) -> None:
-            for k, v in seconds.items():
-                parts[k] += v
-
-        if ray_address:
-            _run_on_ray(todo, ray_address, devices[0].startswith("cuda"), bar)
-            parts = {}  # not reported back by Ray tasks
-        elif workers == 1 or len(todo) <= 1:
-            add(run_tasks(todo, devices[0], on_frames=bar.update, overlap=overlap)[1])
-        else:
-            context = multiprocessing.get_context("spawn")
-            device_queue = context.Queue()  # handed to each worker at its start; no manager process to outlive us
-            for d in devices:
-                device_queue.put(d)
-            counts = context.Queue()  # frames as the workers simulate them, not per finished shard
-            reader = threading.Thread(target=_show_progress, args=(counts, bar), daemon=True)
-            reader.start()
-            shard_queue = context.Queue()  # each worker takes the next shard when it is ready for one
-            for task in [*todo, *[None] * workers]:
-                shard_queue.put(task)
-            init = (device_queue, shard_queue, counts, os.getpid(), max(1, cpu_cores() // workers), time.time())
-            try:
-                with ProcessPoolExecutor(workers, mp_context=context, initializer=_init_worker, initargs=init) as pool:
-                    for future in as_completed([pool.submit(_run_in_worker, overlap) for _ in range(workers)]):
-                        add(future.result())
-            finally:
-                counts.put(None)
-                reader.join(timeout=5)
-        bar.close()
-        seconds = time.perf_counter() - t0
-        for variant in suite.variants:
-            write_manifest(out / variant, [t for t in tasks if t.variant == variant], suite, meta)
+    local = workers > 1 and not ray_address
+    # Local workers start first (their start-up runs beside the planning) and check the device
+    # themselves: this process must not start CUDA if they are to be forked from it.
+    pool = LocalWorkers(device, workers, functools.partial(_share, overlap=overlap)) if local else None
+    with pool or contextlib.nullcontext():
+        if not local:
+            devices = [resolve_device(device)]
+        tasks = plan(
+            suite,
+            out,
+            frames=frames,
+            shards=shards,
+            seed=seed,
+            keep_signals=keep_signals,
+            keep_arrivals=keep_arrivals,
+        )
+        frames = sum(t.frame_count for t in tasks) // len(suite.variants)
+        meta = {"suite": suite.name, "frames": frames, "shards": len(tasks) // len(suite.variants), "seed": seed}
+        if local:
+            devices = pool.devices()  # all up, each on a device it checked, before any file is written
+        _check_plan_file(out, tasks, meta | {"variants": list(suite.variants), "suite_config": suite.to_json()})
+        with output_lock(out):  # one writer per folder
+            todo = [t for t in tasks if not is_complete(t)]
+            done_frames = sum(t.frame_count for t in tasks) - sum(t.frame_count for t in todo)
+            bar = tqdm(total=sum(t.frame_count for t in tasks), initial=done_frames, unit="frame", disable=not progress)
+            bar.set_description(f"{suite.name}")
+            if ray_address:
+                _run_on_ray(todo, ray_address, devices[0].startswith("cuda"), bar)
+                parts = {}  # not reported back by Ray tasks
+            elif pool:
+                parts = dict.fromkeys(PARTS, 0.0) | pool.run(todo, bar)
+            else:
+                parts = run_tasks(todo, devices[0], on_frames=bar.update, overlap=overlap)[1]
+            bar.close()
+            seconds = time.perf_counter() - t0
+            for variant in suite.variants:
+                write_manifest(out / variant, [t for t in tasks if t.variant == variant], suite, meta)
     made = sum(t.frame_count for t in todo)
     return {
         "suite": suite.name,
@@ -413,6 +351,7 @@ def generate(
         "devices": sorted(set(devices)),
         "seconds_by_part": parts,
         "workers": 1 if ray_address else workers,
+        "worker_start": pool.start_method if pool else None,
     }
 
 

@@ -3,6 +3,8 @@
 import subprocess
 import sys
 
+import pytest
+
 from acoustic_sim.cli import main
 
 
@@ -126,6 +128,26 @@ def test_commands_are_quiet_unless_asked(tmp_path):
     verbose = [*command[:-1], str(tmp_path / "v"), "--verbose"]
     done = subprocess.run(verbose, capture_output=True, text=True, timeout=300)
     assert "Warp" in done.stdout + done.stderr
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="workers are forked on Linux only")
+def test_generate_forks_its_workers_from_a_parent_that_never_starts_warp(tmp_path):
+    """`generate --workers 2` in a fresh process: the parent leaves Warp, and so CUDA, to its
+    workers, which are forked from it (no second import of the package) and stay quiet."""
+    script = (
+        "import sys\n"
+        "from acoustic_sim.cli import main\n"
+        "from acoustic_sim.devices import _warp_runtime\n"
+        "code = main(sys.argv[1:])\n"
+        "print('parent started warp:', _warp_runtime() is not None)\n"
+        "sys.exit(code)\n"
+    )
+    command = [sys.executable, "-c", script, "generate", "--suite", "tiny", "--frames", "16", "--shards", "2"]
+    command += ["--workers", "2", "--device", "cpu", "--quiet", "--out", str(tmp_path / "d")]
+    done = subprocess.run(command, capture_output=True, text=True, timeout=300, check=True)
+    assert "16 frames in 2 shards" in done.stdout and "summed over 2 forked workers" in done.stdout, done.stdout
+    assert "parent started warp: False" in done.stdout
+    assert "Warp" not in done.stderr and "Module" not in done.stdout + done.stderr, done.stderr
 
 
 def test_dataset_card_reads_the_rig_as_simulated(tmp_path, device):

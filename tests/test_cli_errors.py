@@ -95,6 +95,13 @@ CASES = [
     ("gen-other-settings", "acoustic_sim", "generate --suite tiny --frames 16 --seed 9 --out {data}", "plan"),
     ("gen-cuda", "acoustic_sim", "generate --suite tiny --frames 3 --out {tmp}/g9 --device cuda", "no CUDA GPU"),
     ("gen-device-name", "acoustic_sim", "generate --suite tiny --frames 3 --out {tmp}/g10 --device gpu", "Warp device"),
+    # with workers the device is checked in them (the parent must not start CUDA), still before plan.json
+    (
+        "gen-cuda-workers",
+        "acoustic_sim",
+        "generate --suite tiny --frames 3 --workers 2 --out {tmp}/g11 --device cuda",
+        "no CUDA GPU",
+    ),
     # acoustic_sim render
     ("render-mesh-missing", "acoustic_sim", "render --mesh {tmp}/none.obj --out {tmp}/r.png", "none.obj"),
     ("render-mesh-nan", "acoustic_sim", "render --mesh {nan_obj} --out {tmp}/r.png", "non-finite"),
@@ -209,7 +216,7 @@ def test_user_error_is_one_line(results, name, package, argv, words):
 def test_the_audit_is_wide_and_no_case_ran_file_code(results):
     assert len(CASES) >= 60 and len({c[0] for c in CASES}) == len(CASES)
     assert not (results["tmp"] / "code_ran").exists()
-    refused_runs = [results["tmp"] / f"g{i}" for i in range(1, 11)]  # settings are checked before plan.json
+    refused_runs = [results["tmp"] / f"g{i}" for i in range(1, 12)]  # settings are checked before plan.json
     assert not any(p.exists() for p in refused_runs), [p for p in refused_runs if p.exists()]
 
 

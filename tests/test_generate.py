@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 import acoustic_sim.generate as gen
+import acoustic_sim.workers as workers
 from acoustic_sim.dataset import FORMAT_VERSION, DatasetError, read_attrs
 from acoustic_sim.suites import SUITES, Physics, load_suite
 from learn.data import window_starts
@@ -236,12 +237,17 @@ class BarSteps:
         pass
 
 
-def test_parallel_workers_write_the_same_shards(reference, tmp_path, device, monkeypatch):
-    """Two spawned worker processes, one shard each: the arrays equal the single-process run's,
-    and the parent's bar moves as the workers simulate frames (per episode here), not per shard."""
+@pytest.mark.parametrize("start", ["fork", "spawn"])
+def test_parallel_workers_write_the_same_shards(reference, tmp_path, device, monkeypatch, start):
+    """Two worker processes (forked, or spawned as after CUDA has started here), one shard each:
+    the arrays equal the single-process run's, and the parent's bar moves as the workers simulate
+    frames (per episode here), not per shard."""
+    if start == "fork" and workers.start_method() != "fork":
+        pytest.skip("this process has started CUDA (or is not on Linux): its workers are spawned")
+    monkeypatch.setattr(workers, "start_method", lambda: start)
     monkeypatch.setattr(gen, "tqdm", BarSteps)
     summary = generate(tmp_path, device, workers=2)
-    assert summary["shards_written"] == 2
+    assert summary["shards_written"] == 2 and summary["worker_start"] == start
     assert sum(BarSteps.steps) == FRAMES and len(BarSteps.steps) == 3, BarSteps.steps
     parts = summary["seconds_by_part"]
     assert parts["sonar"] > 0 and parts["write"] > 0 and parts["start-up"] > 0  # sent back
