@@ -3,11 +3,13 @@
     python benchmarks/bench_generate.py --device cpu --suite paper --frames 300 --workers 1,2
     python benchmarks/bench_generate.py --device cuda:0 --suite paper --frames 12500 --workers 1,4,8
 
-Writes benchmarks/results/generate_<cpu|cuda>.json and .md. A short warm-up run first loads (or
-compiles) every Warp kernel, reported apart; then, for each worker count, fresh datasets are
-written into a temporary folder (scenes, drives, LiDAR, sonar, HDF5 shards with compression,
-manifest and card) with each worker's parts in turn and overlapped (`generate(overlap=...)`), and
-where the time goes (`seconds_by_part`) beside the rate the simulator alone allows.
+Writes benchmarks/results/generate_<cpu|cuda>.json and .md. Every run is a fresh process, as a
+user's `generate` command is (a parent that has started CUDA would have to spawn its workers, not
+fork them). A short warm-up run first loads (or compiles) every Warp kernel, reported apart; then,
+for each worker count, fresh datasets are written into a temporary folder (scenes, drives, LiDAR,
+sonar, HDF5 shards with compression, manifest and card) with each worker's parts in turn and
+overlapped (`generate(overlap=...)`), and where the time goes (`seconds_by_part`) beside the rate
+the simulator alone allows. `--start spawn` forces spawned workers, to compare with forked ones.
 """
 
 from __future__ import annotations
@@ -15,45 +17,70 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import shutil
+import subprocess
 import sys
 import tempfile
-import time
 from pathlib import Path
-
-import warp as wp
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from acoustic_sim.generate import PARTS, generate  # noqa: E402
-from acoustic_sim.suites import load_suite  # noqa: E402
+from acoustic_sim.generate import PARTS  # noqa: E402
+
+MODES = {"in_turn": False, "overlapped": True}
 
 
-def timed_runs(suite, device, tmp: Path, args, workers: int, overlap: bool) -> dict:
+def child(spec: dict) -> dict:
+    """One `generate` run in this fresh process; its summary, with the device's name and the
+    dataset's bytes."""
+    import warp as wp
+
+    from acoustic_sim import workers
+    from acoustic_sim.generate import generate
+    from acoustic_sim.suites import load_suite
+
+    if spec["start"] != "auto":
+        workers.start_method = lambda: spec["start"]
+    out = Path(spec["out"])
+    summary = generate(
+        load_suite(spec["suite"]),
+        out,
+        frames=spec["frames"],
+        shards=spec["shards"],
+        device=spec["device"],
+        workers=spec["workers"],
+        progress=False,
+        overlap=spec["overlap"],
+    )
+    summary["bytes"] = sum(p.stat().st_size for p in out.rglob("*.h5"))
+    device = wp.get_device(summary["devices"][0])  # Warp is up here once the run is over
+    summary |= {"device_name": device.name if device.is_cuda else "CPU", "warp": wp.__version__}
+    return summary
+
+
+def run_child(spec: dict) -> dict:
+    done = subprocess.run(
+        [sys.executable, __file__, "--child", json.dumps(spec)], capture_output=True, text=True, check=False
+    )
+    if done.returncode:
+        raise SystemExit(f"a generate run failed ({spec}):\n{done.stderr[-3000:]}")
+    return json.loads(done.stdout.splitlines()[-1])
+
+
+def timed_runs(spec: dict, tmp: Path, repeats: int) -> dict:
     """Median seconds of `repeats` fresh runs, and the time by part of the median run."""
     runs = []
-    for r in range(args.repeats):
-        folder = tmp / f"w{workers}_{'overlap' if overlap else 'in_turn'}_{r}"
-        summary = generate(
-            suite,
-            folder,
-            frames=args.frames,
-            shards=args.shards,
-            device=str(device),
-            workers=workers,
-            progress=False,
-            overlap=overlap,
-        )
-        summary["bytes"] = sum(p.stat().st_size for p in folder.rglob("*.h5"))
-        runs.append(summary)
+    for r in range(repeats):
+        folder = tmp / f"w{spec['workers']}_{'overlap' if spec['overlap'] else 'in_turn'}_{spec['start']}_{r}"
+        runs.append(run_child(spec | {"out": str(folder)}))
         shutil.rmtree(folder)
     median = sorted(runs, key=lambda s: s["seconds"])[len(runs) // 2]
     parts = median["seconds_by_part"]
     return {
-        "workers": workers,
-        "overlap": overlap,
+        "workers": spec["workers"],
+        "overlap": spec["overlap"],
+        "start": median["worker_start"],
         "seconds": [s["seconds"] for s in runs],
         "median_s": median["seconds"],
         "frames_per_s": median["frames"] / median["seconds"],
@@ -73,70 +100,97 @@ def main(argv=None) -> dict:
     parser.add_argument("--workers", default="1", help="worker counts to compare, comma-separated, e.g. 1,8")
     parser.add_argument("--shards", type=int, default=None)
     parser.add_argument("--repeats", type=int, default=3, help="runs per setting (the median is reported)")
+    parser.add_argument("--modes", default="in_turn,overlapped", help="in_turn, overlapped or both")
+    parser.add_argument("--start", default="auto", help="auto (generate's choice), fork, spawn, or a list")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    wp.config.quiet = True
-    wp.init()
-    device = wp.get_device(args.device)
-    suite = load_suite(args.suite)
+    if args.child:
+        print(json.dumps(child(json.loads(args.child))))
+        return {}
     counts = [int(w) for w in args.workers.split(",")]
+    modes = args.modes.split(",")
+    starts = args.start.split(",")
+    if unknown := (set(modes) - set(MODES)) | (set(starts) - {"auto", "fork", "spawn"}):
+        parser.error(f"unknown --modes or --start: {sorted(unknown)}")
+    base = {"suite": args.suite, "frames": args.frames, "shards": args.shards, "device": args.device}
     with tempfile.TemporaryDirectory() as tmp:
-        t0 = time.perf_counter()
-        generate(suite, Path(tmp) / "warmup", frames=2, shards=1, device=str(device), progress=False)
-        warmup_s = time.perf_counter() - t0
-        rows = [timed_runs(suite, device, Path(tmp), args, w, overlap) for w in counts for overlap in (False, True)]
+        warmup = run_child(
+            base
+            | {"frames": 2, "shards": 1, "workers": 1, "overlap": True, "start": "auto"}
+            | {"out": str(Path(tmp) / "warmup")}
+        )
+        specs = [
+            base | {"workers": w, "overlap": MODES[m], "start": s}
+            for w in counts
+            for m in modes
+            for s in (starts if w > 1 else ["auto"])  # one worker runs in the parent: nothing to start
+        ]
+        rows = [timed_runs(spec, Path(tmp), args.repeats) for spec in specs]
+    is_cuda = warmup["devices"][0].startswith("cuda")
     res = {
-        "device": str(device),
-        "device_name": device.name if device.is_cuda else platform.processor() or "CPU",
+        "device": warmup["devices"][0],
+        "device_name": warmup["device_name"] if is_cuda else platform_name(),
         "cpu_count": os.cpu_count(),
-        "warp": wp.__version__,
-        "date": time.strftime("%Y-%m-%d"),
-        "suite": suite.name,
+        "warp": warmup["warp"],
+        "date": __import__("time").strftime("%Y-%m-%d"),
+        "suite": args.suite,
         "frames": args.frames,
-        "variants": len(suite.variants),
         "repeats": args.repeats,
-        "warmup_s": warmup_s,
+        "warmup_s": warmup["seconds"],
         "runs": rows,
     }
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    stem = f"generate_{'cuda' if device.is_cuda else 'cpu'}"
+    stem = f"generate_{'cuda' if is_cuda else 'cpu'}"
     (out / f"{stem}.json").write_text(json.dumps(res, indent=1))
-    (out / f"{stem}.md").write_text(markdown(res, suite.name, args))
+    (out / f"{stem}.md").write_text(markdown(res, args.suite, args))
     print((out / f"{stem}.md").read_text())
     return res
 
 
+def platform_name() -> str:
+    import platform
+
+    return platform.processor() or "CPU"
+
+
 def markdown(res: dict, suite: str, args) -> str:
+    one = {r["overlap"]: r for r in res["runs"] if r["workers"] == 1}
+    # Sonar.simulate's rate for these settings: frames over the sonar seconds of one process with
+    # its parts in turn (nothing beside it on the host), as issue 16 asks generation to be held to.
+    reference = one.get(False) or one.get(True)
+    sonar_rate = reference["frames"] / reference["seconds_by_part"]["sonar"] if reference else None
     lines = [
         f"# Dataset generation on {res['device_name']} ({res['device']}, {res['cpu_count']} CPU cores)",
         "",
         f"`generate --suite {suite} --frames {args.frames} --workers W`, warp {res['warp']}, {res['date']}; "
-        f"medians of {args.repeats} fresh runs per row; kernels loaded by a warm-up run first "
-        f"({res['warmup_s']:.1f} s). *in turn*: each worker prepares an episode (scene, drive, draws), "
-        "renders it (LiDAR, sonar) and writes each shard one after another; *overlapped* (the default): "
-        "the next episode is prepared and the last shard written beside the rendering. Parts are seconds "
-        "summed over workers; *start-up* is a worker process from its launch to Warp and its device ready; "
-        "*waiting* is the rendering thread blocked on a preparation or a write. "
-        "*simulator* is frames over the LiDAR + sonar seconds of one worker: the rate the device work "
-        "alone allows.",
+        f"medians of {args.repeats} runs per row, each in a fresh process as a `generate` command is; kernels "
+        f"loaded by a warm-up run first ({res['warmup_s']:.1f} s). *in turn*: each worker prepares an episode "
+        "(scene, drive, draws), renders it (LiDAR, sonar) and writes each shard one after another; "
+        "*overlapped* (the default): the next episode is prepared and the last shard written beside the "
+        "rendering. *started*: worker processes forked from the parent (the default where it has not started "
+        "CUDA) or spawned (a fresh interpreter that imports the package again). Parts are seconds summed over "
+        "workers; *start-up* is a worker process from its launch to Warp and its device ready; *waiting* is "
+        "the rendering thread blocked on a preparation or a write. *simulator* is frames over the LiDAR + "
+        "sonar seconds of one worker: the rate the device work alone allows. *vs sonar* is the rate over "
+        "`Sonar.simulate`'s alone: frames over the sonar seconds of one worker in turn"
+        + (f" ({sonar_rate:,.0f} frames/s)." if sonar_rate else "."),
         "",
-        "| workers | parts | seconds | frames/s | " + " | ".join(PARTS).replace("lidar", "LiDAR") + " | "
-        "simulator frames/s | vs simulator | MB |",
-        "|---|---|---|---|" + "---|" * len(PARTS) + "---|---|---|",
+        "| workers | started | parts | seconds | frames/s | " + " | ".join(PARTS).replace("lidar", "LiDAR") + " | "
+        "simulator frames/s | vs sonar | MB |",
+        "|---|---|---|---|---|" + "---|" * len(PARTS) + "---|---|---|",
     ]
-    simulator = {r["overlap"]: r["simulator_frames_per_s"] for r in res["runs"] if r["workers"] == 1}
     for r in res["runs"]:
         p = r["seconds_by_part"]
-        ref = simulator.get(r["overlap"])
         lines.append(
-            f"| {r['workers']} | {'overlapped' if r['overlap'] else 'in turn'} | {r['median_s']:.1f} | "
-            f"**{r['frames_per_s']:,.1f}** | "
+            f"| {r['workers']} | {r['start'] or '-'} | {'overlapped' if r['overlap'] else 'in turn'} | "
+            f"{r['median_s']:.1f} | **{r['frames_per_s']:,.1f}** | "
             + " | ".join(f"{p[k]:.1f}" for k in PARTS)
             + " | "
             + (f"{r['simulator_frames_per_s']:,.1f}" if r["workers"] == 1 else "-")
             + " | "
-            + (f"{r['frames_per_s'] / ref:.0%}" if ref else "-")
+            + (f"{r['frames_per_s'] / sonar_rate:.0%}" if sonar_rate else "-")
             + f" | {r['bytes'] / 1e6:,.0f} |"
         )
     return "\n".join(lines) + "\n"
