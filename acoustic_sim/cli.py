@@ -103,7 +103,7 @@ def _render_sonar(args, rig, scene, pose, lidar, t0) -> int:
 def _generate(args) -> int:
     from .devices import quiet_warp
 
-    quiet_warp(not args.verbose, start=False)  # generate's worker processes start Warp (forked, they must)
+    quiet_warp(not args.verbose, start=False)  # Warp starts in the worker processes (so they can be forked)
     from .generate import generate
     from .suites import load_suite
 

@@ -11,17 +11,25 @@ import re
 _NAME = re.compile(r"cpu|cuda(:\d+)?")
 
 
+def check_device_name(name: str, *, allow_auto: bool = False) -> str:
+    """Return `name` if it is a Warp device name ("cpu", "cuda", "cuda:i"; "auto" when allowed),
+    else raise ValueError. Starts nothing: a parent that forks workers checks names with it."""
+    if allow_auto and name == "auto":
+        return name
+    if not isinstance(name, str) or not _NAME.fullmatch(name):
+        choices = "auto, cpu, cuda or cuda:i" if allow_auto else "cpu, cuda or cuda:i"
+        raise ValueError(f"device {name!r} is not a Warp device: use {choices}")
+    return name
+
+
 def check_device(name: str, *, allow_auto: bool = False) -> str:
     """Return `name` if Warp can run on it here ("cpu", "cuda", "cuda:i"; "auto" when allowed),
     else raise ValueError naming what this machine has."""
     import warp as wp
 
-    if allow_auto and name == "auto":
+    if check_device_name(name, allow_auto=allow_auto) == "auto":
         return name
     quiet_warp()
-    if not isinstance(name, str) or not _NAME.fullmatch(name):
-        choices = "auto, cpu, cuda or cuda:i" if allow_auto else "cpu, cuda or cuda:i"
-        raise ValueError(f"device {name!r} is not a Warp device: use {choices}")
     if name == "cpu":
         if not wp.is_cpu_available():  # GPU-only builds: their kernel compile would fail on a None library
             raise ValueError(
@@ -66,13 +74,16 @@ def warp_voice() -> bool:
 
 
 def cuda_started() -> bool:
-    """Whether this process has started CUDA (through Warp or torch). A process forked from one
-    that has cannot use CUDA, so worker processes are spawned then. Unknown Warp internals count
-    as started: spawning is always safe, only slower."""
+    """Whether CUDA may have been started in this process: Warp or torch started it, or any
+    library loaded the CUDA driver (a plain cuInit is enough). A process forked from one that has
+    cannot use CUDA, so worker processes are spawned then. Unknown Warp internals count as
+    started: spawning is always safe, only slower."""
     import sys
 
     torch = sys.modules.get("torch")
     if torch is not None and torch.cuda.is_initialized():
+        return True
+    if _cuda_driver_loaded():  # torch.cuda.is_available(), cupy, numba... (importing warp does not load it)
         return True
     if "warp" not in sys.modules:
         return False
@@ -80,6 +91,15 @@ def cuda_started() -> bool:
     if runtime is _UNKNOWN:
         return True
     return runtime is not None and bool(getattr(runtime, "cuda_devices", True))
+
+
+def _cuda_driver_loaded() -> bool:
+    """Whether the CUDA driver library is mapped into this process (Linux; False where unknown)."""
+    try:
+        with open("/proc/self/maps") as maps:
+            return any("libcuda.so" in line for line in maps)
+    except OSError:
+        return False
 
 
 _UNKNOWN = "unknown"
@@ -101,7 +121,7 @@ def resolve_device(name: str, index: int = 0) -> str:
     "auto" the GPUs in turn, the CPU where there is none."""
     import warp as wp
 
-    if name != "auto":
+    if check_device_name(name, allow_auto=True) != "auto":
         return check_device(name)
     quiet_warp()
     gpus = wp.get_cuda_device_count()

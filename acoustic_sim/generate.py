@@ -16,6 +16,7 @@ import functools
 import json
 import os
 import socket
+import sys
 import time
 import warnings
 from collections.abc import Iterable
@@ -26,7 +27,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from .dataset import FORMAT, FORMAT_VERSION, DatasetError, ShardFrames, read_attrs, verify_shard, write_shard
-from .devices import quiet_warp, resolve_device
+from .devices import check_device_name, quiet_warp, resolve_device
 from .episode import prepare_episode, simulate_episode
 from .manifest import shard_entry, write_manifest
 from .physics import Physics, rig
@@ -36,8 +37,8 @@ from .workers import LocalWorkers
 
 PLAN_FILE = "plan.json"
 LOCK_FILE = ".generate.lock"  # "pid host" of the run writing the folder
-# Where a run's time goes: a worker process's start (launch to ready: interpreter, imports, Warp and
-# its device; 0 in this process), then run_tasks's parts.
+# Where a run's time goes: a worker process's start (launch to Warp and its device ready; a spawned
+# one also starts an interpreter and imports the package; 0 in this process), then run_tasks's parts.
 PARTS = ("start-up", "prepare", "lidar", "sonar", "write", "waiting")
 
 
@@ -273,7 +274,7 @@ def _check_plan_file(out: Path, tasks: list[ShardTask], meta: dict) -> None:
     tmp.replace(path)
 
 
-def _share(tasks: Iterable[ShardTask], device: str, on_frames, overlap: bool) -> dict:
+def _worker_share(tasks: Iterable[ShardTask], device: str, on_frames, overlap: bool) -> dict:
     """A worker process's share of a run (shards from the queue all workers share); its seconds by part."""
     return run_tasks(tasks, device, on_frames, overlap=overlap)[1]
 
@@ -296,48 +297,59 @@ def generate(
     """Generate (or finish) a dataset; returns a summary (frames, shards, seconds, frames/s, and
     `seconds_by_part`: the time spent preparing episodes, in LiDAR, in the sonar, writing and
     waiting, summed over workers; see `run_tasks`). `overlap=False` runs each worker's parts one
-    after another (for measuring what the overlap gains; the shards are the same)."""
+    after another (for measuring what the overlap gains; the shards are the same).
+
+    With `workers` > 1, up to that many processes (one per shard at most) are forked from this one
+    if CUDA has not been started in it, else spawned (`worker_start` in the summary; see
+    `workers`): call `generate` before using the GPU in the same process for the faster start."""
     t0 = time.perf_counter()
     out = Path(out)
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
-    local = workers > 1 and not ray_address
-    # Local workers start first (their start-up runs beside the planning) and check the device
-    # themselves: this process must not start CUDA if they are to be forked from it.
-    pool = LocalWorkers(device, workers, functools.partial(_share, overlap=overlap)) if local else None
-    with pool or contextlib.nullcontext():
-        if not local:
+    check_device_name(device, allow_auto=True)  # a typo fails here, before any process or Warp starts
+    tasks = plan(
+        suite,
+        out,
+        frames=frames,
+        shards=shards,
+        seed=seed,
+        keep_signals=keep_signals,
+        keep_arrivals=keep_arrivals,
+    )
+    frames = sum(t.frame_count for t in tasks) // len(suite.variants)
+    meta = {"suite": suite.name, "frames": frames, "shards": len(tasks) // len(suite.variants), "seed": seed}
+    processes = 1 if ray_address else min(workers, len(tasks))
+    pool = None
+    try:
+        if processes > 1:  # workers check the device themselves: this process must not start CUDA to fork them
+            pool = LocalWorkers(device, processes, functools.partial(_worker_share, overlap=overlap))
+            devices = pool.wait_ready()  # all up, each on a device it checked, before any file is written
+        else:
             devices = [resolve_device(device)]
-        tasks = plan(
-            suite,
-            out,
-            frames=frames,
-            shards=shards,
-            seed=seed,
-            keep_signals=keep_signals,
-            keep_arrivals=keep_arrivals,
-        )
-        frames = sum(t.frame_count for t in tasks) // len(suite.variants)
-        meta = {"suite": suite.name, "frames": frames, "shards": len(tasks) // len(suite.variants), "seed": seed}
-        if local:
-            devices = pool.devices()  # all up, each on a device it checked, before any file is written
         _check_plan_file(out, tasks, meta | {"variants": list(suite.variants), "suite_config": suite.to_json()})
         with output_lock(out):  # one writer per folder
             todo = [t for t in tasks if not is_complete(t)]
             done_frames = sum(t.frame_count for t in tasks) - sum(t.frame_count for t in todo)
             bar = tqdm(total=sum(t.frame_count for t in tasks), initial=done_frames, unit="frame", disable=not progress)
             bar.set_description(f"{suite.name}")
-            if ray_address:
-                _run_on_ray(todo, ray_address, devices[0].startswith("cuda"), bar)
-                parts = {}  # not reported back by Ray tasks
-            elif pool:
-                parts = dict.fromkeys(PARTS, 0.0) | pool.run(todo, bar)
-            else:
-                parts = run_tasks(todo, devices[0], on_frames=bar.update, overlap=overlap)[1]
+            try:
+                if ray_address:
+                    _run_on_ray(todo, ray_address, devices[0].startswith("cuda"), bar)
+                    parts = {}  # not reported back by Ray tasks
+                elif pool:
+                    parts = dict.fromkeys(PARTS, 0.0) | pool.run(todo, bar)
+                else:
+                    parts = run_tasks(todo, devices[0], on_frames=bar.update, overlap=overlap)[1]
+            finally:
+                if pool:  # inside the lock: no worker is writing once it is released
+                    pool.close(abort=sys.exc_info()[0] is not None)
             bar.close()
             seconds = time.perf_counter() - t0
             for variant in suite.variants:
                 write_manifest(out / variant, [t for t in tasks if t.variant == variant], suite, meta)
+    finally:
+        if pool:
+            pool.close(abort=True)  # a failure before the run (foreign folder, lock refused); else closed already
     made = sum(t.frame_count for t in todo)
     return {
         "suite": suite.name,
@@ -350,7 +362,7 @@ def generate(
         "frames_per_s": made / seconds if made else 0.0,
         "devices": sorted(set(devices)),
         "seconds_by_part": parts,
-        "workers": 1 if ray_address else workers,
+        "workers": processes,
         "worker_start": pool.start_method if pool else None,
     }
 

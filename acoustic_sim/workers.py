@@ -1,12 +1,13 @@
-"""Local worker processes for `generate`: started first, forked where that is safe, fed from one
-shared queue of shard tasks.
+"""Local worker processes for `generate`: forked where that is safe, fed from one shared queue of
+shard tasks.
 
 A spawned worker starts a fresh interpreter and imports the package again (~4 s on the lent GPU
 machine, trimesh and Warp most of it) before its first frame; a forked one starts with its
-parent's imports and only starts Warp and its device. Forking is safe while the parent has not
-started CUDA (a child cannot use a CUDA context its parent made), so the parent of a multi-worker
-run leaves CUDA to its workers: they check the device and report it back before any file is
-written.
+parent's imports and only starts Warp and its device. Forking is safe only while the parent has
+not started CUDA (after a cuInit in the parent, CUDA fails in the child), so the parent of a
+multi-worker run leaves Warp and CUDA to its workers: they check the device and report it back
+before any file is written. SONAR2LIDAR_WORKER_START=spawn forces spawning (for a process where
+some library this package cannot see has started CUDA).
 """
 
 from __future__ import annotations
@@ -24,48 +25,65 @@ from .devices import cpu_cores, cuda_started, quiet_warp, resolve_device, warp_v
 
 # A worker's work: (its tasks, read lazily; its device; on_frames(n)) -> seconds by part.
 Work = Callable[[Iterable, str, Callable[[int], None]], dict]
+START_ENV = "SONAR2LIDAR_WORKER_START"
+READY_TIMEOUT_S = 300.0  # a worker not up by then is stuck (a spawned one imports in ~4 s)
 
 
 def start_method() -> str:
-    """'fork' on Linux while this process has not started CUDA, else 'spawn' (macOS and Windows
-    discourage or lack fork)."""
+    """SONAR2LIDAR_WORKER_START if set; else 'fork' on Linux while CUDA may not have been started
+    in this process, 'spawn' otherwise (macOS and Windows discourage or lack fork)."""
+    chosen = os.environ.get(START_ENV, "")
+    if chosen:
+        if chosen not in ("fork", "spawn"):
+            raise ValueError(f"{START_ENV}={chosen!r}: use fork or spawn")
+        return chosen
     return "fork" if sys.platform.startswith("linux") and not cuda_started() else "spawn"
 
 
 class LocalWorkers:
-    """`count` worker processes on `device` ("auto" spreads them over the GPUs), started at once so
-    that their start-up runs beside the parent's planning. `devices()` waits until each has Warp
-    and its device up, raising a worker's error (a GPU this machine lacks, say); `run(tasks, bar)`
-    hands them the tasks and returns the seconds by part summed over them, with each worker's
-    "start-up" (launch to device ready). Leaving the `with` block ends the workers, also when the
-    run failed before handing them anything."""
+    """`count` worker processes on `device` ("auto" spreads them over the GPUs), started at once.
+    `wait_ready()` blocks until each has Warp and its device up, raising a worker's error (a GPU
+    this machine lacks, say); `run(tasks, bar)` hands them the tasks and returns the seconds by
+    part summed over them, with each worker's "start-up" (launch to device ready). `close()` ends
+    them: after their queued tasks, or with `abort=True` after the task each is on (call it
+    before releasing what the tasks write under, such as the output lock)."""
 
     def __init__(self, device: str, count: int, work: Work):
         self.count = count
         self.start_method = start_method()
         context = multiprocessing.get_context(self.start_method)
         self._tasks = context.Queue()  # each worker takes the next task when it is ready for one
-        self._ready = context.Queue()  # each worker's device, once up
+        self._ready = context.Queue()  # each worker's device, once up (only workers put: no feeder thread here)
         self._counts = context.Queue()  # frames as the workers simulate them, for the parent's bar
-        indices = context.Queue()
-        for i in range(count):
-            indices.put(i)
-        init = (indices, self._tasks, self._ready, self._counts, os.getpid(), max(1, cpu_cores() // count))
-        init += (warp_voice(), time.time())
+        self._abort = context.Event()  # set: workers take no further task
+        claimed = context.Value("i", 0)  # the next worker index (a Value: no queue feeder thread at the fork)
+        init = (claimed, self._tasks, self._ready, self._counts, self._abort, os.getpid())
+        init += (max(1, cpu_cores() // count), warp_voice(), self.start_method, time.time())
         self._pool = ProcessPoolExecutor(count, mp_context=context, initializer=_init_worker, initargs=init)
-        self._futures = [self._pool.submit(_serve, work, device) for _ in range(count)]
-        self._fed = False
+        self._closed = self._fed = False
+        try:
+            self._futures = [self._pool.submit(_serve, work, device) for _ in range(count)]
+        except BaseException:
+            self._pool.shutdown(wait=True, cancel_futures=True)
+            raise
 
-    def devices(self) -> list[str]:
+    def wait_ready(self, timeout_s: float = READY_TIMEOUT_S) -> list[str]:
         """Each worker's device, once all are up; a worker's failure to start is raised here."""
-        found = []
+        found, deadline = [], time.monotonic() + timeout_s
         while len(found) < self.count:
             try:
                 found.append(self._ready.get(timeout=0.2))
+                continue
             except queue.Empty:
-                for future in self._futures:
-                    if future.done():
-                        future.result()  # raises the worker's error (it ends only after reporting, or failing)
+                pass
+            for future in self._futures:
+                if future.done():
+                    future.result()  # raises the worker's error (it ends only after reporting, or failing)
+            if time.monotonic() > deadline:
+                raise RuntimeError(
+                    f"{self.count - len(found)} of {self.count} {self.start_method}ed worker processes did not start "
+                    f"within {timeout_s:.0f} s; try {START_ENV}=spawn"
+                )
         return sorted(found)
 
     def run(self, tasks: Iterable, bar) -> dict:
@@ -84,29 +102,35 @@ class LocalWorkers:
             reader.join(timeout=5)
         return parts
 
+    def close(self, *, abort: bool = False) -> None:
+        if self._closed:
+            return
+        self._closed = True
+        if abort:
+            self._abort.set()
+            self._tasks.cancel_join_thread()  # tasks left in the pipe must not block this process's exit
+        self._end_tasks()
+        self._pool.shutdown(wait=True, cancel_futures=True)
+
     def _end_tasks(self) -> None:
         if not self._fed:
             self._fed = True
             for _ in range(self.count):
                 self._tasks.put(None)
 
-    def __enter__(self) -> LocalWorkers:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._end_tasks()  # workers still waiting for tasks end now
-        self._pool.shutdown(wait=True, cancel_futures=True)
-
 
 _INDEX = 0
-_TASKS = _READY = _PROGRESS = None
+_TASKS = _READY = _PROGRESS = _ABORT = None
+_START = "spawn"
 _LAUNCHED = 0.0  # time.time() when the parent started the workers
 
 
-def _init_worker(indices, tasks, ready, progress, parent: int, cpu_threads: int, quiet: bool, launched: float):
-    global _INDEX, _TASKS, _READY, _PROGRESS, _LAUNCHED
-    _INDEX = indices.get()
-    _TASKS, _READY, _PROGRESS, _LAUNCHED = tasks, ready, progress, launched
+def _init_worker(claimed, tasks, ready, progress, abort, parent, cpu_threads, quiet, start, launched):
+    global _INDEX, _TASKS, _READY, _PROGRESS, _ABORT, _START, _LAUNCHED
+    with claimed.get_lock():
+        _INDEX = claimed.value
+        claimed.value += 1
+    _TASKS, _READY, _PROGRESS, _ABORT, _START, _LAUNCHED = tasks, ready, progress, abort, start, launched
     quiet_warp(quiet, start=False)  # the parent's voice (a spawned worker would start with the default)
     os.environ["SONAR2LIDAR_CPU_THREADS"] = str(cpu_threads)  # the workers share the cores (devices.cpu_cores)
     threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
@@ -121,15 +145,43 @@ def _exit_with_parent(parent: int) -> None:
 
 def _serve(work: Work, device: str) -> dict:
     """One worker's whole share: Warp and its device up (reported to the parent), then tasks from
-    the shared queue until its None, so that its own overlap of preparing, rendering and writing
-    runs across all its tasks and the workers finish within about one task of each other."""
+    the shared queue until its None (or an abort), so that its own overlap of preparing,
+    rendering and writing runs across all its tasks and the workers finish within about one task
+    of each other."""
     import warp as wp
 
     device = resolve_device(device, _INDEX)  # starts Warp (quietly where asked) and checks the device
+    if _START == "fork" and wp.get_cuda_device_count() == 0:
+        _refuse_a_poisoned_cuda()
     wp.get_device(device)
     started = time.time() - _LAUNCHED
     _READY.put(device)
-    return work(iter(_TASKS.get, None), device, _PROGRESS.put) | {"start-up": started}
+    return work(_tasks_until_abort(), device, _PROGRESS.put) | {"start-up": started}
+
+
+def _tasks_until_abort():
+    while not _ABORT.is_set():
+        task = _TASKS.get()
+        if task is None:
+            return
+        yield task
+
+
+def _refuse_a_poisoned_cuda() -> None:
+    """Warp finds no GPU in this forked worker: say so loudly if that is because CUDA had been
+    started in the parent (the driver then answers CUDA_ERROR_NOT_INITIALIZED), rather than run
+    on the CPU or blame a missing driver."""
+    import ctypes
+
+    try:
+        code = ctypes.CDLL("libcuda.so.1").cuInit(0)
+    except OSError:
+        return  # no driver on this machine: no GPU is the truth
+    if code == 3:
+        raise RuntimeError(
+            "CUDA had been started in this process before generate forked its workers, so they cannot use it; "
+            f"set {START_ENV}=spawn, or call generate before using the GPU"
+        )
 
 
 def _show_progress(counts, bar) -> None:

@@ -5,7 +5,8 @@
 
 Writes benchmarks/results/generate_<cpu|cuda>.json and .md. Every run is a fresh process, as a
 user's `generate` command is (a parent that has started CUDA would have to spawn its workers, not
-fork them). A short warm-up run first loads (or compiles) every Warp kernel, reported apart; then,
+fork them), so each timed run includes Warp's start and the loading of its kernels from the
+cache. A short warm-up run first fills that cache (compiling where needed), reported apart; then,
 for each worker count, fresh datasets are written into a temporary folder (scenes, drives, LiDAR,
 sonar, HDF5 shards with compression, manifest and card) with each worker's parts in turn and
 overlapped (`generate(overlap=...)`), and where the time goes (`seconds_by_part`) beside the rate
@@ -165,8 +166,9 @@ def markdown(res: dict, suite: str, args) -> str:
         f"# Dataset generation on {res['device_name']} ({res['device']}, {res['cpu_count']} CPU cores)",
         "",
         f"`generate --suite {suite} --frames {args.frames} --workers W`, warp {res['warp']}, {res['date']}; "
-        f"medians of {args.repeats} runs per row, each in a fresh process as a `generate` command is; kernels "
-        f"loaded by a warm-up run first ({res['warmup_s']:.1f} s). *in turn*: each worker prepares an episode "
+        f"medians of {args.repeats} runs per row, each in a fresh process as a `generate` command is (Warp's "
+        f"start and kernel loading inside it); the kernel cache filled by a warm-up run first "
+        f"({res['warmup_s']:.1f} s). *in turn*: each worker prepares an episode "
         "(scene, drive, draws), renders it (LiDAR, sonar) and writes each shard one after another; "
         "*overlapped* (the default): the next episode is prepared and the last shard written beside the "
         "rendering. *started*: worker processes forked from the parent (the default where it has not started "

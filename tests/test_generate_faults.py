@@ -4,6 +4,7 @@ never write one folder, and workers die with their parent."""
 
 import dataclasses
 import errno
+import multiprocessing
 import os
 import signal
 import subprocess
@@ -134,3 +135,86 @@ def test_workers_exit_when_the_parent_is_killed(tmp_path):
     for c in alive:
         os.kill(c, signal.SIGKILL)
     assert not alive
+
+
+_FAKE_OUT = None  # the folder fake_worker_share reports into (set before the fork, inherited)
+
+
+def fake_worker_share(tasks, device, on_frames, overlap):
+    """Worker 0 fails at once; worker 1 works on for 2 s, then notes whether the lock is still held."""
+    from acoustic_sim import workers
+
+    if workers._INDEX == 0:
+        raise ValueError("boom in worker 0")
+    time.sleep(2)
+    (_FAKE_OUT / "lock_held_at_worker_1_end").write_text(str((_FAKE_OUT / gen.LOCK_FILE).exists()))
+    return {}
+
+
+@pytest.fixture
+def forked(monkeypatch):
+    """Forked workers (they inherit this test's patches); skipped where this process has started CUDA."""
+    from acoustic_sim import workers
+
+    if workers.start_method() != "fork":
+        pytest.skip("this process has started CUDA (or is not on Linux): its workers cannot be forked")
+    monkeypatch.setattr(workers, "start_method", lambda: "fork")
+
+
+def test_a_worker_error_stops_the_others_before_the_lock_is_released(tmp_path, monkeypatch, forked):
+    """One worker fails mid-run: the error comes through, and the other worker has finished while
+    the output lock was still held (no worker writes into a folder nobody holds); none is left."""
+    global _FAKE_OUT
+    _FAKE_OUT = tmp_path / "out"
+    monkeypatch.setattr(gen, "_worker_share", fake_worker_share)
+    with pytest.raises(ValueError, match="boom in worker 0"):
+        gen.generate(SUITE, _FAKE_OUT, frames=16, shards=2, seed=3, workers=2, device="cpu", progress=False)
+    assert (_FAKE_OUT / "lock_held_at_worker_1_end").read_text() == "True"
+    assert not (_FAKE_OUT / gen.LOCK_FILE).exists() and not multiprocessing.active_children()
+
+
+def test_a_refused_folder_leaves_no_worker_running(tmp_path):
+    """The workers start before the folder is checked: a refusal still ends them all."""
+    (tmp_path / "notes.txt").write_text("mine")
+    with pytest.raises(DatasetError, match="not a dataset folder"):
+        gen.generate(SUITE, tmp_path, frames=16, shards=2, workers=2, device="cpu", progress=False)
+    assert not multiprocessing.active_children() and sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
+
+
+def test_a_worker_that_dies_starting_is_an_error_not_a_wait(tmp_path, monkeypatch, forked):
+    from concurrent.futures.process import BrokenProcessPool
+
+    from acoustic_sim import workers
+
+    monkeypatch.setattr(workers, "resolve_device", lambda *args: os._exit(3))
+    with pytest.raises(BrokenProcessPool):
+        gen.generate(SUITE, tmp_path / "out", frames=16, shards=2, workers=2, device="cpu", progress=False)
+    assert not (tmp_path / "out").exists() and not multiprocessing.active_children()
+
+
+def test_cuda_started_sees_torch_warp_and_a_loaded_driver(monkeypatch):
+    """Workers are forked only where nothing may have started CUDA in this process."""
+    from types import SimpleNamespace
+
+    from acoustic_sim import devices, workers
+
+    monkeypatch.setattr(devices, "_cuda_driver_loaded", lambda: False)
+    monkeypatch.setattr(devices, "_warp_runtime", lambda: None)
+    monkeypatch.setitem(sys.modules, "torch", SimpleNamespace(cuda=SimpleNamespace(is_initialized=lambda: False)))
+    assert not devices.cuda_started()
+    monkeypatch.setattr(devices, "_warp_runtime", lambda: SimpleNamespace(cuda_devices=[]))  # Warp up, no GPU
+    assert not devices.cuda_started()
+    for runtime in (SimpleNamespace(cuda_devices=["cuda:0"]), devices._UNKNOWN):
+        monkeypatch.setattr(devices, "_warp_runtime", lambda r=runtime: r)
+        assert devices.cuda_started()
+    monkeypatch.setattr(devices, "_warp_runtime", lambda: None)
+    monkeypatch.setitem(sys.modules, "torch", SimpleNamespace(cuda=SimpleNamespace(is_initialized=lambda: True)))
+    assert devices.cuda_started()
+    monkeypatch.delitem(sys.modules, "torch")
+    monkeypatch.setattr(devices, "_cuda_driver_loaded", lambda: True)  # e.g. torch.cuda.is_available()
+    assert devices.cuda_started() and workers.start_method() == "spawn"
+    monkeypatch.setenv(workers.START_ENV, "fork")
+    assert workers.start_method() == "fork"
+    monkeypatch.setenv(workers.START_ENV, "thread")
+    with pytest.raises(ValueError, match="fork or spawn"):
+        workers.start_method()
