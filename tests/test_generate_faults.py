@@ -141,10 +141,14 @@ _FAKE_OUT = None  # the folder fake_worker_share reports into (set before the fo
 
 
 def fake_worker_share(tasks, device, on_frames, overlap):
-    """Worker 0 fails at once; worker 1 works on for 2 s, then notes whether the lock is still held."""
+    """Worker 0 fails on its first task; worker 1 works on for 2 s, then notes whether the lock is
+    still held."""
     from acoustic_sim import workers
 
     if workers._INDEX == 0:
+        # Fail on the first task: tasks come only once every worker is up, so this process cannot
+        # finish early and also take worker 1's call (as it did in a busy full run).
+        next(tasks, None)
         raise ValueError("boom in worker 0")
     time.sleep(2)
     (_FAKE_OUT / "lock_held_at_worker_1_end").write_text(str((_FAKE_OUT / gen.LOCK_FILE).exists()))
