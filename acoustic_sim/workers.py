@@ -150,9 +150,10 @@ def _serve(work: Work, device: str) -> dict:
     of each other."""
     import warp as wp
 
-    device = resolve_device(device, _INDEX)  # starts Warp (quietly where asked) and checks the device
+    quiet_warp()  # Warp up (quietly where the parent asked), before the device is checked
     if _START == "fork" and wp.get_cuda_device_count() == 0:
-        _refuse_a_poisoned_cuda()
+        _refuse_a_poisoned_cuda()  # else "auto" would fall back to the CPU and "cuda" blame the driver
+    device = resolve_device(device, _INDEX)
     wp.get_device(device)
     started = time.time() - _LAUNCHED
     _READY.put(device)
