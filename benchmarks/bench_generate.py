@@ -18,16 +18,19 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import platform
 import shutil
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from acoustic_sim.generate import PARTS  # noqa: E402
+from acoustic_sim.workers import START_ENV  # noqa: E402
 
 MODES = {"in_turn": False, "overlapped": True}
 
@@ -37,12 +40,9 @@ def child(spec: dict) -> dict:
     dataset's bytes."""
     import warp as wp
 
-    from acoustic_sim import workers
     from acoustic_sim.generate import generate
     from acoustic_sim.suites import load_suite
 
-    if spec["start"] != "auto":
-        workers.start_method = lambda: spec["start"]
     out = Path(spec["out"])
     summary = generate(
         load_suite(spec["suite"]),
@@ -61,9 +61,11 @@ def child(spec: dict) -> dict:
 
 
 def run_child(spec: dict) -> dict:
-    done = subprocess.run(
-        [sys.executable, __file__, "--child", json.dumps(spec)], capture_output=True, text=True, check=False
-    )
+    env = dict(os.environ)
+    if spec["start"] != "auto":
+        env[START_ENV] = spec["start"]
+    command = [sys.executable, __file__, "--child", json.dumps(spec)]
+    done = subprocess.run(command, capture_output=True, text=True, check=False, env=env)
     if done.returncode:
         raise SystemExit(f"a generate run failed ({spec}):\n{done.stderr[-3000:]}")
     return json.loads(done.stdout.splitlines()[-1])
@@ -131,10 +133,10 @@ def main(argv=None) -> dict:
     is_cuda = warmup["devices"][0].startswith("cuda")
     res = {
         "device": warmup["devices"][0],
-        "device_name": warmup["device_name"] if is_cuda else platform_name(),
+        "device_name": warmup["device_name"] if is_cuda else platform.processor() or "CPU",
         "cpu_count": os.cpu_count(),
         "warp": warmup["warp"],
-        "date": __import__("time").strftime("%Y-%m-%d"),
+        "date": time.strftime("%Y-%m-%d"),
         "suite": args.suite,
         "frames": args.frames,
         "repeats": args.repeats,
@@ -148,12 +150,6 @@ def main(argv=None) -> dict:
     (out / f"{stem}.md").write_text(markdown(res, args.suite, args))
     print((out / f"{stem}.md").read_text())
     return res
-
-
-def platform_name() -> str:
-    import platform
-
-    return platform.processor() or "CPU"
 
 
 def markdown(res: dict, suite: str, args) -> str:

@@ -244,7 +244,7 @@ def test_parallel_workers_write_the_same_shards(reference, tmp_path, device, mon
     frames (per episode here), not per shard."""
     if start == "fork" and workers.start_method() != "fork":
         pytest.skip("this process has started CUDA (or is not on Linux): its workers are spawned")
-    monkeypatch.setattr(workers, "start_method", lambda: start)
+    monkeypatch.setenv(workers.START_ENV, start)
     monkeypatch.setattr(gen, "tqdm", BarSteps)
     summary = generate(tmp_path, device, workers=2)
     assert summary["shards_written"] == 2 and summary["worker_start"] == start

@@ -162,7 +162,7 @@ def forked(monkeypatch):
 
     if workers.start_method() != "fork":
         pytest.skip("this process has started CUDA (or is not on Linux): its workers cannot be forked")
-    monkeypatch.setattr(workers, "start_method", lambda: "fork")
+    monkeypatch.setenv(workers.START_ENV, "fork")
 
 
 def test_a_worker_error_stops_the_others_before_the_lock_is_released(tmp_path, monkeypatch, forked):
