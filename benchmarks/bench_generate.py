@@ -75,12 +75,15 @@ def timed_runs(spec: dict, tmp: Path, repeats: int) -> dict:
     """Median seconds of `repeats` fresh runs, and the time by part of the median run."""
     runs = []
     for r in range(repeats):
-        folder = tmp / f"w{spec['workers']}_{'overlap' if spec['overlap'] else 'in_turn'}_{spec['start']}_{r}"
+        mode = "overlap" if spec["overlap"] else "in_turn"
+        folder = tmp / f"{spec['device'].replace(':', '')}_w{spec['workers']}_{mode}_{spec['start']}_{r}"
         runs.append(run_child(spec | {"out": str(folder)}))
         shutil.rmtree(folder)
     median = sorted(runs, key=lambda s: s["seconds"])[len(runs) // 2]
     parts = median["seconds_by_part"]
     return {
+        "device": spec["device"],
+        "devices": median["devices"],
         "workers": spec["workers"],
         "overlap": spec["overlap"],
         "start": median["worker_start"],
@@ -97,7 +100,7 @@ def timed_runs(spec: dict, tmp: Path, repeats: int) -> dict:
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--device", default="cpu")
+    parser.add_argument("--device", default="cpu", help="a device, or a list to compare (e.g. cuda:0,auto)")
     parser.add_argument("--suite", default="paper")
     parser.add_argument("--frames", type=int, default=300)
     parser.add_argument("--workers", default="1", help="worker counts to compare, comma-separated, e.g. 1,8")
@@ -116,15 +119,17 @@ def main(argv=None) -> dict:
     starts = args.start.split(",")
     if unknown := (set(modes) - set(MODES)) | (set(starts) - {"auto", "fork", "spawn"}):
         parser.error(f"unknown --modes or --start: {sorted(unknown)}")
-    base = {"suite": args.suite, "frames": args.frames, "shards": args.shards, "device": args.device}
+    devices = args.device.split(",")
+    base = {"suite": args.suite, "frames": args.frames, "shards": args.shards}
     with tempfile.TemporaryDirectory() as tmp:
         warmup = run_child(
             base
-            | {"frames": 2, "shards": 1, "workers": 1, "overlap": True, "start": "auto"}
+            | {"device": devices[0], "frames": 2, "shards": 1, "workers": 1, "overlap": True, "start": "auto"}
             | {"out": str(Path(tmp) / "warmup")}
         )
         specs = [
-            base | {"workers": w, "overlap": MODES[m], "start": s}
+            base | {"device": d, "workers": w, "overlap": MODES[m], "start": s}
+            for d in devices
             for w in counts
             for m in modes
             for s in (starts if w > 1 else ["auto"])  # one worker runs in the parent: nothing to start
@@ -158,6 +163,11 @@ def markdown(res: dict, suite: str, args) -> str:
     # its parts in turn (nothing beside it on the host), as issue 16 asks generation to be held to.
     reference = one.get(False) or one.get(True)
     sonar_rate = reference["frames"] / reference["seconds_by_part"]["sonar"] if reference else None
+    # Scaling out: each row against the best row that wrote on one GPU (its best worker count), where
+    # some row spread its workers over several.
+    spread = any(len(r["devices"]) > 1 for r in res["runs"])
+    one_gpu = [r["frames_per_s"] for r in res["runs"] if len(r["devices"]) == 1 and r["devices"][0] != "cpu"]
+    one_gpu_rate = max(one_gpu) if spread and one_gpu else None
     lines = [
         f"# Dataset generation on {res['device_name']} ({res['device']}, {res['cpu_count']} CPU cores)",
         "",
@@ -173,22 +183,33 @@ def markdown(res: dict, suite: str, args) -> str:
         "the rendering thread blocked on a preparation or a write. *simulator* is frames over the LiDAR + "
         "sonar seconds of one worker: the rate the device work alone allows. *vs sonar* is the rate over "
         "`Sonar.simulate`'s alone: frames over the sonar seconds of one worker in turn"
-        + (f" ({sonar_rate:,.0f} frames/s)." if sonar_rate else "."),
+        + (f" ({sonar_rate:,.0f} frames/s)." if sonar_rate else ".")
+        + (
+            f" *on*: the devices a run wrote on. *vs one GPU* is the rate over the best one-GPU row's "
+            f"({one_gpu_rate:,.0f} frames/s)."
+            if one_gpu_rate
+            else ""
+        ),
         "",
-        "| workers | started | parts | seconds | frames/s | " + " | ".join(PARTS).replace("lidar", "LiDAR") + " | "
-        "simulator frames/s | vs sonar | MB |",
-        "|---|---|---|---|---|" + "---|" * len(PARTS) + "---|---|---|",
+        "| on | workers | started | parts | seconds | frames/s | "
+        + " | ".join(PARTS).replace("lidar", "LiDAR")
+        + " | simulator frames/s | vs sonar | "
+        + ("vs one GPU | " if one_gpu_rate else "")
+        + "MB |",
+        "|---|---|---|---|---|---|" + "---|" * len(PARTS) + "---|---|" + ("---|" if one_gpu_rate else "") + "---|",
     ]
     for r in res["runs"]:
         p = r["seconds_by_part"]
         lines.append(
-            f"| {r['workers']} | {r['start'] or '-'} | {'overlapped' if r['overlap'] else 'in turn'} | "
+            f"| {', '.join(r['devices'])} | {r['workers']} | {r['start'] or '-'} | "
+            f"{'overlapped' if r['overlap'] else 'in turn'} | "
             f"{r['median_s']:.1f} | **{r['frames_per_s']:,.1f}** | "
             + " | ".join(f"{p[k]:.1f}" for k in PARTS)
             + " | "
             + (f"{r['simulator_frames_per_s']:,.1f}" if r["workers"] == 1 else "-")
             + " | "
             + (f"{r['frames_per_s'] / sonar_rate:.0%}" if sonar_rate else "-")
+            + (f" | {r['frames_per_s'] / one_gpu_rate:.2f}x" if one_gpu_rate else "")
             + f" | {r['bytes'] / 1e6:,.0f} |"
         )
     return "\n".join(lines) + "\n"

@@ -1,41 +1,83 @@
 #!/usr/bin/env bash
-# Scaling out on the GPUs of one host (a lent nvidia-h200-x2 or larger), in phases that fit one
-# 10-minute call each; results under $RESULTS (default benchmarks/results/multi_gpu):
+# Scaling out on the GPUs of one host (a lent nvidia-h200-x2 or larger). Results under $RESULTS
+# (default benchmarks/results/multi_gpu), working files under WORKDIR:
 #
-#   bash benchmarks/multi_gpu.sh gen   WORKDIR   # paper suite on one GPU and on all: frames/s, identical shards
-#   bash benchmarks/multi_gpu.sh ddp   WORKDIR   # bench_learn --ddp: windows/s on 1..N GPUs, efficiency
-#   bash benchmarks/multi_gpu.sh train WORKDIR   # one GPU at batch 16 vs N GPUs at 16/N each (same global batch)
-#   bash benchmarks/multi_gpu.sh check WORKDIR   # on ONE GPU: --workers 2 --device auto gives the same shards,
-#                                                # torchrun's NCCL path at world size 1 trains as the plain run
+#   bash benchmarks/multi_gpu.sh gen   WORKDIR  # bench_generate: one GPU vs all (frames/s); one GPU's shards = all GPUs'
+#   bash benchmarks/multi_gpu.sh ray   WORKDIR  # a local Ray cluster (ray start --head) writes one process's shards
+#   bash benchmarks/multi_gpu.sh ddp   WORKDIR  # bench_learn --ddp: windows/s on 1..N GPUs, efficiency
+#   bash benchmarks/multi_gpu.sh train WORKDIR  # one GPU at batch 16 vs N GPUs at 16/N each, seeds 0 and 1 (after gen)
+#   bash benchmarks/multi_gpu.sh all   WORKDIR  # the four above in that order
+#   bash benchmarks/multi_gpu.sh check WORKDIR  # on ONE GPU: --workers 2 --device auto gives the same shards,
+#                                               # torchrun's NCCL path at world size 1 trains as the plain run
 #
-# Environment: FRAMES (12500), WORKERS (8), EPOCHS (6 sub-epochs of 12,000 windows for `train`).
+# Environment: BENCH_FRAMES (37500, per timed run), FRAMES (12500, the dataset compared and trained
+# on), RAY_FRAMES (2500), EPOCHS (8 sub-epochs of 12,000 windows), RAY_SITE (a folder holding Ray).
+# NVLink multicast stays off.
 set -euo pipefail
 phase=$1 W=$2
 export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
+export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVLS=1
 R=${RESULTS:-benchmarks/results/multi_gpu}
 GPUS=$(python -c "import torch; print(torch.cuda.device_count())")
 mkdir -p "$W" "$R"
-case $phase in
-gen)
-  GEN=(--suite paper --frames "${FRAMES:-12500}" --seed 0 --workers "${WORKERS:-8}" --quiet)
-  python -m acoustic_sim generate "${GEN[@]}" --device cuda:0 --out "$W/one_gpu" | tee "$R/generate_one_gpu.txt"
-  python -m acoustic_sim generate "${GEN[@]}" --device auto --out "$W/all_gpus" | tee "$R/generate_${GPUS}_gpus.txt"
+stamp() { echo "== $1 $(date +%T)"; }
+
+gen() {
+  stamp gen
+  # 8 workers per GPU were the one-GPU optimum on an H100 (generate_cuda.md); both counts on both
+  python benchmarks/bench_generate.py --device cuda:0,auto --suite paper --frames "${BENCH_FRAMES:-37500}" \
+    --workers "8,$((8 * GPUS))" --modes overlapped --repeats 3 --out "$R"
+  GEN=(--suite paper --frames "${FRAMES:-12500}" --seed 0 --quiet)
+  python -m acoustic_sim generate "${GEN[@]}" --workers 8 --device cuda:0 --out "$W/one_gpu" | tee "$R/generate_one_gpu.txt"
+  python -m acoustic_sim generate "${GEN[@]}" --workers $((8 * GPUS)) --device auto --out "$W/all_gpus" |
+    tee "$R/generate_${GPUS}_gpus.txt"
   python benchmarks/same_shards.py "$W/one_gpu" "$W/all_gpus" | tee "$R/generate_identical.txt"
-  ;;
-ddp)
-  python benchmarks/bench_learn.py --device cuda --ddp --batch 16 --out "$R"
-  ;;
-train)
-  OPTS=(--data "$W/one_gpu" --model polar_unet --loss bce --lr 1e-3 --seed 0 --epochs "${EPOCHS:-6}" --patience 100
+}
+
+ray_cluster() {
+  stamp ray
+  export RAY_AUTH_MODE=token # as `ray start` has by default since Ray 2.59; the caller must match
+  export PYTHONPATH=${RAY_SITE:+$RAY_SITE:}${PYTHONPATH:-} # Ray installed apart, where it is
+  GEN=(--suite paper --frames "${RAY_FRAMES:-2500}" --seed 0 --quiet)
+  python -m acoustic_sim generate "${GEN[@]}" --device cuda:0 --out "$W/ray_reference"
+  python -c "import ray; print('ray', ray.__version__)"
+  python -m ray.scripts.scripts start --head --port 6379 --num-gpus "$GPUS" --disable-usage-stats >"$W/ray_start.log" 2>&1
+  trap 'python -m ray.scripts.scripts stop >/dev/null 2>&1 || true' EXIT
+  python -m acoustic_sim generate "${GEN[@]}" --device auto --ray-address 127.0.0.1:6379 --out "$W/ray" |
+    tee "$R/generate_ray.txt"
+  python benchmarks/same_shards.py "$W/ray_reference" "$W/ray" | tee -a "$R/generate_ray.txt"
+  python -m ray.scripts.scripts stop >/dev/null 2>&1
+  trap - EXIT
+}
+
+ddp() {
+  stamp ddp
+  python benchmarks/bench_learn.py --device cuda --ddp --batch 16 --repeats 20 --out "$R"
+}
+
+train() {
+  stamp train
+  [ -f "$W/one_gpu/manifest.json" ] || { echo "train needs the gen phase's $W/one_gpu" >&2; exit 2; }
+  OPTS=(--data "$W/one_gpu" --model polar_unet --loss bce --lr 1e-3 --epochs "${EPOCHS:-8}" --patience 100
     --max-train-windows 12000 --max-val-windows 2000 --device cuda --quiet --overwrite)
-  python -m learn train "${OPTS[@]}" --batch-size 16 --out "$W/runs/one_gpu" > "$R/train_one_gpu.log" 2>&1
-  torchrun --standalone --nproc_per_node "$GPUS" -m learn train "${OPTS[@]}" --batch-size $((16 / GPUS)) \
-    --out "$W/runs/${GPUS}_gpus" > "$R/train_${GPUS}_gpus.log" 2>&1
-  grep -h "^epoch" "$R/train_one_gpu.log" "$R/train_${GPUS}_gpus.log"
-  cp "$W/runs/one_gpu/history.csv" "$R/history_one_gpu.csv"
-  cp "$W/runs/${GPUS}_gpus/history.csv" "$R/history_${GPUS}_gpus.csv"
-  ;;
-check)
+  pids=()
+  for seed in 0 1; do # one process on one GPU each, side by side
+    CUDA_VISIBLE_DEVICES=$((seed % GPUS)) python -m learn train "${OPTS[@]}" --seed $seed --batch-size 16 \
+      --out "$W/runs/one_gpu_seed$seed" >"$R/train_one_gpu_seed$seed.log" 2>&1 &
+    pids+=($!)
+  done
+  for pid in "${pids[@]}"; do wait "$pid"; done
+  for seed in 0 1; do
+    torchrun --standalone --nproc_per_node "$GPUS" -m learn train "${OPTS[@]}" --seed $seed \
+      --batch-size $((16 / GPUS)) --out "$W/runs/${GPUS}_gpus_seed$seed" >"$R/train_${GPUS}_gpus_seed$seed.log" 2>&1
+  done
+  python benchmarks/same_global_batch.py "$W"/runs/one_gpu_seed{0,1} "$W/runs/${GPUS}_gpus_seed"{0,1} --out "$R"
+  for run in "$W"/runs/*; do # each run's own record beside the comparison
+    mkdir -p "$R/runs/${run##*/}" && cp "$run"/{config.json,history.csv,curves.png} "$R/runs/${run##*/}/"
+  done
+}
+
+check() {
   python -m acoustic_sim generate --suite tiny --out "$W/one" --device cuda:0 --shards 3 --quiet
   python -m acoustic_sim generate --suite tiny --out "$W/two" --device auto --workers 2 --shards 3 --quiet
   python benchmarks/same_shards.py "$W/one" "$W/two" | tee "$R/one_gpu_check.txt"
@@ -51,9 +93,20 @@ for key in ("train_loss", "val_scan_f1"):
 for k in ("ddp", "single"):  # the torchrun run must have joined an NCCL group of one process
     print(k, "process_group", json.load(open(f"{sys.argv[1]}/{k}/config.json"))["process_group"])
 PY
+}
+
+case $phase in
+gen) gen ;;
+ray) ray_cluster ;;
+ddp) ddp ;;
+train) train ;;
+all) # each phase in its own shell: one that fails is reported and the next still runs
+  for p in gen ray ddp train; do bash "$0" "$p" "$W" || echo "== phase $p failed (exit $?)"; done
+  stamp done
   ;;
+check) check ;;
 *)
-  echo "usage: $0 gen|ddp|train|check WORKDIR" >&2
+  echo "usage: $0 gen|ray|ddp|train|all|check WORKDIR" >&2
   exit 2
   ;;
 esac

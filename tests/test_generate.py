@@ -3,6 +3,7 @@ clear errors for foreign or broken files; windows never cross episodes."""
 
 import dataclasses
 import json
+import sys
 import threading
 import typing
 from pathlib import Path
@@ -266,6 +267,28 @@ def test_ray_tasks_write_the_same_shards(reference, tmp_path, device):
     got, want = shard_arrays(tmp_path), shard_arrays(reference[0])
     for key in want:
         np.testing.assert_array_equal(got[key], want[key], err_msg=key)
+
+
+@pytest.mark.parametrize("mode", [None, "token"])
+def test_a_refused_ray_connection_names_token_authentication(tmp_path, monkeypatch, mode):
+    """`ray start` has turned token authentication on by default since Ray 2.59, and a caller
+    without RAY_AUTH_MODE gets only "failed to connect": the error says what to set. A caller that
+    has set the mode gets Ray's own error (its token, not the mode, is wrong). A fake Ray module
+    stands in: CI has no Ray."""
+
+    class Refusing:
+        @staticmethod
+        def init(**kwargs):
+            raise ConnectionError("Failed to connect to Ray cluster at 10.0.0.1:6379")
+
+    monkeypatch.setitem(sys.modules, "ray", Refusing)
+    if mode:
+        monkeypatch.setenv("RAY_AUTH_MODE", mode)
+    else:
+        monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
+    with pytest.raises(ConnectionError) as caught:
+        gen._run_on_ray([], "10.0.0.1:6379", gpu=False, bar=None)
+    assert ("RAY_AUTH_MODE=token" in str(caught.value)) == (mode is None), caught.value
 
 
 def test_a_worker_takes_its_next_shard_only_during_the_last_episode_of_this_one(tmp_path, device, monkeypatch):
