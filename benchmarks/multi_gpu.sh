@@ -10,7 +10,7 @@
 #   bash benchmarks/multi_gpu.sh check WORKDIR  # on ONE GPU: --workers 2 --device auto gives the same shards,
 #                                               # torchrun's NCCL path at world size 1 trains as the plain run
 #
-# Environment: BENCH_FRAMES (37500, per timed run), FRAMES (12500, the dataset compared and trained
+# Environment: BENCH_FRAMES (75000, per timed run), FRAMES (12500, the dataset compared and trained
 # on), RAY_FRAMES (2500), EPOCHS (8 sub-epochs of 12,000 windows), RAY_SITE (a folder holding Ray).
 # NVLink multicast stays off.
 set -euo pipefail
@@ -24,9 +24,11 @@ stamp() { echo "== $1 $(date +%T)"; }
 
 gen() {
   stamp gen
-  # 8 workers per GPU were the one-GPU optimum on an H100 (generate_cuda.md); both counts on both
-  python benchmarks/bench_generate.py --device cuda:0,auto --suite paper --frames "${BENCH_FRAMES:-37500}" \
-    --workers "8,$((8 * GPUS))" --modes overlapped --repeats 3 --out "$R"
+  # 8 workers were the best of 1, 4 and 8 on an H100; on an x2 host's H200s (h200x2/generate_cuda.md) 16
+  # on one GPU and 8 per GPU on two were slower than 8 and 4. A run carries 3-5 s of fixed cost (worker
+  # start, the last shards, the card), which 37,500 frames did not amortise on two GPUs: 75,000 by default.
+  python benchmarks/bench_generate.py --device cuda:0,auto --suite paper --frames "${BENCH_FRAMES:-75000}" \
+    --workers "8,$((6 * GPUS))" --modes overlapped --repeats 3 --out "$R"
   GEN=(--suite paper --frames "${FRAMES:-12500}" --seed 0 --quiet)
   python -m acoustic_sim generate "${GEN[@]}" --workers 8 --device cuda:0 --out "$W/one_gpu" | tee "$R/generate_one_gpu.txt"
   python -m acoustic_sim generate "${GEN[@]}" --workers $((8 * GPUS)) --device auto --out "$W/all_gpus" |
@@ -41,6 +43,9 @@ ray_cluster() {
   GEN=(--suite paper --frames "${RAY_FRAMES:-2500}" --seed 0 --quiet)
   python -m acoustic_sim generate "${GEN[@]}" --device cuda:0 --out "$W/ray_reference"
   python -c "import ray; print('ray', ray.__version__)"
+  # With the mode set, `ray start` refuses to run without a token (it makes one only when the mode is
+  # left to its default), as the first x2 lease found: make one (kept in ~/.ray/auth_token) first.
+  python -m ray.scripts.scripts get-auth-token --generate >/dev/null
   python -m ray.scripts.scripts start --head --port 6379 --num-gpus "$GPUS" --disable-usage-stats >"$W/ray_start.log" 2>&1
   trap 'python -m ray.scripts.scripts stop >/dev/null 2>&1 || true' EXIT
   python -m acoustic_sim generate "${GEN[@]}" --device auto --ray-address 127.0.0.1:6379 --out "$W/ray" |
@@ -58,7 +63,8 @@ ddp() {
 train() {
   stamp train
   [ -f "$W/one_gpu/manifest.json" ] || { echo "train needs the gen phase's $W/one_gpu" >&2; exit 2; }
-  OPTS=(--data "$W/one_gpu" --model polar_unet --loss bce --lr 1e-3 --epochs "${EPOCHS:-8}" --patience 100
+  # one validation set for every run (--split-seed), so that the seed-to-seed spread is training noise
+  OPTS=(--data "$W/one_gpu" --model polar_unet --loss bce --lr 1e-3 --epochs "${EPOCHS:-8}" --patience 100 --split-seed 0
     --max-train-windows 12000 --max-val-windows 2000 --device cuda --quiet --overwrite)
   pids=()
   for seed in 0 1; do # one process on one GPU each, side by side

@@ -6,7 +6,9 @@ seed-to-seed spread (the noise), and the validation curves in one figure.
     python benchmarks/same_global_batch.py RUN [RUN ...] --out DIR
 
 Each RUN is a `learn train` folder (config.json and history.csv); its seed, batch per process and
-process count are read from config.json. Writes same_global_batch.md, .json and .png to DIR.
+process count are read from config.json. All runs must share their validation episodes (`learn train
+--split-seed`): the seed also draws the split otherwise, and the spread would not be training noise.
+Writes same_global_batch.md, .json and .png to DIR.
 """
 
 from __future__ import annotations
@@ -39,6 +41,7 @@ def load_run(folder: Path) -> dict:
         "backend": group.get("backend"),
         "batch_per_process": int(config["train_config"]["batch_size"]),
         "global_batch": processes * int(config["train_config"]["batch_size"]),
+        "val_episodes": config["dataset"]["val_episodes"],
         "epochs": len(history),
         "best_epoch": int(best["epoch"]),
         "best_scan_f1": best[METRIC],
@@ -55,6 +58,11 @@ def compare(runs: list[dict]) -> dict:
     difference is no larger than that spread."""
     if len({r["global_batch"] for r in runs}) != 1:
         raise ValueError(f"runs differ in global batch: {sorted({r['global_batch'] for r in runs})}")
+    if len({tuple(r["val_episodes"]) for r in runs}) != 1:
+        raise ValueError(
+            "runs were validated on different episodes, so the seed-to-seed spread would mix in the split: "
+            "train them with one --split-seed"
+        )
     by = {(r["processes"], r["seed"]): r for r in runs}
     counts = sorted({r["processes"] for r in runs})
     if len(counts) != 2 or counts[0] != 1:

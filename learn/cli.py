@@ -27,6 +27,7 @@ def _configs(args):
         val_fraction=args.val_fraction,
         split_by=args.split_by,
         seed=args.seed,
+        split_seed=args.split_seed,
         max_train_windows=args.max_train_windows,
         max_val_windows=args.max_val_windows,
         amp=not args.no_amp,
@@ -280,6 +281,9 @@ def _training_options(p) -> None:
         "--max-minutes", type=float, default=train.max_minutes, help="time budget per model: no epoch starts after it"
     )
     p.add_argument("--seed", type=int, default=train.seed, help="split, initialisation and batch order")
+    p.add_argument(
+        "--split-seed", type=int, default=train.split_seed, help="the validation split's own seed (default: --seed)"
+    )
     p.add_argument("--no-amp", action="store_true", help="no bfloat16 autocast on GPUs")
     p.add_argument(
         "--cuda-graphs", action="store_true", help="training steps as CUDA graphs (torch.compile; GPUs only)"

@@ -53,6 +53,10 @@ class TrainConfig:
             the default), "beam_accuracy", "chamfer_m" (lower is better) or "ssim" (the paper's;
             it rewards near-empty images on sparse labels).
         val_fraction: Share of episodes (or scenarios, `split_by`) held out when not folding.
+        seed: Initialisation, batch order and augmentation draws; also the validation split (or
+            folds) unless `split_seed` is set.
+        split_seed: Seed of the validation split (or folds) alone: fix it to vary `seed` over one
+            validation set, as a seed-to-seed spread that is training noise alone needs.
         max_train_windows: Training windows per epoch at most (a random subset each epoch).
         max_val_windows: Validation windows evaluated per epoch at most (a fixed subset).
         amp: bfloat16 autocast on GPUs.
@@ -75,12 +79,17 @@ class TrainConfig:
     val_fraction: float = 0.1
     split_by: str = "episode"
     seed: int = 0
+    split_seed: int | None = None
     max_train_windows: int | None = None
     max_val_windows: int | None = 2000
     amp: bool = True
     max_minutes: float | None = None
     augment: AugmentConfig = field(default_factory=AugmentConfig)
     cuda_graphs: bool = False
+
+    @property
+    def split_seed_or_seed(self) -> int:
+        return self.seed if self.split_seed is None else self.split_seed
 
     def __post_init__(self) -> None:
         if self.loss not in LOSSES:
@@ -221,7 +230,7 @@ def train(
     out = Path(out)
     common = (model_config, data_config, train_config, dist_info, resume, progress, init_from)
     if folds > 1:
-        fold_of = split_groups(groups, folds, seed=train_config.seed)
+        fold_of = split_groups(groups, folds, seed=train_config.split_seed_or_seed)
         results = [
             _train_one(windows, fold_of != k, fold_of == k, out / f"fold_{k}", *common, fold=k, tensorboard=tensorboard)
             for k in range(folds)
@@ -230,7 +239,7 @@ def train(
             write_fold_summary(out, results)
         result = {"folds": results}
     else:
-        held = validation_split(groups, train_config.val_fraction, seed=train_config.seed)
+        held = validation_split(groups, train_config.val_fraction, seed=train_config.split_seed_or_seed)
         result = _train_one(windows, ~held, held, out, *common, tensorboard=tensorboard)
     if dist_info.joined:
         import torch.distributed as dist
@@ -276,7 +285,9 @@ def _train_one(
     optimizer = torch.optim.Adam(model.parameters(), lr=config.lr)
     train_idx, val_idx = np.flatnonzero(train_mask), np.flatnonzero(val_mask)
     if config.max_val_windows and len(val_idx) > config.max_val_windows:
-        val_idx = np.sort(np.random.default_rng(config.seed).choice(val_idx, config.max_val_windows, replace=False))
+        val_idx = np.sort(
+            np.random.default_rng(config.split_seed_or_seed).choice(val_idx, config.max_val_windows, replace=False)
+        )
     out.mkdir(parents=True, exist_ok=True)
     state = {"epoch": 0, "step": 0, "best": -math.inf, "stale": 0, "history": []}
     sign = MONITORS[config.monitor]

@@ -305,6 +305,20 @@ def test_monitor_picks_best_checkpoint_by_chamfer(tiny_dataset, tmp_path):
         TrainConfig(monitor="iou")
 
 
+def test_split_seed_holds_the_validation_episodes_while_the_seed_varies(tiny_dataset, tmp_path):
+    """With `split_seed` the validation episodes no longer follow `seed`: runs of several seeds are
+    scored on one validation set, so their spread is training noise alone (the DDP comparison
+    needs that). The seed taken here is one whose own split differs from seed 0's."""
+    episodes = load_frames(tiny_dataset).episode
+    own = [tuple(np.unique(episodes[validation_split(episodes, 0.5, seed=s)])) for s in range(20)]
+    seed = next(s for s in range(1, 20) if own[s] != own[0])
+    config = dataclasses.replace(QUICK, epochs=1, seed=seed, split_seed=0)
+    train(tiny_dataset, tmp_path / "run", model_config=MODEL, data_config=DATA, train_config=config, progress=False)
+    written = json.loads((tmp_path / "run" / "config.json").read_text())
+    assert tuple(written["dataset"]["val_episodes"]) == own[0] != own[seed]
+    assert written["train_config"]["split_seed"] == 0 and written["train_config"]["seed"] == seed
+
+
 def _same(a: dict, b: dict) -> bool:
     """Equal nested metrics, where nan (an undefined metric) equals nan."""
     return json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)

@@ -10,11 +10,12 @@ from benchmarks import same_global_batch
 COLUMNS = ("epoch", "train_loss", "val_scan_f1", "val_chamfer_m", "samples_per_s")
 
 
-def write_run(root, name, *, seed, processes, batch, curve, rates=(50.0, 100.0, 110.0)):
+def write_run(root, name, *, seed, processes, batch, curve, rates=(50.0, 100.0, 110.0), val=(3, 7)):
     run = root / name
     run.mkdir()
     group = {"backend": "nccl", "processes": processes} if processes > 1 else None
     config = {"train_config": {"seed": seed, "batch_size": batch}, "process_group": group}
+    config["dataset"] = {"val_episodes": list(val)}
     (run / "config.json").write_text(json.dumps(config))
     rows = [(e + 1, 0.4 - 0.01 * e, f, 1.0 - f, rates[e]) for e, f in enumerate(curve)]
     (run / "history.csv").write_text(",".join(COLUMNS) + "\n" + "".join(",".join(map(str, r)) + "\n" for r in rows))
@@ -57,4 +58,14 @@ def test_runs_at_different_global_batches_are_refused(tmp_path):
         write_run(tmp_path, "ddp0", seed=0, processes=2, batch=16, curve=(0.5,)),
     ]
     with pytest.raises(ValueError, match="global batch"):
+        same_global_batch.compare([same_global_batch.load_run(r) for r in runs])
+
+
+def test_runs_validated_on_different_episodes_are_refused(tmp_path):
+    runs = [
+        write_run(tmp_path, "one0", seed=0, processes=1, batch=16, curve=(0.5,)),
+        write_run(tmp_path, "one1", seed=1, processes=1, batch=16, curve=(0.4,), val=(2, 7)),
+        write_run(tmp_path, "ddp0", seed=0, processes=2, batch=8, curve=(0.5,)),
+    ]
+    with pytest.raises(ValueError, match="split-seed"):
         same_global_batch.compare([same_global_batch.load_run(r) for r in runs])
