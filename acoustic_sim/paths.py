@@ -44,12 +44,29 @@ __all__ = ["KIND_SCATTERED", "KIND_SPECULAR", "Arrivals", "PathTracer", "concate
 
 
 def hemisphere_directions(count: int) -> np.ndarray:
-    """`count` near-uniform unit vectors over the front hemisphere x > 0 (Fibonacci lattice), (count, 3)."""
+    """`count` near-uniform unit vectors over the front hemisphere x > 0 (Fibonacci lattice), (count, 3),
+    in Z-order of their (y, z): rays next to each other in the array leave in neighbouring directions.
+
+    A GPU runs 32 consecutive rays as one warp. In the lattice's own order neighbours differ by the
+    golden angle in azimuth, so a warp's rays walk different branches of the BVH and their scattered
+    echoes land at unrelated times; in Z-order they hit one patch of wall. The set of rays, and so
+    every echo, is the same in any order."""
     i = np.arange(count) + 0.5
     x = 1.0 - i / count  # uniform in cos(theta) from the +x axis over (0, 1]
     rho = np.sqrt(1.0 - x * x)
     phi = np.pi * (3.0 - np.sqrt(5.0)) * i
-    return np.c_[x, rho * np.cos(phi), rho * np.sin(phi)]
+    directions = np.c_[x, rho * np.cos(phi), rho * np.sin(phi)]
+    return directions[np.argsort(_z_order(directions[:, 1:]), kind="stable")]
+
+
+def _z_order(points: np.ndarray, bits: int = 16) -> np.ndarray:
+    """Morton codes of 2D points in [-1, 1]^2: the bits of the two quantised coordinates interleaved."""
+    cells = np.clip(((points + 1.0) * 0.5 * (1 << bits)).astype(np.uint64), 0, (1 << bits) - 1)
+    code = np.zeros(len(points), dtype=np.uint64)
+    for b in range(bits):
+        for axis in range(2):
+            code |= ((cells[:, axis] >> np.uint64(b)) & np.uint64(1)) << np.uint64(2 * b + axis)
+    return code
 
 
 class PathTracer:

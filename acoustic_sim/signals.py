@@ -161,7 +161,7 @@ class Recorder:
                 continue
             launch(
                 kernels.accumulate_echoes,
-                dim=(pings, e.slots, mics),
+                dim=(pings, mics, e.slots),
                 inputs=[
                     e.source,
                     e.extra_length,
