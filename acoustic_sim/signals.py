@@ -161,7 +161,7 @@ class Recorder:
                 continue
             launch(
                 kernels.accumulate_echoes,
-                dim=(pings, mics, e.slots),
+                dim=(pings, e.slots, mics),
                 inputs=[
                     e.source,
                     e.extra_length,

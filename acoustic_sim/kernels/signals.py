@@ -32,19 +32,15 @@ def accumulate_echoes(
     # out
     impulses_out: wp.array2d[wp.int64],
 ):
-    """One thread per (ping, microphone, echo slot); launch with dim=(pings, mics, slots).
+    """One thread per (ping, echo slot, microphone); launch with dim=(pings, slots, mics).
 
     The echo reaches microphone m after L = extra_length + |source - mic| metres plus the
     channel's `mic_delay` [samples]: its impulse is the band-limited fractional-delay filter
     `taps[fraction]` (linear between the rows of the table) scaled by the channel's gain and
     amplitude * exp(-absorption_per_m * L), added to row p * rows_per_ping + m at column
     lead + sample. Samples at or after `samples` are not recorded.
-
-    A warp is 32 echo slots of one microphone: neighbouring slots come from neighbouring rays
-    (`hemisphere_directions`) and arrive at nearby times, so its atomic adds fall on a few cache
-    lines of one row, where 32 microphones of one echo would touch 32 rows.
     """
-    p, m, s = wp.tid()
+    p, s, m = wp.tid()
     a = amplitude[p, s]
     if s >= count[p] or a == 0.0:
         return
