@@ -143,10 +143,6 @@ class Recorder:
             self._mic_gain = wp.array(config.channel_gain().astype(np.float32), dtype=float)
             self._mic_delay = wp.array((config.channel_delay_s() * fs).astype(np.float32), dtype=float)
         self._convolve = kernels.node_convolution(size)
-        # On a GPU, echo taps are summed per block in shared memory first (`accumulate_echoes_windowed`);
-        # the CPU runs a tile block as one thread, so there every tap goes straight to the impulses.
-        # The impulses are the same bit for bit either way.
-        self.windowed = self.device.is_cuda
 
     def impulses(self, echoes, pings: int) -> wp.array:
         """The echoes' fractional-delay impulses, fixed point (2^32 per unit amplitude), int64.
@@ -163,16 +159,9 @@ class Recorder:
         for e in echoes:
             if e.slots == 0:
                 continue
-            if self.windowed:
-                chunks = -(-e.slots // kernels.ECHO_BLOCK)
-                kernel, dim = kernels.accumulate_echoes_windowed, (pings, mics, chunks, kernels.ECHO_BLOCK)
-                block = {"block_dim": kernels.ECHO_BLOCK}
-            else:
-                kernel, dim, block = kernels.accumulate_echoes, (pings, e.slots, mics), {}
             launch(
-                kernel,
-                dim=dim,
-                **block,
+                kernels.accumulate_echoes,
+                dim=(pings, e.slots, mics),
                 inputs=[
                     e.source,
                     e.extra_length,

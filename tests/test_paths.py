@@ -132,28 +132,6 @@ def test_the_order_of_the_rays_changes_no_echo(device):
     np.testing.assert_array_equal(sonar.record(sonar.trace(room, poses), pose_count=2), before)
 
 
-def test_echoes_summed_per_block_in_shared_memory_give_the_same_impulses(device):
-    """The recorder sums each block's echo taps near its earliest echo in shared memory before
-    adding them to the impulses, and adds the taps beyond that window directly; the integer sums
-    must equal those of adding every tap directly, bit for bit, for specular and scattered echoes
-    of a multipath room, with blocks whose echoes spread past the window too."""
-    from acoustic_sim.signals import Recorder, echo_buffer
-
-    room = scenes.box_room(tuple(SIZE))
-    poses = np.stack([POSE, scenes.pose(4.0, 2.5, 1.0, 2.5), scenes.pose(1.0, 1.0, 2.0, 0.3)])
-    arrivals = Sonar(OMNI, max_bounces=3, ray_count=3000, device=device).trace(room, poses)
-    shuffled = arrivals.select(np.random.default_rng(0).permutation(len(arrivals.delay_s)))
-    recorder = Recorder(OMNI, device=device)
-    for found in (arrivals, shuffled):  # by delay (blocks mostly within the window), and in no order
-        echoes = [echo_buffer(found, 3, device=device)]
-        recorder.windowed = True
-        windowed = recorder.impulses(echoes, 3).numpy()
-        recorder.windowed = False
-        direct = recorder.impulses(echoes, 3).numpy()
-        assert np.count_nonzero(direct) > 10_000
-        np.testing.assert_array_equal(windowed, direct)
-
-
 def test_host_copies_of_pings_traced_again_take_turns(device):
     """Two retraced groups can be in flight at once (one queued while the other's checks are
     unread): their host copies must not share memory, while a third reuses the first's (no

@@ -14,29 +14,6 @@ FIXED_POINT_SCALE = wp.constant(4294967296.0)  # 2^32 [fixed-point units per uni
 NODE_BLOCKS = wp.constant(4)
 
 
-@wp.func
-def echo_taps(
-    source: wp.vec3,
-    extra_length: float,
-    amplitude: float,
-    microphone: wp.vec3,
-    gain: float,
-    mic_delay: float,
-    samples_per_m: float,
-    absorption_per_m: float,
-    steps: int,
-):
-    """Where one echo lands on one microphone: its first sample, the row of the fractional-delay
-    table below its fraction, the weight of the row above, and its fixed-point scale."""
-    length = extra_length + wp.length(source - microphone)
-    delay = length * samples_per_m + mic_delay
-    first = int(wp.floor(delay))
-    position = (delay - float(first)) * float(steps - 1)
-    i = wp.min(int(position), steps - 2)
-    scale = amplitude * gain * wp.exp(-absorption_per_m * length) * FIXED_POINT_SCALE
-    return first, i, position - float(i), scale
-
-
 @wp.kernel(enable_backward=False)
 def accumulate_echoes(
     # in
@@ -67,17 +44,13 @@ def accumulate_echoes(
     a = amplitude[p, s]
     if s >= count[p] or a == 0.0:
         return
-    first, i, v, scale = echo_taps(
-        source[p, s],
-        extra_length[p, s],
-        a,
-        microphones[m],
-        mic_gain[m],
-        mic_delay[m],
-        samples_per_m,
-        absorption_per_m,
-        taps.shape[0],
-    )
+    length = extra_length[p, s] + wp.length(source[p, s] - microphones[m])
+    delay = length * samples_per_m + mic_delay[m]
+    first = int(wp.floor(delay))
+    position = (delay - float(first)) * float(taps.shape[0] - 1)
+    i = wp.min(int(position), taps.shape[0] - 2)
+    v = position - float(i)
+    scale = a * mic_gain[m] * wp.exp(-absorption_per_m * length) * FIXED_POINT_SCALE
     row = p * (impulses_out.shape[0] // count.shape[0]) + m
     half = taps.shape[1] // 2
     for j in range(taps.shape[1]):
@@ -85,78 +58,6 @@ def accumulate_echoes(
         if n >= 0 and n < samples:
             w = (1.0 - v) * taps[i, j] + v * taps[i + 1, j]
             wp.atomic_add(impulses_out, row, lead + n, wp.int64(w * scale))
-
-
-# accumulate_echoes_windowed: echo slots per block, and the samples after the block's earliest
-# echo that it sums in shared memory before adding them to the impulses.
-ECHO_BLOCK = 128
-WINDOW = wp.constant(512)
-
-
-@wp.kernel(enable_backward=False)
-def accumulate_echoes_windowed(
-    # in
-    source: wp.array2d[wp.vec3],
-    extra_length: wp.array2d[float],
-    amplitude: wp.array2d[float],
-    count: wp.array[wp.int32],
-    microphones: wp.array[wp.vec3],
-    mic_gain: wp.array[float],
-    mic_delay: wp.array[float],
-    samples_per_m: float,
-    absorption_per_m: float,
-    taps: wp.array2d[float],
-    samples: int,
-    lead: int,
-    # out
-    impulses_out: wp.array2d[wp.int64],
-):
-    """`accumulate_echoes` with one block per (ping, microphone, run of ECHO_BLOCK echo slots);
-    launch with dim=(pings, mics, ceil(slots / ECHO_BLOCK), ECHO_BLOCK), block_dim=ECHO_BLOCK.
-
-    Neighbouring slots hold echoes of neighbouring rays (`hemisphere_directions`), which arrive
-    at nearly the same time: the block sums its taps within WINDOW samples of its earliest echo in
-    shared memory and adds each sample it touched to the impulses once; taps beyond go straight
-    to the impulses. The sums are integers, so the impulses are those of `accumulate_echoes`."""
-    p, m, c, lane = wp.tid()
-    s = c * ECHO_BLOCK + lane
-    live = False
-    first, i, v, scale = int(0), int(0), float(0.0), float(0.0)
-    if s < count[p] and s < amplitude.shape[1]:
-        a = amplitude[p, s]
-        if a != 0.0:
-            live = True
-            first, i, v, scale = echo_taps(
-                source[p, s],
-                extra_length[p, s],
-                a,
-                microphones[m],
-                mic_gain[m],
-                mic_delay[m],
-                samples_per_m,
-                absorption_per_m,
-                taps.shape[0],
-            )
-    half = taps.shape[1] // 2
-    earliest = wp.tile_min(wp.tile(wp.where(live, first, 1 << 30)))[0]
-    origin = earliest - half + 1  # window index k is sample origin + k
-    window = wp.tile_zeros(shape=WINDOW, dtype=wp.int64, storage="shared")
-    row = p * (impulses_out.shape[0] // count.shape[0]) + m
-    for j in range(taps.shape[1]):
-        n = first - half + 1 + j
-        add = live and n >= 0 and n < samples
-        value = wp.int64(0)
-        if add:
-            value = wp.int64(((1.0 - v) * taps[i, j] + v * taps[i + 1, j]) * scale)
-        inside = add and n - origin < WINDOW
-        if add and not inside:
-            wp.atomic_add(impulses_out, row, lead + n, value)
-        wp.tile_scatter_add(window, wp.where(inside, n - origin, 0), value, inside)
-    threads = wp.block_dim()  # ECHO_BLOCK on a GPU; Warp runs tiles one thread a block on the CPU
-    for k in range(lane % threads, WINDOW, threads):
-        total = window[k]
-        if total != wp.int64(0):
-            wp.atomic_add(impulses_out, row, lead + origin + k, total)
 
 
 @functools.cache
