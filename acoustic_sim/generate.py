@@ -375,14 +375,14 @@ def _run_on_ray(tasks: list[ShardTask], address: str, gpu: bool, bar) -> None:
     try:
         ray.init(address=address, ignore_reinit_error=True, log_to_driver=False)
     except ConnectionError as error:
-        if os.environ.get("RAY_AUTH_MODE"):
+        if os.environ.get("RAY_AUTH_MODE") == "token":
             raise
-        # `ray start` turns token authentication on by default since Ray 2.59; a caller without
-        # the mode set is refused with nothing but "failed to connect".
+        # Ray turns token authentication on by default for local clusters since 2.59 (for all
+        # since 2.61); a caller without the mode is refused with nothing but "failed to connect".
         raise ConnectionError(
-            f"{error}. If the cluster was started with token authentication (the default of `ray start` "
-            "since Ray 2.59), set RAY_AUTH_MODE=token here too (the token is read from ~/.ray/auth_token "
-            "or RAY_AUTH_TOKEN)"
+            f"{error}. If the cluster was started with token authentication (the default of local "
+            "clusters since Ray 2.59), set RAY_AUTH_MODE=token here too (the token is read from "
+            "~/.ray/auth_token or RAY_AUTH_TOKEN)"
         ) from error
     remote = ray.remote(num_gpus=1 if gpu else 0, max_retries=2)(run_task)
     pending = {remote.remote(t, "cuda:0" if gpu else "cpu"): t for t in tasks}

@@ -61,7 +61,7 @@ def hemisphere_directions(count: int) -> np.ndarray:
 
 def _z_order(points: np.ndarray, bits: int = 16) -> np.ndarray:
     """Morton codes of 2D points in [-1, 1]^2: the bits of the two quantised coordinates interleaved."""
-    cells = np.clip(((points + 1.0) * 0.5 * (1 << bits)).astype(np.uint64), 0, (1 << bits) - 1)
+    cells = np.clip((points + 1.0) * 0.5 * (1 << bits), 0, (1 << bits) - 1).astype(np.uint64)
     code = np.zeros(len(points), dtype=np.uint64)
     for b in range(bits):
         for axis in range(2):

@@ -158,7 +158,7 @@ def main(argv=None) -> dict:
 
 
 def markdown(res: dict, suite: str, args) -> str:
-    one = {r["overlap"]: r for r in res["runs"] if r["workers"] == 1}
+    one = {r["overlap"]: r for r in res["runs"] if r["workers"] == 1 and r["device"] == res["runs"][0]["device"]}
     # Sonar.simulate's rate for these settings: frames over the sonar seconds of one process with
     # its parts in turn (nothing beside it on the host), as issue 16 asks generation to be held to.
     reference = one.get(False) or one.get(True)
@@ -168,8 +168,9 @@ def markdown(res: dict, suite: str, args) -> str:
     spread = any(len(r["devices"]) > 1 for r in res["runs"])
     one_gpu = [r["frames_per_s"] for r in res["runs"] if len(r["devices"]) == 1 and r["devices"][0] != "cpu"]
     one_gpu_rate = max(one_gpu) if spread and one_gpu else None
+    used = ", ".join(sorted({d for r in res["runs"] for d in r["devices"]}))
     lines = [
-        f"# Dataset generation on {res['device_name']} ({res['device']}, {res['cpu_count']} CPU cores)",
+        f"# Dataset generation on {res['device_name']} ({used}, {res['cpu_count']} CPU cores)",
         "",
         f"`generate --suite {suite} --frames {args.frames} --workers W`, warp {res['warp']}, {res['date']}; "
         f"medians of {args.repeats} runs per row, each in a fresh process as a `generate` command is (Warp's "

@@ -31,6 +31,7 @@ gen() {
     --workers "8,$((6 * GPUS))" --modes overlapped --repeats 3 --out "$R"
   GEN=(--suite paper --frames "${FRAMES:-12500}" --seed 0 --quiet)
   python -m acoustic_sim generate "${GEN[@]}" --workers 8 --device cuda:0 --out "$W/one_gpu" | tee "$R/generate_one_gpu.txt"
+  # the identity check needs every GPU busy with several workers, not the fastest count
   python -m acoustic_sim generate "${GEN[@]}" --workers $((8 * GPUS)) --device auto --out "$W/all_gpus" |
     tee "$R/generate_${GPUS}_gpus.txt"
   python benchmarks/same_shards.py "$W/one_gpu" "$W/all_gpus" | tee "$R/generate_identical.txt"
@@ -66,13 +67,15 @@ train() {
   # one validation set for every run (--split-seed), so that the seed-to-seed spread is training noise
   OPTS=(--data "$W/one_gpu" --model polar_unet --loss bce --lr 1e-3 --epochs "${EPOCHS:-8}" --patience 100 --split-seed 0
     --max-train-windows 12000 --max-val-windows 2000 --device cuda --quiet --overwrite)
-  pids=()
+  ((GPUS >= 1 && 16 % GPUS == 0)) || { echo "train needs a GPU count that divides the global batch 16, got $GPUS" >&2; exit 2; }
+  pids=() failed=0
   for seed in 0 1; do # one process on one GPU each, side by side
     CUDA_VISIBLE_DEVICES=$((seed % GPUS)) python -m learn train "${OPTS[@]}" --seed $seed --batch-size 16 \
       --out "$W/runs/one_gpu_seed$seed" >"$R/train_one_gpu_seed$seed.log" 2>&1 &
     pids+=($!)
   done
-  for pid in "${pids[@]}"; do wait "$pid"; done
+  for pid in "${pids[@]}"; do wait "$pid" || failed=1; done # both finish before a failure stops the phase
+  ((failed == 0)) || { echo "a one-GPU run failed: $R/train_one_gpu_seed*.log" >&2; exit 1; }
   for seed in 0 1; do
     torchrun --standalone --nproc_per_node "$GPUS" -m learn train "${OPTS[@]}" --seed $seed \
       --batch-size $((16 / GPUS)) --out "$W/runs/${GPUS}_gpus_seed$seed" >"$R/train_${GPUS}_gpus_seed$seed.log" 2>&1

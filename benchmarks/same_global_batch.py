@@ -6,8 +6,12 @@ seed-to-seed spread (the noise), and the validation curves in one figure.
     python benchmarks/same_global_batch.py RUN [RUN ...] --out DIR
 
 Each RUN is a `learn train` folder (config.json and history.csv); its seed, batch per process and
-process count are read from config.json. All runs must share their validation episodes (`learn train
---split-seed`): the seed also draws the split otherwise, and the spread would not be training noise.
+process count are read from config.json. All runs must share everything else (recipe, model, data,
+dataset) and their validation windows (`learn train --split-seed`): the seed also draws the split
+otherwise, and the spread would not be training noise. Pairing by seed pairs the initial weights
+and the epochs' window order, not the batches: DDP's ranks take halves of that order, so a
+paired difference is no less noisy than an unpaired one. With two seeds the noise is one
+difference. The train loss of a DDP run is rank 0's share.
 Writes same_global_batch.md, .json and .png to DIR.
 """
 
@@ -42,6 +46,14 @@ def load_run(folder: Path) -> dict:
         "batch_per_process": int(config["train_config"]["batch_size"]),
         "global_batch": processes * int(config["train_config"]["batch_size"]),
         "val_episodes": config["dataset"]["val_episodes"],
+        "split_seed": config["dataset"].get("split_seed"),  # None: a run from before it was recorded
+        # what must match across the runs: all but the seed, the batch per process and the split's seed
+        "recipe": {
+            "train": {k: v for k, v in config["train_config"].items() if k not in ("seed", "batch_size", "split_seed")},
+            "model": config.get("model_config"),
+            "data": config.get("data_config"),
+            "plan_id": config["dataset"].get("plan_id"),
+        },
         "epochs": len(history),
         "best_epoch": int(best["epoch"]),
         "best_scan_f1": best[METRIC],
@@ -58,12 +70,16 @@ def compare(runs: list[dict]) -> dict:
     difference is no larger than that spread."""
     if len({r["global_batch"] for r in runs}) != 1:
         raise ValueError(f"runs differ in global batch: {sorted({r['global_batch'] for r in runs})}")
-    if len({tuple(r["val_episodes"]) for r in runs}) != 1:
+    if len({(tuple(r["val_episodes"]), r["split_seed"]) for r in runs}) != 1 or runs[0]["split_seed"] is None:
         raise ValueError(
-            "runs were validated on different episodes, so the seed-to-seed spread would mix in the split: "
-            "train them with one --split-seed"
+            "runs were not validated on the same windows (episodes and split seed, as config.json records "
+            "them), so the seed-to-seed spread would mix in the split: train them with one --split-seed"
         )
+    if any(r["recipe"] != runs[0]["recipe"] for r in runs):
+        raise ValueError("runs differ in more than seed and batch per process (train, model or data config, dataset)")
     by = {(r["processes"], r["seed"]): r for r in runs}
+    if len(by) != len(runs):
+        raise ValueError("two runs have the same process count and seed")
     counts = sorted({r["processes"] for r in runs})
     if len(counts) != 2 or counts[0] != 1:
         raise ValueError(f"need one-process runs and runs of one other process count, got {counts}")

@@ -34,10 +34,14 @@ def check_compatible(ckpt: dict, model_config, data_config, train_config, window
         raise ValueError(f"--resume: the checkpoint's configs are not this version's: {err}") from None
     if saved != (model_config, data_config):
         raise ValueError("--resume: the checkpoint was trained with another model or data config")
+    # split_seed None means "the seed's": compare the split each draws, not how it was named
+    same_split = saved_train.split_seed_or_seed == train_config.split_seed_or_seed
     changed = [
         f"{f.name} {getattr(saved_train, f.name)} -> {getattr(train_config, f.name)}"
         for f in dataclasses.fields(train_config)
-        if f.name not in RESUME_MAY_CHANGE and getattr(saved_train, f.name) != getattr(train_config, f.name)
+        if f.name not in RESUME_MAY_CHANGE
+        and not (f.name == "split_seed" and same_split)
+        and getattr(saved_train, f.name) != getattr(train_config, f.name)
     ]
     if changed:
         raise ValueError(

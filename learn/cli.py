@@ -280,7 +280,12 @@ def _training_options(p) -> None:
     p.add_argument(
         "--max-minutes", type=float, default=train.max_minutes, help="time budget per model: no epoch starts after it"
     )
-    p.add_argument("--seed", type=int, default=train.seed, help="split, initialisation and batch order")
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=train.seed,
+        help="initialisation and batch order; also the split unless --split-seed",
+    )
     p.add_argument(
         "--split-seed", type=int, default=train.split_seed, help="the validation split's own seed (default: --seed)"
     )

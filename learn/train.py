@@ -323,6 +323,7 @@ def _train_one(
         "format_version": FORMAT_VERSION,
         "val_episodes": sorted(int(e) for e in np.unique(windows.episode[val_mask])),
         "fold": fold,
+        "split_seed": config.split_seed_or_seed,  # drew val_episodes and the validated windows
     }
     meta = {
         "model_config": dataclasses.asdict(model_config),

@@ -269,11 +269,11 @@ def test_ray_tasks_write_the_same_shards(reference, tmp_path, device):
         np.testing.assert_array_equal(got[key], want[key], err_msg=key)
 
 
-@pytest.mark.parametrize("mode", [None, "token"])
+@pytest.mark.parametrize("mode", [None, "disabled", "token"])
 def test_a_refused_ray_connection_names_token_authentication(tmp_path, monkeypatch, mode):
     """`ray start` has turned token authentication on by default since Ray 2.59, and a caller
-    without RAY_AUTH_MODE gets only "failed to connect": the error says what to set. A caller that
-    has set the mode gets Ray's own error (its token, not the mode, is wrong). A fake Ray module
+    without RAY_AUTH_MODE=token (unset or "disabled") gets only "failed to connect": the error says
+    what to set. A caller in token mode gets Ray's own error (its token, not the mode, is wrong). A fake Ray module
     stands in: CI has no Ray."""
 
     class Refusing:
@@ -288,7 +288,7 @@ def test_a_refused_ray_connection_names_token_authentication(tmp_path, monkeypat
         monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
     with pytest.raises(ConnectionError) as caught:
         gen._run_on_ray([], "10.0.0.1:6379", gpu=False, bar=None)
-    assert ("RAY_AUTH_MODE=token" in str(caught.value)) == (mode is None), caught.value
+    assert ("RAY_AUTH_MODE=token" in str(caught.value)) == (mode != "token"), caught.value
 
 
 def test_a_worker_takes_its_next_shard_only_during_the_last_episode_of_this_one(tmp_path, device, monkeypatch):

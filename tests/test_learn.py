@@ -317,6 +317,27 @@ def test_split_seed_holds_the_validation_episodes_while_the_seed_varies(tiny_dat
     written = json.loads((tmp_path / "run" / "config.json").read_text())
     assert tuple(written["dataset"]["val_episodes"]) == own[0] != own[seed]
     assert written["train_config"]["split_seed"] == 0 and written["train_config"]["seed"] == seed
+    assert written["dataset"]["split_seed"] == 0  # what drew the episodes and the validated windows
+
+
+def test_resuming_with_the_split_seed_named_is_the_same_recipe():
+    """A run of seed 3 drew its split with seed 3: resuming it with --split-seed 3 is the same
+    recipe, while another split seed is refused by name."""
+    from types import SimpleNamespace
+
+    from learn.checkpoint import check_compatible
+
+    saved = dataclasses.replace(QUICK, seed=3)
+    ckpt = {
+        "model_config": dataclasses.asdict(MODEL),
+        "data_config": dataclasses.asdict(DATA),
+        "train_config": dataclasses.asdict(saved),
+        "dataset": {"plan_id": "p"},
+    }
+    windows = SimpleNamespace(frames=SimpleNamespace(info={"plan_id": "p"}))
+    check_compatible(ckpt, MODEL, DATA, dataclasses.replace(saved, split_seed=3), windows)
+    with pytest.raises(ValueError, match="split_seed None -> 4"):
+        check_compatible(ckpt, MODEL, DATA, dataclasses.replace(saved, split_seed=4), windows)
 
 
 def _same(a: dict, b: dict) -> bool:

@@ -15,7 +15,8 @@ def write_run(root, name, *, seed, processes, batch, curve, rates=(50.0, 100.0, 
     run.mkdir()
     group = {"backend": "nccl", "processes": processes} if processes > 1 else None
     config = {"train_config": {"seed": seed, "batch_size": batch}, "process_group": group}
-    config["dataset"] = {"val_episodes": list(val)}
+    config["dataset"] = {"val_episodes": list(val), "split_seed": 0, "plan_id": "p1"}
+    config["model_config"] = {"name": "polar_unet"}
     (run / "config.json").write_text(json.dumps(config))
     rows = [(e + 1, 0.4 - 0.01 * e, f, 1.0 - f, rates[e]) for e, f in enumerate(curve)]
     (run / "history.csv").write_text(",".join(COLUMNS) + "\n" + "".join(",".join(map(str, r)) + "\n" for r in rows))
@@ -69,3 +70,16 @@ def test_runs_validated_on_different_episodes_are_refused(tmp_path):
     ]
     with pytest.raises(ValueError, match="split-seed"):
         same_global_batch.compare([same_global_batch.load_run(r) for r in runs])
+
+
+def test_runs_of_another_recipe_or_the_same_seed_twice_are_refused(tmp_path):
+    one = write_run(tmp_path, "one0", seed=0, processes=1, batch=16, curve=(0.5,))
+    ddp = write_run(tmp_path, "ddp0", seed=0, processes=2, batch=8, curve=(0.5,))
+    again = write_run(tmp_path, "ddp0b", seed=0, processes=2, batch=8, curve=(0.4,))
+    with pytest.raises(ValueError, match="same process count and seed"):
+        same_global_batch.compare([same_global_batch.load_run(r) for r in (one, ddp, again)])
+    config = json.loads((ddp / "config.json").read_text())
+    config["train_config"]["lr"] = 0.1
+    (ddp / "config.json").write_text(json.dumps(config))
+    with pytest.raises(ValueError, match="differ in more than seed"):
+        same_global_batch.compare([same_global_batch.load_run(r) for r in (one, ddp)])
