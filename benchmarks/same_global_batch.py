@@ -88,11 +88,8 @@ def compare(runs: list[dict]) -> dict:
     if not seeds:
         raise ValueError("no seed has both a one-process and a many-process run")
     paired = {s: by[many, s]["best_scan_f1"] - by[1, s]["best_scan_f1"] for s in seeds}
-    spreads = {
-        p: float(np.ptp([r["best_scan_f1"] for (q, _), r in by.items() if q == p]))
-        for p in counts
-        if sum(q == p for q, _ in by) > 1
-    }
+    best = {p: [r["best_scan_f1"] for r in runs if r["processes"] == p] for p in counts}
+    spreads = {p: float(np.ptp(scores)) for p, scores in best.items() if len(scores) > 1}
     noise = max(spreads.values()) if spreads else None
     within = None if noise is None else all(abs(d) <= noise for d in paired.values())
     return {"processes": many, "paired_difference": paired, "seed_spread": spreads, "noise": noise, "within": within}
