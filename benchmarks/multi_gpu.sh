@@ -48,12 +48,10 @@ ray_cluster() {
   # left to its default), as the first x2 lease found: make one (kept in ~/.ray/auth_token) first.
   python -m ray.scripts.scripts get-auth-token --generate >/dev/null
   python -m ray.scripts.scripts start --head --port 6379 --num-gpus "$GPUS" --disable-usage-stats >"$W/ray_start.log" 2>&1
-  trap 'python -m ray.scripts.scripts stop >/dev/null 2>&1 || true' EXIT
+  trap 'python -m ray.scripts.scripts stop >/dev/null 2>&1 || true' EXIT # also when a step fails
   python -m acoustic_sim generate "${GEN[@]}" --device auto --ray-address 127.0.0.1:6379 --out "$W/ray" |
     tee "$R/generate_ray.txt"
   python benchmarks/same_shards.py "$W/ray_reference" "$W/ray" | tee -a "$R/generate_ray.txt"
-  python -m ray.scripts.scripts stop >/dev/null 2>&1
-  trap - EXIT
 }
 
 ddp() {
