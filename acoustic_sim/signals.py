@@ -25,6 +25,7 @@ FRACTION_STEPS = 32
 # Smallest FFT of an absorption node [samples]: kernels.NODE_BLOCKS blocks of 1,024 samples (larger
 # for calls longer than half of it).
 NODE_FFT_MIN_SIZE = 4096
+ROW_BLOCK_DIM = 256  # threads of a block of `kernels.accumulate_rows` (one microphone row chunk each)
 
 
 def fractional_delay_table(config) -> np.ndarray:
@@ -153,31 +154,37 @@ class Recorder:
         """
         cfg = self.config
         mics = cfg.microphone_count
-        zeros, _, launch, _ = device_calls(self.device)
+        zeros, _, launch, launch_tiled = device_calls(self.device)
         rows = pings * 2 * ((mics + 1) // 2)
         impulses = zeros((rows, (self.nodes - 1) * self.block + self._size), dtype=wp.int64)
         for e in echoes:
             if e.slots == 0:
                 continue
-            launch(
-                kernels.accumulate_echoes,
-                dim=(pings, e.slots, mics),
-                inputs=[
-                    e.source,
-                    e.extra_length,
-                    e.amplitude,
-                    e.count,
-                    self._mics,
-                    self._mic_gain,
-                    self._mic_delay,
-                    cfg.chirp.sample_rate_hz / cfg.atmosphere.speed_of_sound,
-                    self._absorption_per_m,
-                    self._taps,
-                    cfg.record_samples,
-                    self.block,
-                ],
-                outputs=[impulses],
-            )
+            inputs = [
+                e.source,
+                e.extra_length,
+                e.amplitude,
+                e.count,
+                self._mics,
+                self._mic_gain,
+                self._mic_delay,
+                cfg.chirp.sample_rate_hz / cfg.atmosphere.speed_of_sound,
+                self._absorption_per_m,
+                self._taps,
+                cfg.record_samples,
+                self.block,
+            ]
+            if self.device.is_cuda:  # a block per stretch of a row: atomics in shared memory
+                chunks = -(-cfg.record_samples // kernels.ROW_CHUNK)
+                launch_tiled(
+                    kernels.accumulate_rows,
+                    dim=[pings, mics, chunks],
+                    inputs=inputs,
+                    outputs=[impulses],
+                    block_dim=ROW_BLOCK_DIM,
+                )
+            else:  # Warp's CPU tile memory is one per module, which threads recording at once would share
+                launch(kernels.accumulate_echoes, dim=(pings, e.slots, mics), inputs=inputs, outputs=[impulses])
         return impulses
 
     def __call__(

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+import warp as wp
 
 import acoustic_sim as sim
 from acoustic_sim.air import air_absorption_db_per_m
@@ -126,6 +127,60 @@ def test_impulses_of_many_echoes_match_a_per_tap_reference(device):
     np.add.at(expected, (rows[..., None].repeat(count, -1), columns), w * scale[..., None])
     assert np.abs(expected).max() > 0.1 and not got[32:64].any()
     np.testing.assert_allclose(got, expected, rtol=0, atol=2e-3)
+
+
+def test_row_blocks_sum_the_same_impulses_as_per_echo_atomics(device):
+    """The GPU's kernel (a block sums a stretch of a microphone row in shared memory) against the
+    CPU's (one global atomic per tap), launched alike: 3 pings of 3,000 echoes out to 13 m (beyond
+    the record, across the row's chunks) in random slot order, one ping's count short of its slots
+    and some amplitudes 0, give the same fixed-point impulses bit for bit."""
+    from acoustic_sim.echoes import PointEchoes
+    from acoustic_sim.kernels import signals as kernels
+    from acoustic_sim.signals import ROW_BLOCK_DIM, Recorder
+
+    rng = np.random.default_rng(5)
+    rec = Recorder(CONFIG, device=device)
+    pings, slots = 3, 3000
+    direction = rng.normal(size=(pings, slots, 3))
+    direction /= np.linalg.norm(direction, axis=2, keepdims=True)
+    source = direction * rng.uniform(0.02, 8.0, (pings, slots, 1))
+    extra = np.where(rng.random((pings, slots)) < 0.5, rng.uniform(0.0, 5.0, (pings, slots)), 0.0)
+    amplitude = np.where(rng.random((pings, slots)) < 0.1, 0.0, rng.uniform(1e-4, 1.0, (pings, slots)))
+    count = np.array([slots, slots - 700, slots])
+    with wp.ScopedDevice(device):
+        echoes = PointEchoes(
+            source=wp.array(source.astype(np.float32), dtype=wp.vec3),
+            extra_length=wp.array(extra.astype(np.float32), dtype=float),
+            amplitude=wp.array(amplitude.astype(np.float32), dtype=float),
+            count=wp.array(count.astype(np.int32), dtype=wp.int32),
+            order=wp.zeros((pings, slots), dtype=wp.int32),
+        )
+        inputs = [
+            echoes.source,
+            echoes.extra_length,
+            echoes.amplitude,
+            echoes.count,
+            rec._mics,
+            rec._mic_gain,
+            rec._mic_delay,
+            FS / C,
+            rec._absorption_per_m,
+            rec._taps,
+            CONFIG.record_samples,
+            rec.block,
+        ]
+        shape = (pings * 32, (rec.nodes - 1) * rec.block + rec._size)
+        per_echo, per_row = wp.zeros(shape, dtype=wp.int64), wp.zeros(shape, dtype=wp.int64)
+        wp.launch(kernels.accumulate_echoes, dim=(pings, slots, 32), inputs=inputs, outputs=[per_echo])
+        chunks = -(-CONFIG.record_samples // kernels.ROW_CHUNK)
+        wp.launch_tiled(
+            kernels.accumulate_rows, dim=[pings, 32, chunks], inputs=inputs, outputs=[per_row], block_dim=ROW_BLOCK_DIM
+        )
+    expected, got = per_echo.numpy(), per_row.numpy()
+    assert chunks > 1
+    samples = np.nonzero(expected.any(axis=0))[0] - rec.block
+    assert samples.min() < 5 and samples.max() == CONFIG.record_samples - 1  # the row's ends are reached
+    np.testing.assert_array_equal(got, expected)
 
 
 def test_scattered_arrivals_add_their_path_to_the_source_point(device):

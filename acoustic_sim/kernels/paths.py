@@ -178,7 +178,11 @@ def discover_sequences(
         slot = int(key & wp.uint64(mask))
         stored = int(0)
         for _probe in range(TABLE_PROBES):
-            old = wp.atomic_cas(table_key_inout, p, slot, wp.uint64(0), key)
+            # Most rays find their sequence already stored: a plain read settles those without
+            # an atomic on the pose's hottest slots (a slot, once claimed, never changes).
+            old = table_key_inout[p, slot]
+            if old == wp.uint64(0):
+                old = wp.atomic_cas(table_key_inout, p, slot, wp.uint64(0), key)
             if old == wp.uint64(0):
                 table_order_out[p, slot] = k + 1
                 for j in range(k + 1):
