@@ -172,15 +172,25 @@ def test_row_blocks_sum_the_same_impulses_as_per_echo_atomics(device):
         shape = (pings * 32, (rec.nodes - 1) * rec.block + rec._size)
         per_echo, per_row = wp.zeros(shape, dtype=wp.int64), wp.zeros(shape, dtype=wp.int64)
         wp.launch(kernels.accumulate_echoes, dim=(pings, slots, 32), inputs=inputs, outputs=[per_echo])
-        chunks = -(-CONFIG.record_samples // kernels.ROW_CHUNK)
-        wp.launch_tiled(
-            kernels.accumulate_rows, dim=[pings, 32, chunks], inputs=inputs, outputs=[per_row], block_dim=ROW_BLOCK_DIM
-        )
+        chunk = 4096  # several chunks a row
+        kernel = kernels.row_accumulation(chunk)
+        chunks = -(-CONFIG.record_samples // chunk)
+        wp.launch_tiled(kernel, dim=[pings, 32, chunks], inputs=inputs, outputs=[per_row], block_dim=ROW_BLOCK_DIM)
     expected, got = per_echo.numpy(), per_row.numpy()
-    assert chunks > 1
     samples = np.nonzero(expected.any(axis=0))[0] - rec.block
     assert samples.min() < 5 and samples.max() == CONFIG.record_samples - 1  # the row's ends are reached
     np.testing.assert_array_equal(got, expected)
+
+
+def test_row_chunks_fit_the_shared_memory_of_a_block():
+    """A block sums a whole 16,384-sample row with the 227 KB of an H100 or 163 KB of an A100,
+    half of it with the 99 KB of a consumer GPU, and no more than a short record needs."""
+    from acoustic_sim.signals import row_chunk
+
+    assert row_chunk(16384, 227 * 1024) == row_chunk(16384, 163 * 1024) == 16384
+    assert row_chunk(16384, 99 * 1024) == 8192 and row_chunk(16384, 48 * 1024) == 4096
+    assert row_chunk(5000, 227 * 1024) == 8192 and row_chunk(40000, 227 * 1024) == 16384
+    assert row_chunk(16384, 0) == 256
 
 
 def test_scattered_arrivals_add_their_path_to_the_source_point(device):

@@ -12,8 +12,6 @@ FIXED_POINT_SCALE = wp.constant(4294967296.0)  # 2^32 [fixed-point units per uni
 # An absorption node's FFT spans this many blocks (block B = FFT size / NODE_BLOCKS samples): one
 # block before the node, its impulses up to one block either side, and room for the call.
 NODE_BLOCKS = wp.constant(4)
-# accumulate_rows: samples of a microphone row that one block sums in shared memory (64 KB).
-ROW_CHUNK = wp.constant(8192)
 
 
 @wp.kernel(enable_backward=False)
@@ -62,70 +60,74 @@ def accumulate_echoes(
             wp.atomic_add(impulses_out, row, lead + n, wp.int64(w * scale))
 
 
-@wp.func_native("wp::tile_atomic_add_value(&row.data(wp::tile_coord(i)), value);")
-def shared_add(row: wp.tile(dtype=wp.int64, shape=(ROW_CHUNK,)), i: int, value: wp.int64): ...
-
-
 @wp.func_native("WP_TILE_SYNC();")
 def block_sync(): ...
 
 
-@wp.kernel(enable_backward=False)
-def accumulate_rows(
-    # in
-    source: wp.array2d[wp.vec3],
-    extra_length: wp.array2d[float],
-    amplitude: wp.array2d[float],
-    count: wp.array[wp.int32],
-    microphones: wp.array[wp.vec3],
-    mic_gain: wp.array[float],
-    mic_delay: wp.array[float],
-    samples_per_m: float,
-    absorption_per_m: float,
-    taps: wp.array2d[float],
-    samples: int,
-    lead: int,
-    # in-out: the impulses the echoes are added to
-    impulses_inout: wp.array2d[wp.int64],
-):
-    """`accumulate_echoes` with one block per (ping, microphone, ROW_CHUNK samples); launch
-    `wp.launch_tiled(dim=[pings, mics, chunks])`.
+@functools.cache
+def row_accumulation(chunk: int):
+    """`accumulate_echoes` with one block per (ping, microphone, `chunk` samples of its row);
+    launch `wp.launch_tiled(dim=[pings, mics, ceil(samples / chunk)])`.
 
     The block owns its stretch of the row: its threads walk the ping's echo slots and add their
-    taps in shared memory, then add the sums to the impulses without global atomics (integer
-    sums: the same bits as `accumulate_echoes`).
+    taps with 64-bit atomics in shared memory (chunk * 8 bytes), then add the sums to the
+    impulses once, without global atomics. Integer sums: the same bits as `accumulate_echoes`.
     """
-    p, m, c, lane = wp.tid()
-    threads = wp.block_dim()
-    row = wp.tile_zeros(shape=ROW_CHUNK, dtype=wp.int64, storage="shared")
-    start = c * ROW_CHUNK
-    half = taps.shape[1] // 2
-    mic = microphones[m]
-    gain = mic_gain[m]
-    offset = mic_delay[m]
-    for s in range(lane, count[p], threads):
-        a = amplitude[p, s]
-        if a != 0.0:
-            length = extra_length[p, s] + wp.length(source[p, s] - mic)
-            delay = length * samples_per_m + offset
-            first = int(wp.floor(delay))
-            lowest = first - half + 1
-            if lowest + taps.shape[1] > start and lowest < start + ROW_CHUNK:
-                position = (delay - float(first)) * float(taps.shape[0] - 1)
-                i = wp.min(int(position), taps.shape[0] - 2)
-                v = position - float(i)
-                scale = a * gain * wp.exp(-absorption_per_m * length) * FIXED_POINT_SCALE
-                for j in range(taps.shape[1]):
-                    n = lowest + j
-                    if n >= start and n < start + ROW_CHUNK and n >= 0 and n < samples:
-                        w = (1.0 - v) * taps[i, j] + v * taps[i + 1, j]
-                        shared_add(row, n - start, wp.int64(w * scale))
-    block_sync()
-    out = p * (impulses_inout.shape[0] // count.shape[0]) + m
-    for k in range(lane, wp.min(ROW_CHUNK, samples - start), threads):
-        total = row[k]
-        if total != wp.int64(0):
-            impulses_inout[out, lead + start + k] = impulses_inout[out, lead + start + k] + total
+
+    @wp.func_native("wp::tile_atomic_add_value(&row.data(wp::tile_coord(i)), value);")
+    def shared_add(row: wp.tile(dtype=wp.int64, shape=(chunk,)), i: int, value: wp.int64): ...
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def accumulate_rows(
+        # in
+        source: wp.array2d[wp.vec3],
+        extra_length: wp.array2d[float],
+        amplitude: wp.array2d[float],
+        count: wp.array[wp.int32],
+        microphones: wp.array[wp.vec3],
+        mic_gain: wp.array[float],
+        mic_delay: wp.array[float],
+        samples_per_m: float,
+        absorption_per_m: float,
+        taps: wp.array2d[float],
+        samples: int,
+        lead: int,
+        # in-out: the impulses the echoes are added to
+        impulses_inout: wp.array2d[wp.int64],
+    ):
+        p, m, c, lane = wp.tid()
+        threads = wp.block_dim()
+        row = wp.tile_zeros(shape=chunk, dtype=wp.int64, storage="shared")
+        start = c * chunk
+        half = taps.shape[1] // 2
+        mic = microphones[m]
+        gain = mic_gain[m]
+        offset = mic_delay[m]
+        for s in range(lane, count[p], threads):
+            a = amplitude[p, s]
+            if a != 0.0:
+                length = extra_length[p, s] + wp.length(source[p, s] - mic)
+                delay = length * samples_per_m + offset
+                first = int(wp.floor(delay))
+                lowest = first - half + 1
+                if lowest + taps.shape[1] > start and lowest < start + chunk:
+                    position = (delay - float(first)) * float(taps.shape[0] - 1)
+                    i = wp.min(int(position), taps.shape[0] - 2)
+                    v = position - float(i)
+                    scale = a * gain * wp.exp(-absorption_per_m * length) * FIXED_POINT_SCALE
+                    for j in range(taps.shape[1]):
+                        n = lowest + j
+                        if n >= start and n < start + chunk and n >= 0 and n < samples:
+                            w = (1.0 - v) * taps[i, j] + v * taps[i + 1, j]
+                            shared_add(row, n - start, wp.int64(w * scale))
+        block_sync()
+        out = p * (impulses_inout.shape[0] // count.shape[0]) + m
+        for k in range(lane, wp.min(chunk, samples - start), threads):
+            total = row[k]
+            if total != wp.int64(0):
+                impulses_inout[out, lead + start + k] = impulses_inout[out, lead + start + k] + total
+
+    return accumulate_rows
 
 
 @functools.cache
