@@ -3,13 +3,13 @@
     python benchmarks/bench_sonar.py --device cpu
     python benchmarks/bench_sonar.py --device cuda:0
 
-Writes benchmarks/results/sonar_<cpu|cuda>.json and .md: for max_bounces 0, 1, 3 the path tracer's
-pings/s and BVH ray queries/s (counted by the kernels: bounce rays, scattering shadow rays and the
-image-source checks) and energyscapes/s end to end (`Sonar.simulate` of `--batches` batches: the
-steady state of a trajectory, where each batch's copy back runs behind the next); pings/s of `Sonar.trace`
-to host Arrivals, recording and energyscapes at 3 bounces; on the CPU also end to end with one
-thread (`Sonar(cpu_threads=1)`) beside the default of every core (the stage rows record and
-beamform in one thread).
+Writes benchmarks/results/sonar_<cpu|cuda>.json and .md (sonar_<cpu|cuda>_r<rays> for another --rays
+than 20,000): for max_bounces 0, 1, 3 the path tracer's pings/s and BVH ray queries/s (counted by
+the kernels: bounce rays, scattering shadow rays and the image-source checks) and energyscapes/s end
+to end (`Sonar.simulate` of `--batches` batches: the steady state of a trajectory, where each
+batch's copy back runs behind the next); pings/s of `Sonar.trace` to host Arrivals, recording and
+energyscapes at 3 bounces; on the CPU also end to end with one thread (`Sonar(cpu_threads=1)`)
+beside the default of every core (the stage rows record and beamform in one thread).
 Peer: pyroomacoustics' image-source model of a shoebox of the office's size, order 3, timed per
 ping (room build + image sources), if installed. Medians after a first call reported apart.
 """
@@ -32,6 +32,8 @@ sys.path.insert(0, str(ROOT))
 
 import acoustic_sim as sim  # noqa: E402
 from benchmarks.bench_lidar import load_office, random_poses  # noqa: E402
+
+DEFAULT_RAYS = 20_000
 
 
 def timed(fn, repeats: int, device) -> tuple[float, float, object]:
@@ -71,7 +73,7 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--pings", type=int, default=None, help="batch size; default 256 on CUDA, 8 on CPU")
-    parser.add_argument("--rays", type=int, default=20_000)
+    parser.add_argument("--rays", type=int, default=DEFAULT_RAYS)
     parser.add_argument(
         "--batches",
         type=int,
@@ -157,6 +159,8 @@ def main(argv=None) -> dict:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     stem = f"sonar_{'cuda' if device.is_cuda else 'cpu'}"
+    if args.rays != DEFAULT_RAYS:  # a run at another ray count keeps the default's results
+        stem += f"_r{args.rays}"
     (out / f"{stem}.json").write_text(json.dumps(res, indent=1))
     lines = [
         f"# Sonar throughput on {res['device_name']} ({res['device']})",
