@@ -4,7 +4,8 @@ applied here, in threads, and the finished chunks stored with `write_direct_chun
 h5py runs HDF5's filters under one lock per process, one chunk at a time: on the H100 machine
 compressing a shard cost ~3 ms per frame, more than simulating it. zlib releases the GIL, so
 threads compress chunks side by side; the file is the same HDF5 any reader (h5py, MATLAB) opens
-and checks, byte for byte what HDF5's own pipeline would store for the same zlib output.
+and checks. Deflate runs with zlib's run-length strategy (DEFLATE_STRATEGY): any inflater reads
+it, and on shuffled energyscapes it took half the time of the default for 1.6 % more bytes.
 """
 
 from __future__ import annotations
@@ -17,6 +18,11 @@ import h5py
 import numpy as np
 
 BLOCK = 360  # words per Fletcher block (HDF5's: the most sums that cannot overflow 32 bits)
+# Shuffled float16 energyscapes are runs (the high bytes) and noise (the low ones): searching for
+# repeated strings finds little there. Measured on a shard's energyscapes at level 1: 0.62 ms a
+# frame and 56.9 KB with runs only, 1.16 ms and 56.0 KB with the default (LiDAR images: 0.5 KB
+# against 0.9 KB, as fast).
+DEFLATE_STRATEGY = zlib.Z_RLE
 
 
 def fletcher32(data: bytes) -> int:
@@ -65,7 +71,8 @@ def encode(chunk: np.ndarray, filters: list[tuple[int, tuple]]) -> bytes:
         if code == h5py.h5z.FILTER_SHUFFLE and size > 1:  # byte k of every element, then byte k + 1
             data = np.frombuffer(data, np.uint8).reshape(-1, size).T.tobytes()
         elif code == h5py.h5z.FILTER_DEFLATE:
-            data = zlib.compress(data, values[0])
+            deflate = zlib.compressobj(values[0], zlib.DEFLATED, zlib.MAX_WBITS, 8, DEFLATE_STRATEGY)
+            data = deflate.compress(data) + deflate.flush()
         elif code == h5py.h5z.FILTER_FLETCHER32:
             data += struct.pack("<I", fletcher32(data))
     return data
