@@ -4,8 +4,8 @@ applied here, in threads, and the finished chunks stored with `write_direct_chun
 h5py runs HDF5's filters under one lock per process, one chunk at a time: on the H100 machine
 compressing a shard cost ~3 ms per frame, more than simulating it. zlib releases the GIL, so
 threads compress chunks side by side; the file is the same HDF5 any reader (h5py, MATLAB) opens
-and checks. Deflate runs with zlib's run-length strategy (DEFLATE_STRATEGY): any inflater reads
-it, and on shuffled energyscapes it took half the time of the default for 1.6 % more bytes.
+and checks. Deflate runs with zlib's run-length strategy (DEFLATE_STRATEGY), which any inflater
+reads.
 """
 
 from __future__ import annotations
@@ -19,9 +19,10 @@ import numpy as np
 
 BLOCK = 360  # words per Fletcher block (HDF5's: the most sums that cannot overflow 32 bits)
 # Shuffled float16 energyscapes are runs (the high bytes) and noise (the low ones): searching for
-# repeated strings finds little there. Measured on a shard's energyscapes at level 1: 0.62 ms a
-# frame and 56.9 KB with runs only, 1.16 ms and 56.0 KB with the default (LiDAR images: 0.5 KB
-# against 0.9 KB, as fast).
+# repeated strings finds little there. At level 1 on a `tiny`-suite shard's energyscapes, runs
+# only took 0.62 ms a frame for 56.9 KB against 1.16 ms for 56.0 KB (LiDAR images 0.5 against
+# 0.9 KB, as fast); the `paper` suite's 12,500 frames on an H100 wrote 0.07 % more bytes, in 27.4
+# s of writing summed over 8 workers against 36.3 s (benchmarks/results/generate_cuda.md).
 DEFLATE_STRATEGY = zlib.Z_RLE
 
 

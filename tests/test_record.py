@@ -131,22 +131,35 @@ def test_impulses_of_many_echoes_match_a_per_tap_reference(device):
 
 def test_row_blocks_sum_the_same_impulses_as_per_echo_atomics(device):
     """The GPU's kernel (a block sums a stretch of a microphone row in shared memory) against the
-    CPU's (one global atomic per tap), launched alike: 3 pings of 3,000 echoes out to 13 m (beyond
-    the record, across the row's chunks) in random slot order, one ping's count short of its slots
-    and some amplitudes 0, give the same fixed-point impulses bit for bit."""
+    CPU's (one global atomic per tap), launched alike, give the same fixed-point impulses bit for
+    bit: 3 pings of 3,000 echoes from 1 mm to 13 m in random slot order, one ping's count short
+    of its slots and one's beyond them, some amplitudes 0; 31 microphones in rows of 32 with their
+    own gains and delays (some negative, so taps fall before sample 0), a record that ends inside
+    a chunk and taps beyond its end. On the CPU the block's threads run as cooperative fibers, so
+    its barrier and thread stride are exercised too."""
     from acoustic_sim.echoes import PointEchoes
     from acoustic_sim.kernels import signals as kernels
     from acoustic_sim.signals import ROW_BLOCK_DIM, Recorder
 
     rng = np.random.default_rng(5)
     rec = Recorder(CONFIG, device=device)
-    pings, slots = 3, 3000
+    pings, slots, mics, rows = 3, 3000, 31, 32
+    samples, chunk = CONFIG.record_samples - 1007, 3000  # 5 chunks, the last one partial
     direction = rng.normal(size=(pings, slots, 3))
     direction /= np.linalg.norm(direction, axis=2, keepdims=True)
-    source = direction * rng.uniform(0.02, 8.0, (pings, slots, 1))
-    extra = np.where(rng.random((pings, slots)) < 0.5, rng.uniform(0.0, 5.0, (pings, slots)), 0.0)
+    near = rng.random((pings, slots, 1)) < 0.05
+    source = direction * np.where(
+        near, rng.uniform(0.001, 0.05, (pings, slots, 1)), rng.uniform(0.02, 8.0, (pings, slots, 1))
+    )
+    extra = np.where(~near[..., 0] & (rng.random((pings, slots)) < 0.5), rng.uniform(0.0, 5.0, (pings, slots)), 0.0)
     amplitude = np.where(rng.random((pings, slots)) < 0.1, 0.0, rng.uniform(1e-4, 1.0, (pings, slots)))
-    count = np.array([slots, slots - 700, slots])
+    count = np.array([slots, slots - 700, slots + 50])  # the last beyond its slots: only the slots count
+    mic_position = np.asarray(CONFIG.microphones_m)[:mics]
+    gain, delay = rng.uniform(0.5, 1.5, mics), rng.uniform(-40.0, 20.0, mics)  # [samples]
+    path = extra[..., None] + np.linalg.norm(source[:, :, None] - mic_position, axis=3)
+    lowest = np.floor(path * FS / C + delay) - 1  # the first of 4 taps
+    live = (amplitude > 0) & (np.arange(slots) < count[:, None])
+    assert (lowest[live] < 0).any() and (lowest[live] + 3 >= samples).any()
     with wp.ScopedDevice(device):
         echoes = PointEchoes(
             source=wp.array(source.astype(np.float32), dtype=wp.vec3),
@@ -160,25 +173,33 @@ def test_row_blocks_sum_the_same_impulses_as_per_echo_atomics(device):
             echoes.extra_length,
             echoes.amplitude,
             echoes.count,
-            rec._mics,
-            rec._mic_gain,
-            rec._mic_delay,
+            wp.array(mic_position.astype(np.float32), dtype=wp.vec3),
+            wp.array(gain.astype(np.float32), dtype=float),
+            wp.array(delay.astype(np.float32), dtype=float),
             FS / C,
             rec._absorption_per_m,
             rec._taps,
-            CONFIG.record_samples,
+            samples,
             rec.block,
         ]
-        shape = (pings * 32, (rec.nodes - 1) * rec.block + rec._size)
+        shape = (pings * rows, rec.block + CONFIG.record_samples + rec._size)
         per_echo, per_row = wp.zeros(shape, dtype=wp.int64), wp.zeros(shape, dtype=wp.int64)
-        wp.launch(kernels.accumulate_echoes, dim=(pings, slots, 32), inputs=inputs, outputs=[per_echo])
-        chunk = 4096  # several chunks a row
-        kernel = kernels.row_accumulation(chunk)
-        chunks = -(-CONFIG.record_samples // chunk)
-        wp.launch_tiled(kernel, dim=[pings, 32, chunks], inputs=inputs, outputs=[per_row], block_dim=ROW_BLOCK_DIM)
+        wp.launch(kernels.accumulate_echoes, dim=(pings, slots, mics), inputs=inputs, outputs=[per_echo])
+        blocks, wp.config.enable_cpu_blocks = wp.config.enable_cpu_blocks, True
+        try:
+            wp.launch_tiled(
+                kernels.row_accumulation(chunk),
+                dim=[pings, mics, -(-samples // chunk)],
+                inputs=inputs,
+                outputs=[per_row],
+                block_dim=ROW_BLOCK_DIM,
+            )
+        finally:
+            wp.config.enable_cpu_blocks = blocks
     expected, got = per_echo.numpy(), per_row.numpy()
-    samples = np.nonzero(expected.any(axis=0))[0] - rec.block
-    assert samples.min() < 5 and samples.max() == CONFIG.record_samples - 1  # the row's ends are reached
+    written = np.nonzero(expected.any(axis=0))[0] - rec.block
+    assert written.min() == 0 and written.max() == samples - 1  # the row's ends are reached
+    assert not expected[rows - 1 :: rows].any() and expected.any(axis=1).sum() == pings * mics  # row 32 unused
     np.testing.assert_array_equal(got, expected)
 
 

@@ -179,7 +179,8 @@ def discover_sequences(
         stored = int(0)
         for _probe in range(TABLE_PROBES):
             # Most rays find their sequence already stored: a plain read settles those without
-            # an atomic on the pose's hottest slots (a slot, once claimed, never changes).
+            # an atomic on the pose's hottest slots (a slot, once claimed, never changes). End to
+            # end on an H100 this measured 1.00-1.03x: the BVH walk, not the table, bounds it.
             old = table_key_inout[p, slot]
             if old == wp.uint64(0):
                 old = wp.atomic_cas(table_key_inout, p, slot, wp.uint64(0), key)

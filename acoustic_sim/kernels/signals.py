@@ -14,6 +14,33 @@ FIXED_POINT_SCALE = wp.constant(4294967296.0)  # 2^32 [fixed-point units per uni
 NODE_BLOCKS = wp.constant(4)
 
 
+@wp.func
+def echo_taps(
+    length: float,
+    amplitude: float,
+    gain: float,
+    mic_delay: float,
+    samples_per_m: float,
+    absorption_per_m: float,
+    taps: wp.array2d[float],
+):
+    """Where an echo of path `length` [m] lands on a microphone: the sample of its first tap, the
+    row of the fractional-delay table below its fraction and the weight of the row above, and
+    its fixed-point scale."""
+    delay = length * samples_per_m + mic_delay
+    first = int(wp.floor(delay))
+    position = (delay - float(first)) * float(taps.shape[0] - 1)
+    i = wp.min(int(position), taps.shape[0] - 2)
+    scale = amplitude * gain * wp.exp(-absorption_per_m * length) * FIXED_POINT_SCALE
+    return first - taps.shape[1] // 2 + 1, i, position - float(i), scale
+
+
+@wp.func
+def tap_value(taps: wp.array2d[float], i: int, v: float, j: int, scale: float) -> wp.int64:
+    """Tap j of the filter between table rows i and i + 1 (weight v), fixed point."""
+    return wp.int64(((1.0 - v) * taps[i, j] + v * taps[i + 1, j]) * scale)
+
+
 @wp.kernel(enable_backward=False)
 def accumulate_echoes(
     # in
@@ -45,19 +72,12 @@ def accumulate_echoes(
     if s >= count[p] or a == 0.0:
         return
     length = extra_length[p, s] + wp.length(source[p, s] - microphones[m])
-    delay = length * samples_per_m + mic_delay[m]
-    first = int(wp.floor(delay))
-    position = (delay - float(first)) * float(taps.shape[0] - 1)
-    i = wp.min(int(position), taps.shape[0] - 2)
-    v = position - float(i)
-    scale = a * mic_gain[m] * wp.exp(-absorption_per_m * length) * FIXED_POINT_SCALE
+    lowest, i, v, scale = echo_taps(length, a, mic_gain[m], mic_delay[m], samples_per_m, absorption_per_m, taps)
     row = p * (impulses_out.shape[0] // count.shape[0]) + m
-    half = taps.shape[1] // 2
     for j in range(taps.shape[1]):
-        n = first - half + 1 + j
+        n = lowest + j
         if n >= 0 and n < samples:
-            w = (1.0 - v) * taps[i, j] + v * taps[i + 1, j]
-            wp.atomic_add(impulses_out, row, lead + n, wp.int64(w * scale))
+            wp.atomic_add(impulses_out, row, lead + n, tap_value(taps, i, v, j, scale))
 
 
 @wp.func_native("WP_TILE_SYNC();")
@@ -99,27 +119,18 @@ def row_accumulation(chunk: int):
         threads = wp.block_dim()
         row = wp.tile_zeros(shape=chunk, dtype=wp.int64, storage="shared")
         start = c * chunk
-        half = taps.shape[1] // 2
         mic = microphones[m]
-        gain = mic_gain[m]
-        offset = mic_delay[m]
-        for s in range(lane, count[p], threads):
+        for s in range(lane, wp.min(count[p], amplitude.shape[1]), threads):
             a = amplitude[p, s]
             if a != 0.0:
                 length = extra_length[p, s] + wp.length(source[p, s] - mic)
-                delay = length * samples_per_m + offset
-                first = int(wp.floor(delay))
-                lowest = first - half + 1
-                if lowest + taps.shape[1] > start and lowest < start + chunk:
-                    position = (delay - float(first)) * float(taps.shape[0] - 1)
-                    i = wp.min(int(position), taps.shape[0] - 2)
-                    v = position - float(i)
-                    scale = a * gain * wp.exp(-absorption_per_m * length) * FIXED_POINT_SCALE
-                    for j in range(taps.shape[1]):
-                        n = lowest + j
-                        if n >= start and n < start + chunk and n >= 0 and n < samples:
-                            w = (1.0 - v) * taps[i, j] + v * taps[i + 1, j]
-                            shared_add(row, n - start, wp.int64(w * scale))
+                lowest, i, v, scale = echo_taps(
+                    length, a, mic_gain[m], mic_delay[m], samples_per_m, absorption_per_m, taps
+                )
+                for j in range(taps.shape[1]):
+                    n = lowest + j
+                    if n >= start and n < start + chunk:  # samples before 0 or after the record are not stored
+                        shared_add(row, n - start, tap_value(taps, i, v, j, scale))
         block_sync()
         out = p * (impulses_inout.shape[0] // count.shape[0]) + m
         for k in range(lane, wp.min(chunk, samples - start), threads):
