@@ -160,7 +160,6 @@ class Recorder:
             self._mic_gain = wp.array(config.channel_gain().astype(np.float32), dtype=float)
             self._mic_delay = wp.array((config.channel_delay_s() * fs).astype(np.float32), dtype=float)
         self._convolve = kernels.node_convolution(size)
-        self._row_chunk = row_chunk(config.record_samples, self.device.max_shared_memory_per_block)
 
     def impulses(self, echoes, pings: int) -> wp.array:
         """The echoes' fractional-delay impulses, fixed point (2^32 per unit amplitude), int64.
@@ -192,9 +191,10 @@ class Recorder:
                 self.block,
             ]
             if self.device.is_cuda:  # a block per stretch of a row: atomics in shared memory
+                chunk = row_chunk(cfg.record_samples, self.device.max_shared_memory_per_block)
                 launch_tiled(
-                    kernels.row_accumulation(self._row_chunk),
-                    dim=[pings, mics, -(-cfg.record_samples // self._row_chunk)],
+                    kernels.row_accumulation(chunk),
+                    dim=[pings, mics, -(-cfg.record_samples // chunk)],
                     inputs=inputs,
                     outputs=[impulses],
                     block_dim=ROW_BLOCK_DIM,

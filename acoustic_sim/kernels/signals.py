@@ -129,7 +129,9 @@ def row_accumulation(chunk: int):
                 )
                 for j in range(taps.shape[1]):
                     n = lowest + j
-                    if n >= start and n < start + chunk:  # samples before 0 or after the record are not stored
+                    # Taps before sample 0 fall before chunk 0; those after the record, in the
+                    # last chunk's tail, which the sums below leave out.
+                    if n >= start and n < start + chunk:
                         shared_add(row, n - start, tap_value(taps, i, v, j, scale))
         block_sync()
         out = p * (impulses_inout.shape[0] // count.shape[0]) + m
