@@ -13,11 +13,12 @@ from .config import (
     SonarConfig,
     TracerConfig,
 )
-from .lidar import Lidar, LidarScan, lidar_image, ranges_to_points
-from .paths import Arrivals, PathTracer
-from .poses import check_poses
-from .scene import WarpScene, warp_scene
-from .sonar import Sonar, SonarFrames
+from .engine.beamform import Beamformer, energyscape
+from .engine.lidar import Lidar, LidarScan, lidar_image, ranges_to_points
+from .engine.paths import Arrivals, PathTracer
+from .engine.poses import check_poses
+from .engine.scene import WarpScene, warp_scene
+from .engine.sonar import Sonar, SonarFrames
 
 try:
     __version__ = version("sonar2lidar")
@@ -27,6 +28,7 @@ except PackageNotFoundError:  # running from a source tree that was not installe
 __all__ = [
     "Arrivals",
     "AtmosphereConfig",
+    "Beamformer",
     "ChirpConfig",
     "ConfigError",
     "Lidar",
@@ -42,6 +44,7 @@ __all__ = [
     "TracerConfig",
     "WarpScene",
     "check_poses",
+    "energyscape",
     "lidar_image",
     "ranges_to_points",
     "warp_scene",

@@ -40,7 +40,7 @@ def _render(args) -> int:
     import scenes
 
     from .config import SimConfig
-    from .lidar import Lidar, lidar_image
+    from .engine.lidar import Lidar, lidar_image
     from .render import render_lidar
     from .settings import apply_settings
 
@@ -81,8 +81,8 @@ def _write_render_config(picture, rig, args) -> None:
 
 def _render_sonar(args, rig, scene, pose, lidar, t0) -> int:
     """The sonar picture: the same ping simulated with max_bounces 0 and with --max-bounces."""
+    from .engine.sonar import Sonar
     from .render import render_sonar
-    from .sonar import Sonar
 
     tracer = rig.tracer if args.rays is None else dataclasses.replace(rig.tracer, ray_count=args.rays)
     results = []
@@ -104,8 +104,8 @@ def _generate(args) -> int:
     from .devices import quiet_warp
 
     quiet_warp(not args.verbose, start=False)  # Warp starts in the worker processes (so they can be forked)
-    from .generate import generate
-    from .suites import load_suite
+    from .datasets.generate import generate
+    from .datasets.suites import load_suite
 
     if args.suite == "crossengine":
         return _generate_crossengine(args)
@@ -155,7 +155,7 @@ def _report(summary: dict) -> int:
 
 
 def _generate_crossengine(args) -> int:
-    from .crossengine import generate_crossengine
+    from .formats.crossengine import generate_crossengine
 
     own = {"--max-bounces": args.max_bounces, "--set": args.set, "--shards": args.shards, "--signals": args.signals}
     own |= {"--arrivals": args.arrivals, "--ray-address": args.ray_address}
@@ -183,7 +183,7 @@ def _import(args) -> int:
     rig = apply_settings(SimConfig(), args.set or ())
     if args.format == "chirp":
         return _import_chirp(args, rig)
-    from .recordings import import_pdm
+    from .formats.recordings import import_pdm
 
     done = import_pdm(
         args.recordings,
@@ -203,7 +203,7 @@ def _import(args) -> int:
 
 
 def _import_chirp(args, rig) -> int:
-    from .chirp import import_chirp
+    from .formats.chirp import import_chirp
 
     if len(args.recordings) != 1:
         raise ValueError(f"--format chirp imports one recording (.h5) at a time, got {len(args.recordings)} files")
@@ -226,7 +226,7 @@ def _import_chirp(args, rig) -> int:
 
 def _export(args) -> int:
     if args.format == "chirp":
-        from .chirp import export_chirp
+        from .formats.chirp import export_chirp
 
         done = export_chirp(args.dataset, args.out)
         print(
@@ -234,7 +234,7 @@ def _export(args) -> int:
             f"{done['points']:,} LiDAR points, poses)"
         )
         return 0
-    from .mcap_export import export_mcap
+    from .formats.mcap_export import export_mcap
 
     done = export_mcap(args.dataset, args.out)
     print(f"{done['frames']} frames of {args.dataset} -> {done['out']} (/scan, /sonar/energyscape, /tf)")
@@ -299,7 +299,7 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--verbose", action="store_true", help="show Warp's compile messages")
     render.set_defaults(handler=_render)
 
-    from .suites import SUITES
+    from .datasets.suites import SUITES
 
     gen = sub.add_parser(
         "generate",
@@ -335,7 +335,7 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--verbose", action="store_true", help="show Warp's compile messages")
     gen.set_defaults(handler=_generate)
 
-    from .chirp import EPISODE_GAP_S, PLANE_TOLERANCE_M
+    from .formats.chirp import EPISODE_GAP_S, PLANE_TOLERANCE_M
 
     imp = sub.add_parser(
         "import",

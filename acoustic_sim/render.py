@@ -14,7 +14,7 @@ from matplotlib.collections import LineCollection
 from scenes import Scene
 
 from .config import LidarConfig, PolarGrid
-from .lidar import ranges_to_points
+from .engine.lidar import ranges_to_points
 
 _MATERIAL_COLORS = {
     "painted_wall": "0.25",

@@ -29,8 +29,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from acoustic_sim.generate import PARTS  # noqa: E402
-from acoustic_sim.workers import START_ENV  # noqa: E402
+from acoustic_sim.datasets.generate import PARTS  # noqa: E402
+from acoustic_sim.datasets.workers import START_ENV  # noqa: E402
 
 MODES = {"in_turn": False, "overlapped": True}
 
@@ -40,8 +40,8 @@ def child(spec: dict) -> dict:
     dataset's bytes."""
     import warp as wp
 
-    from acoustic_sim.generate import generate
-    from acoustic_sim.suites import load_suite
+    from acoustic_sim.datasets.generate import generate
+    from acoustic_sim.datasets.suites import load_suite
 
     out = Path(spec["out"])
     summary = generate(

@@ -103,9 +103,9 @@ def main(argv=None) -> dict:
         "cpu_count": os.cpu_count(),
         "trace": {},
     }
-    from acoustic_sim.beamform import Beamformer
-    from acoustic_sim.lidar import check_poses
-    from acoustic_sim.signals import recorder
+    from acoustic_sim.engine.beamform import Beamformer
+    from acoustic_sim.engine.lidar import check_poses
+    from acoustic_sim.engine.signals import recorder
 
     checked = check_poses(poses)
     for bounces in (0, 1, 3):

@@ -34,7 +34,7 @@ BATCH = 256
 
 def stage_kernels() -> dict[str, str]:
     """Kernel function name -> stage, from the modules that define each stage's kernels."""
-    from acoustic_sim.kernels import beamform, curved, lidar, paths, signals
+    from acoustic_sim.engine.kernels import beamform, curved, lidar, paths, signals
 
     names = {}
     for stage, modules in (("trace", (paths, curved, lidar)), ("record", (signals,)), ("energyscape", (beamform,))):

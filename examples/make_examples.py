@@ -91,7 +91,7 @@ def pings(count: int = 8) -> dict[str, np.ndarray]:
     """
     import acoustic_sim
     import scenes
-    from acoustic_sim.beamform import energyscape
+    from acoustic_sim import energyscape
 
     scene = scenes.office(seed=0)
     poses = scenes.trajectory(scene, frames=count, seed=0)

@@ -17,7 +17,7 @@ import h5py
 import numpy as np
 import torch
 
-FORMAT = "sonar2lidar-dataset"  # written by acoustic_sim.dataset; the file format is the interface
+FORMAT = "sonar2lidar-dataset"  # written by acoustic_sim.datasets.shards; the file format is the interface
 FORMAT_VERSION = 1
 LABELS = ("middle", "last")
 

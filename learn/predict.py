@@ -4,7 +4,7 @@ The .npz holds the predicted images and the scans read from them as a LiDAR woul
 (azimuth column) the range of the nearest cell at or above the checkpoint's calibrated return
 threshold, inf where there is none.
 
-Recorded data: process the microphone signals with `acoustic_sim.beamform.energyscape` (same
+Recorded data: process the microphone signals with `acoustic_sim.engine.beamform.energyscape` (same
 grid as training, one ping per frame at the training frame rate) and save the result as a
 .npy (N, R, A) in time order; every window of K consecutive frames gets a prediction.
 """

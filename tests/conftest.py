@@ -23,8 +23,8 @@ def tiny_dataset(tmp_path_factory, device):
     """Two 8-frame drives of the `tiny` suite (room, corridor), simulated once per session."""
     import dataclasses
 
-    from acoustic_sim.generate import generate
-    from acoustic_sim.suites import SUITES, Physics
+    from acoustic_sim.datasets.generate import generate
+    from acoustic_sim.datasets.suites import SUITES, Physics
 
     suite = dataclasses.replace(SUITES["tiny"], variants={"": Physics(ray_count=2000)})
     out = tmp_path_factory.mktemp("tiny_dataset")

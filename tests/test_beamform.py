@@ -5,9 +5,9 @@ import pytest
 
 import acoustic_sim as sim
 import scenes
-from acoustic_sim.beamform import energyscape
-from acoustic_sim.paths import KIND_SPECULAR, Arrivals
-from acoustic_sim.signals import record
+from acoustic_sim.engine.beamform import energyscape
+from acoustic_sim.engine.paths import KIND_SPECULAR, Arrivals
+from acoustic_sim.engine.signals import record
 
 CONFIG = sim.SonarConfig.ertis()
 C = CONFIG.atmosphere.speed_of_sound

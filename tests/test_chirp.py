@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from acoustic_sim.cli import main
-from acoustic_sim.mcap_export import EPISODE_GAP_S, STAMP_START_S
+from acoustic_sim.formats.mcap_export import EPISODE_GAP_S, STAMP_START_S
 
 chirppy = pytest.importorskip("chirppy")  # the `chirp` extra, installed by the `test` extra
 
@@ -20,8 +20,8 @@ chirppy = pytest.importorskip("chirppy")  # the `chirp` extra, installed by the 
 def signals_dataset(tmp_path_factory, device):
     """The conftest's tiny dataset (two 8-frame drives: room, corridor; the same suite, seed and
     kernels), with the microphone signals kept."""
-    from acoustic_sim.generate import generate
-    from acoustic_sim.suites import SUITES, Physics
+    from acoustic_sim.datasets.generate import generate
+    from acoustic_sim.datasets.suites import SUITES, Physics
 
     suite = dataclasses.replace(SUITES["tiny"], variants={"": Physics(ray_count=2000)})
     out = tmp_path_factory.mktemp("tiny_signals")
@@ -58,7 +58,7 @@ def test_chirppy_reads_the_export(signals_dataset, exported):
     450 kHz, one x, y, z, intensity point per LiDAR return (z = 0: a planar scan), the poses, and
     Unix times that are the drive's (0.1 s apart, drives 1 s apart, from STAMP_START_S)."""
     from acoustic_sim.config import LidarConfig, SonarConfig
-    from acoustic_sim.lidar import ranges_to_points
+    from acoustic_sim.engine.lidar import ranges_to_points
 
     truth = read(signals_dataset, "signals", "lidar/ranges", "pose", "time", "episode")
     with chirppy.CHIRPDataset(exported) as data:
@@ -92,8 +92,8 @@ def test_import_gives_back_the_energyscapes_and_labels(signals_dataset, imported
     energyscapes are our processing of the stored signals, bit for bit; against the stored
     energyscapes they differ by <= 0.2 % of each frame's peak, because those were processed from
     the float32 signals before both were rounded to float16 (0.05 % per rounding; 0.09 % seen)."""
-    from acoustic_sim.beamform import energyscape
     from acoustic_sim.config import SimConfig
+    from acoustic_sim.engine.beamform import energyscape
 
     keys = ("energyscape", "lidar/image", "lidar/ranges", "pose", "time", "episode")
     truth, got = read(signals_dataset, *keys, "signals"), read(imported, *keys)
@@ -188,8 +188,8 @@ def test_bad_input_is_refused_in_one_line(case, message, signals_dataset, export
 def test_a_scan_from_points_in_any_sector():
     """planar_scan bins by degrees past the first beam, wrapped: a rear sector across +-180 deg
     keeps its points, a point half a step before the first beam falls on it; one beam is refused."""
-    from acoustic_sim.chirp import planar_scan
     from acoustic_sim.config import LidarConfig
+    from acoustic_sim.formats.chirp import planar_scan
 
     rear = dataclasses.replace(
         LidarConfig.hokuyo_ust20lx(), azimuth_min_deg=90.0, azimuth_max_deg=270.0, azimuth_count=181

@@ -1,12 +1,12 @@
-"""Chunks compressed in threads (acoustic_sim.chunks) against HDF5's own filter pipeline: the
+"""Chunks compressed in threads (acoustic_sim.datasets.chunks) against HDF5's own filter pipeline: the
 checksum HDF5 stores, the data h5py reads back (and verifies), refusals for what is not handled."""
 
 import h5py
 import numpy as np
 import pytest
 
-from acoustic_sim.chunks import encode, fletcher32, pipeline, write_rows
-from acoustic_sim.dataset import COMPRESSION
+from acoustic_sim.datasets.chunks import encode, fletcher32, pipeline, write_rows
+from acoustic_sim.datasets.shards import COMPRESSION
 
 
 @pytest.mark.parametrize(

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from acoustic_sim import AtmosphereConfig, ChirpConfig, ConfigError, LidarConfig, PolarGrid, SonarConfig
-from acoustic_sim.suites import Physics
+from acoustic_sim.datasets.suites import Physics
 
 BASES = {
     "PolarGrid": PolarGrid(),

@@ -8,7 +8,6 @@ import h5py
 import numpy as np
 import pytest
 
-from acoustic_sim.beamform import energyscape
 from acoustic_sim.config import (
     MAX_BOUNCES,
     NOISE_CODES,
@@ -21,10 +20,11 @@ from acoustic_sim.config import (
     SonarConfig,
     TracerConfig,
 )
-from acoustic_sim.kernels import common as common_kernels
-from acoustic_sim.kernels import paths as path_kernels
+from acoustic_sim.datasets.suites import SUITES, Physics, rig
+from acoustic_sim.engine.beamform import energyscape
+from acoustic_sim.engine.kernels import common as common_kernels
+from acoustic_sim.engine.kernels import paths as path_kernels
 from acoustic_sim.settings import apply_settings
-from acoustic_sim.suites import SUITES, Physics, rig
 
 
 def test_settings_reach_every_level_of_the_tree():
@@ -117,7 +117,7 @@ def test_processing_config_and_keywords_give_the_same_energyscape(device):
 def test_suite_settings_are_simulated_and_recorded(tmp_path, device):
     """A suite's settings change what is simulated (here the grid), enter the plan (another folder
     is another run), and the shard and manifest record the rig as it was simulated."""
-    from acoustic_sim.generate import generate
+    from acoustic_sim.datasets.generate import generate
 
     base = dataclasses.replace(SUITES["tiny"], episode_frames=2, variants={"": Physics(ray_count=500)})
     suite = dataclasses.replace(base, settings=("processing.grid.range_max_m=3", "processing.grid.azimuth_step_deg=2"))
@@ -141,7 +141,7 @@ def test_physics_vary_draws_rig_fields_per_episode_and_records_them(tmp_path, de
     within range), the episode is simulated with them (a drawn max_bounces of 0 gives the arrays
     of a variant with max_bounces 0) and its record holds them; variants without draws keep
     their plan ids."""
-    from acoustic_sim.generate import generate
+    from acoustic_sim.datasets.generate import generate
 
     vary = {"tracer.max_bounces": [0, 2], "sonar.emitter_radius_m": [0.001, 0.02]}
     physics = Physics(ray_count=500, vary=vary)

@@ -6,9 +6,11 @@ import json
 import numpy as np
 import pytest
 
-from acoustic_sim.beamform import energyscape
 from acoustic_sim.config import LidarConfig, ProcessingConfig, SonarConfig
-from acoustic_sim.crossengine import (
+from acoustic_sim.datasets.suites import SUITES
+from acoustic_sim.engine.beamform import energyscape
+from acoustic_sim.engine.lidar import Lidar
+from acoustic_sim.formats.crossengine import (
     FLOOR_PLANS,
     Room,
     draw_room,
@@ -17,8 +19,6 @@ from acoustic_sim.crossengine import (
     record_ping,
     scan_floor_plan,
 )
-from acoustic_sim.lidar import Lidar
-from acoustic_sim.suites import SUITES
 from scenes import pose, trajectory
 
 L_ROOM = ((0.0, 0.0), (6.0, 0.0), (6.0, 3.0), (3.0, 3.0), (3.0, 5.0), (0.0, 5.0))

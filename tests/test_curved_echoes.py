@@ -7,7 +7,7 @@ import pytest
 
 import scenes
 from acoustic_sim import Sonar, SonarConfig, TracerConfig
-from acoustic_sim.paths import KIND_SPECULAR
+from acoustic_sim.engine.paths import KIND_SPECULAR
 from scenes.scene import assemble, cylinder_mesh, room_shell, sphere_mesh
 from scenes.surfaces import with_surfaces
 

@@ -12,10 +12,10 @@ import h5py
 import numpy as np
 import pytest
 
-import acoustic_sim.generate as gen
-import acoustic_sim.workers as workers
-from acoustic_sim.dataset import FORMAT_VERSION, DatasetError, read_attrs
-from acoustic_sim.suites import SUITES, Physics, load_suite
+import acoustic_sim.datasets.generate as gen
+import acoustic_sim.datasets.workers as workers
+from acoustic_sim.datasets.shards import FORMAT_VERSION, DatasetError, read_attrs
+from acoustic_sim.datasets.suites import SUITES, Physics, load_suite
 from learn.data import window_starts
 
 # Three 3-frame drives (one per scenario) in two shards, few rays: a few seconds on the CPU.

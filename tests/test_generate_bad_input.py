@@ -8,9 +8,9 @@ import sys
 import pytest
 
 from acoustic_sim.cli import main
-from acoustic_sim.dataset import DatasetError
-from acoustic_sim.generate import generate
-from acoustic_sim.suites import SUITES, Physics
+from acoustic_sim.datasets.generate import generate
+from acoustic_sim.datasets.shards import DatasetError
+from acoustic_sim.datasets.suites import SUITES, Physics
 
 
 def cli_error(capsys, argv: list[str]) -> str:

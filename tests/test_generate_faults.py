@@ -15,9 +15,9 @@ import h5py
 import numpy as np
 import pytest
 
-import acoustic_sim.generate as gen
-from acoustic_sim.dataset import DatasetError, ShardFrames, verify_shard, write_shard
-from acoustic_sim.suites import SUITES, Physics
+import acoustic_sim.datasets.generate as gen
+from acoustic_sim.datasets.shards import DatasetError, ShardFrames, verify_shard, write_shard
+from acoustic_sim.datasets.suites import SUITES, Physics
 from learn.data import DataError, load_frames
 
 SUITE = dataclasses.replace(SUITES["tiny"], variants={"": Physics(ray_count=2000)})
@@ -112,8 +112,8 @@ def test_workers_exit_when_the_parent_is_killed(tmp_path):
     script = tmp_path / "run.py"
     script.write_text(
         "import dataclasses, sys\n"
-        "from acoustic_sim.generate import generate\n"
-        "from acoustic_sim.suites import SUITES, Physics\n"
+        "from acoustic_sim.datasets.generate import generate\n"
+        "from acoustic_sim.datasets.suites import SUITES, Physics\n"
         "if __name__ == '__main__':\n"
         "    suite = dataclasses.replace(SUITES['tiny'], variants={'': Physics(ray_count=20000)})\n"
         "    generate(suite, sys.argv[1], frames=400, shards=4, workers=2, device='cpu', progress=False)\n"
@@ -143,7 +143,7 @@ _FAKE_OUT = None  # the folder fake_worker_share reports into (set before the fo
 def fake_worker_share(tasks, device, on_frames, overlap):
     """Worker 0 fails on its first task; worker 1 works on for 2 s, then notes whether the lock is
     still held."""
-    from acoustic_sim import workers
+    from acoustic_sim.datasets import workers
 
     if workers._INDEX == 0:
         # Fail on the first task: tasks come only once every worker is up, so this process cannot
@@ -158,7 +158,7 @@ def fake_worker_share(tasks, device, on_frames, overlap):
 @pytest.fixture
 def forked(monkeypatch):
     """Forked workers (they inherit this test's patches); skipped where this process has started CUDA."""
-    from acoustic_sim import workers
+    from acoustic_sim.datasets import workers
 
     if workers.start_method() != "fork":
         pytest.skip("this process has started CUDA (or is not on Linux): its workers cannot be forked")
@@ -188,7 +188,7 @@ def test_a_refused_folder_leaves_no_worker_running(tmp_path):
 def test_a_worker_that_dies_starting_is_an_error_not_a_wait(tmp_path, monkeypatch, forked):
     from concurrent.futures.process import BrokenProcessPool
 
-    from acoustic_sim import workers
+    from acoustic_sim.datasets import workers
 
     monkeypatch.setattr(workers, "resolve_device", lambda *args: os._exit(3))
     with pytest.raises(BrokenProcessPool):
@@ -200,7 +200,8 @@ def test_cuda_started_sees_torch_warp_and_a_loaded_driver(monkeypatch):
     """Workers are forked only where nothing may have started CUDA in this process."""
     from types import SimpleNamespace
 
-    from acoustic_sim import devices, workers
+    from acoustic_sim import devices
+    from acoustic_sim.datasets import workers
 
     monkeypatch.setattr(devices, "_cuda_driver_loaded", lambda: False)
     monkeypatch.setattr(devices, "_warp_runtime", lambda: None)

@@ -1,7 +1,8 @@
 """The architecture's rules, read from the source with `ast` (nothing is imported):
 scenes -> acoustic_sim -> shards -> learn flows one way, no module imports itself back through
-others (function-level imports count too: they are circles that only wait to be called),
-kernels depend on Warp alone, and modules stay small enough to read."""
+others (function-level imports count too: they are circles that only wait to be called), the
+simulator's three stages (engine, datasets, formats) sit on its configuration and import each
+other one way only, kernels depend on Warp alone, and modules stay small enough to read."""
 
 from __future__ import annotations
 
@@ -102,10 +103,77 @@ def test_learn_reads_shards_and_never_imports_the_simulator():
 def test_kernels_depend_on_warp_alone():
     stdlib = set(sys.stdlib_module_names)
     for name, path in modules().items():
-        if name.startswith("acoustic_sim.kernels"):
+        if name.startswith(KERNELS):
             others = {m for m in imports(name, path, modules()) if m.split(".")[0] not in stdlib | {"warp"}}
-            others -= {m for m in others if m.startswith("acoustic_sim.kernels")}  # one kernel file may use another
+            others -= {m for m in others if m.startswith(KERNELS)}  # one kernel file may use another
             assert not others, (name, others)
+
+
+KERNELS = "acoustic_sim.engine.kernels"
+# What each part of the simulator may import of the simulator (besides itself and the package's
+# public names in acoustic_sim/__init__.py, which only re-export the engine and configuration).
+# The base is the configuration and what it is built from (air, array), devices and small helpers.
+BASE = ("config", "air", "array", "settings", "devices", "extras", "user_warning")
+MAY_IMPORT = {
+    "base": {"base"},
+    "engine": {"base", "engine"},
+    "render": {"base", "engine"},  # pictures of every stage's output
+    "datasets": {"base", "engine", "render", "datasets"},
+    "formats": {"base", "engine", "render", "datasets", "formats"},
+    "cli": {"base", "engine", "render", "datasets", "formats", "cli"},
+}
+
+
+def part(module: str) -> str | None:
+    """The part of acoustic_sim that a module belongs to (None for the package itself)."""
+    names = module.split(".")
+    if names[0] != "acoustic_sim" or len(names) == 1:
+        return None
+    if names[1] in BASE:
+        return "base"
+    if names[1] in ("__main__", "cli"):
+        return "cli"
+    return names[1]
+
+
+def layer_breaches(edges: dict[str, set[str]]) -> list[tuple[str, str]]:
+    """(importer, imported) pairs that break MAY_IMPORT, or that reach into the kernels from
+    outside the engine."""
+    found = []
+    for name, targets in sorted(edges.items()):
+        mine = part(name)
+        if mine is None:
+            continue
+        for target in sorted(targets):
+            theirs = part(target)
+            if theirs is None:
+                continue
+            if theirs not in MAY_IMPORT[mine] or (target.startswith(KERNELS) and mine != "engine"):
+                found.append((name, target))
+    return found
+
+
+def test_every_simulator_module_belongs_to_a_part():
+    assert set(MAY_IMPORT) >= {part(name) for name in modules() if name.startswith("acoustic_sim.")}
+
+
+def test_stages_import_one_way():
+    """The engine imports neither datasets nor formats, datasets no formats, nothing the CLI, and
+    only the engine reaches into the kernels."""
+    assert layer_breaches(graph()) == []
+
+
+def test_layer_check_finds_a_breach():
+    """The check itself: the engine importing the dataset pipeline, a format reaching into a kernel."""
+    edges = {
+        "acoustic_sim.engine.sonar": {"acoustic_sim.datasets.suites", "acoustic_sim.config"},
+        "acoustic_sim.formats.chirp": {"acoustic_sim.engine.kernels.signals", "acoustic_sim.engine.beamform"},
+        "acoustic_sim.datasets.plan": {"acoustic_sim.datasets.shards"},
+    }
+    assert layer_breaches(edges) == [
+        ("acoustic_sim.engine.sonar", "acoustic_sim.datasets.suites"),
+        ("acoustic_sim.formats.chirp", "acoustic_sim.engine.kernels.signals"),
+    ]
 
 
 def test_modules_stay_readable():

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from acoustic_sim.cli import main
-from acoustic_sim.mcap_export import EPISODE_GAP_S, STAMP_START_S
+from acoustic_sim.formats.mcap_export import EPISODE_GAP_S, STAMP_START_S
 
 
 def test_export_reads_back_as_the_dataset(tiny_dataset, tmp_path):
@@ -68,7 +68,7 @@ def test_predicted_scans_land_on_the_exported_frames(tiny_dataset, tmp_path):
     from mcap_ros2.decoder import DecoderFactory
 
     import learn.ros
-    from acoustic_sim import mcap_export
+    from acoustic_sim.formats import mcap_export
     from learn import PRETRAINED_CHECKPOINT
     from learn.cli import main as learn_main
 

@@ -9,9 +9,9 @@ import warp as wp
 
 import acoustic_sim as sim
 import scenes
-from acoustic_sim.lidar import check_poses
-from acoustic_sim.paths import KIND_SCATTERED, KIND_SPECULAR, PosesOnDevice
-from acoustic_sim.sonar import Sonar
+from acoustic_sim.engine.lidar import check_poses
+from acoustic_sim.engine.paths import KIND_SCATTERED, KIND_SPECULAR, PosesOnDevice
+from acoustic_sim.engine.sonar import Sonar
 from scenes.scene import assemble, box_mesh
 
 SIZE = np.array([6.0, 4.0, 3.0])
@@ -119,7 +119,7 @@ def test_rays_are_the_fibonacci_lattice_in_neighbouring_order():
     """hemisphere_directions reorders the lattice and changes no ray: its rows are the lattice's
     (x uniform in cos theta, golden-angle azimuth), and neighbours in the array are neighbours on
     the sphere (median angle under 1 degree at 100k rays; the lattice's own order: ~108 degrees)."""
-    from acoustic_sim.paths import hemisphere_directions
+    from acoustic_sim.engine.paths import hemisphere_directions
 
     n = 100_000
     i = np.arange(n) + 0.5

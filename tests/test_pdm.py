@@ -5,7 +5,7 @@ import pytest
 from scipy.signal import resample_poly
 
 from acoustic_sim.config import ChirpConfig
-from acoustic_sim.signals import pdm_to_pcm
+from acoustic_sim.engine.signals import pdm_to_pcm
 
 FS = 450_000  # PCM rate; the PDM stream runs 10 times faster, as the eRTIS's 4.5 MHz
 
@@ -80,9 +80,9 @@ def test_import_pdm_images_point_reflectors_where_they_are(tmp_path, device):
     import json
 
     import acoustic_sim as sim
-    from acoustic_sim.beamform import energyscape
     from acoustic_sim.cli import main
-    from acoustic_sim.signals import record
+    from acoustic_sim.engine.beamform import energyscape
+    from acoustic_sim.engine.signals import record
     from tests.test_beamform import reflectors
 
     config = sim.SonarConfig.ertis()

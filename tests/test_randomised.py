@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 import scenes
-from acoustic_sim.generate import generate
-from acoustic_sim.physics import Physics
-from acoustic_sim.suites import SUITES, episode_drive
+from acoustic_sim.datasets.generate import generate
+from acoustic_sim.datasets.physics import Physics
+from acoustic_sim.datasets.suites import SUITES, episode_drive
 
 
 def _ends(spec) -> list:

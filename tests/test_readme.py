@@ -179,7 +179,7 @@ def _suite_frames(args: argparse.Namespace, cwd: Path) -> int:
     """Frames `generate` would simulate, after loading the suite and choosing its variants."""
     if args.suite == "crossengine":
         return args.frames or 1000
-    from acoustic_sim.suites import SUITES, load_suite
+    from acoustic_sim.datasets.suites import SUITES, load_suite
 
     suite = load_suite(args.suite if args.suite in SUITES else cwd / args.suite)
     variants = [v.strip() for v in args.variants.split(",")] if args.variants else list(suite.variants)
@@ -278,7 +278,7 @@ class Walk:
             self._run([sys.executable, script.name], f"python block at README.md:{number}")
 
     def toml(self, code: str, number: int) -> None:
-        from acoustic_sim.suites import load_suite
+        from acoustic_sim.datasets.suites import load_suite
 
         first = code.splitlines()[0]
         if first.startswith("# ") and (ROOT / first[2:]).is_file():

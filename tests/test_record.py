@@ -6,8 +6,8 @@ import warp as wp
 
 import acoustic_sim as sim
 from acoustic_sim.air import air_absorption_db_per_m
-from acoustic_sim.paths import KIND_SPECULAR, Arrivals
-from acoustic_sim.signals import record
+from acoustic_sim.engine.paths import KIND_SPECULAR, Arrivals
+from acoustic_sim.engine.signals import record
 
 CONFIG = sim.SonarConfig.ertis()
 C = CONFIG.atmosphere.speed_of_sound
@@ -82,7 +82,7 @@ def test_impulses_of_many_echoes_match_a_per_tap_reference(device):
     (2e-3 of the amplitude). Catches a tap, microphone row or ping row put in the wrong place.
     Echoes within 1e-3 sample of a whole sample at some microphone are left out: there float32
     and float64 may round to neighbouring samples, whose (equally valid) filters differ."""
-    from acoustic_sim.signals import FRACTION_STEPS, Recorder, echo_buffer, fractional_delay_table
+    from acoustic_sim.engine.signals import FRACTION_STEPS, Recorder, echo_buffer, fractional_delay_table
 
     rng = np.random.default_rng(11)
     gain, delay = rng.uniform(0.5, 1.5, 32), rng.uniform(0.0, 20e-6, 32)
@@ -137,9 +137,9 @@ def test_row_blocks_sum_the_same_impulses_as_per_echo_atomics(device):
     own gains and delays (some negative, so taps fall before sample 0), a record that ends inside
     a chunk and taps beyond its end. On the CPU the block's threads run as cooperative fibers, so
     its barrier and thread stride are exercised too."""
-    from acoustic_sim.echoes import PointEchoes
-    from acoustic_sim.kernels import signals as kernels
-    from acoustic_sim.signals import ROW_BLOCK_DIM, Recorder
+    from acoustic_sim.engine.echoes import PointEchoes
+    from acoustic_sim.engine.kernels import signals as kernels
+    from acoustic_sim.engine.signals import ROW_BLOCK_DIM, Recorder
 
     rng = np.random.default_rng(5)
     rec = Recorder(CONFIG, device=device)
@@ -206,7 +206,7 @@ def test_row_blocks_sum_the_same_impulses_as_per_echo_atomics(device):
 def test_row_chunks_fit_the_shared_memory_of_a_block():
     """A block sums a whole 16,384-sample row with the 227 KB of an H100 or 163 KB of an A100,
     half of it with the 99 KB of a consumer GPU, and no more than a short record needs."""
-    from acoustic_sim.signals import row_chunk
+    from acoustic_sim.engine.signals import row_chunk
 
     assert row_chunk(16384, 227 * 1024) == row_chunk(16384, 163 * 1024) == 16384
     assert row_chunk(16384, 99 * 1024) == 8192 and row_chunk(16384, 48 * 1024) == 4096
@@ -254,7 +254,7 @@ def test_delay_filters_are_pure_delays_across_the_band(chirp, taps):
     """Each row of the fractional-delay table delays every tone of the call's band by its
     fraction of a sample: response exp(-2 pi i f tau) within -60 dB, with the fewest taps that
     allow it (each tap is an atomic add per echo and microphone)."""
-    from acoustic_sim.signals import FRACTION_STEPS, fractional_delay_table
+    from acoustic_sim.engine.signals import FRACTION_STEPS, fractional_delay_table
 
     table = fractional_delay_table(sim.SonarConfig.ertis(chirp=chirp)).astype(np.float64)
     assert table.shape == (FRACTION_STEPS + 1, taps)

@@ -43,14 +43,14 @@ def test_export_is_the_commits_simulator(tmp_path, rev):
         pytest.fail(f"commit {OLDER} is not in this clone (a shallow clone?): the comparison needs history")
     commit = sonar_same_job.export(rev, tmp_path / "tree")
     assert commit == git("rev-parse", rev).decode().strip()
-    for path in ("acoustic_sim/signals.py", "scenes/__init__.py"):
+    for path in ("acoustic_sim/__init__.py", "acoustic_sim/config.py", "scenes/__init__.py"):
         assert (tmp_path / "tree" / path).read_bytes() == git("show", f"{rev}:{path}")
     assert not (tmp_path / "tree" / "learn").exists()  # the simulator only
 
 
 def test_the_older_commit_really_differs():
     """Keeps the export test meaningful: a copy of the working tree would fail it for OLDER."""
-    assert git("show", f"{OLDER}:acoustic_sim/signals.py") != git("show", "HEAD:acoustic_sim/signals.py")
+    assert git("show", f"{OLDER}:acoustic_sim/signals.py") != git("show", "HEAD:acoustic_sim/engine/signals.py")
 
 
 def test_a_bad_revision_is_one_clear_error(tmp_path):

@@ -1,6 +1,6 @@
 """Full-rate numpy energyscape: matched filter, delay-and-sum and analytic envelope, nothing decimated.
 
-An independent reference for acoustic_sim.beamform, which works in a decimated complex baseband.
+An independent reference for acoustic_sim.engine.beamform, which works in a decimated complex baseband.
 """
 
 import numpy as np

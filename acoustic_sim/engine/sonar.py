@@ -21,8 +21,8 @@ from tqdm.auto import tqdm
 
 from scenes import Scene
 
+from ..config import ProcessingConfig, SonarConfig, TracerConfig
 from .beamform import beamformer, energyscape
-from .config import ProcessingConfig, SonarConfig, TracerConfig
 from .paths import Arrivals, PathTracer
 from .poses import check_poses
 from .signals import ping_seeds, record

@@ -11,7 +11,7 @@ import numpy as np
 
 from scenes.surfaces import with_surfaces
 
-from .config import SimConfig, SonarConfig
+from ..config import SimConfig, SonarConfig
 from .physics import Physics
 from .plan import Episode
 from .suites import episode_drive
@@ -94,8 +94,8 @@ def simulate_episode(
     `nominal` is the variant's rig (`suites.rig`) before this episode's draws; `episode` may come
     prepared already (`prepare_episode`); `on_frames(n)` is called as the sonar finishes each batch
     of n frames; `seconds`, if given, adds the time of each part ("prepare", "lidar", "sonar")."""
-    from .lidar import Lidar, lidar_image
-    from .sonar import Sonar
+    from ..engine.lidar import Lidar, lidar_image
+    from ..engine.sonar import Sonar
 
     seconds = {} if seconds is None else seconds
     t0 = time.perf_counter()

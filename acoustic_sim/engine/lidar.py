@@ -11,8 +11,8 @@ import warp as wp
 
 from scenes import Scene
 
-from .config import NOISE_CODES, LidarConfig, PolarGrid
-from .devices import cpu_cores
+from ..config import NOISE_CODES, LidarConfig, PolarGrid
+from ..devices import cpu_cores
 from .kernels import lidar as kernels
 from .poses import check_pose_results, check_poses
 from .scene import warp_scene

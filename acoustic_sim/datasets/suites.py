@@ -19,7 +19,7 @@ import numpy as np
 import scenes
 from scenes.surfaces import SURFACE_CLASSES
 
-from .config import check_finite
+from ..config import check_finite
 from .physics import Physics, draw_value, rig
 
 DRIVE = {"speed_m_s": 0.3, "sensor_height_m": 0.3, "turn_rate_rad_s": 1.0}

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .signals import pdm_to_pcm
+from ..engine.signals import pdm_to_pcm
 
 
 def read_pdm_pings(paths: list[str | Path], *, channels: int, samples_per_ping: int | None) -> list[np.ndarray]:
@@ -55,8 +55,8 @@ def import_pdm(
     device: str = "cpu",
 ) -> dict:
     """Decode raw PDM pings and process them into energyscapes; returns what was written."""
-    from .beamform import energyscape
-    from .render import render_examples
+    from ..engine.beamform import energyscape
+    from ..render import render_examples
 
     t0, out = time.perf_counter(), Path(out)
     if out.suffix != ".npy":

@@ -23,9 +23,9 @@ import numpy as np
 
 from scenes import FLOOR_PLANS, floor_plan, polygon_room, trajectory
 
-from .config import LidarConfig, ProcessingConfig, SonarConfig
-from .extras import MissingExtra
-from .suites import DRIVE
+from ..config import LidarConfig, ProcessingConfig, SonarConfig
+from ..datasets.suites import DRIVE
+from ..extras import MissingExtra
 
 IMAGE_ORDER = 4  # reflections per path: walls, floor and ceiling alike
 SAMPLE_RATE_HZ = 450_000  # pyroomacoustics wants an integer rate
@@ -146,9 +146,9 @@ def planner_scene(room: Room):
 
 def simulate_episode(index: int, frames: int, seed: int, device: str) -> tuple[dict, dict]:
     """Episode `index` of the test set: its room, drive, recordings, energyscapes and LiDAR truth."""
-    from .beamform import energyscape
-    from .devices import quiet_warp
-    from .lidar import lidar_image
+    from ..devices import quiet_warp
+    from ..engine.beamform import energyscape
+    from ..engine.lidar import lidar_image
 
     quiet_warp()  # a spawned worker starts its own Warp
     episode_seed = int(np.random.default_rng([seed, index]).integers(2**31 - 1))
@@ -199,10 +199,10 @@ def generate_crossengine(
     resumes. Returns a summary like `generate`'s."""
     from tqdm.auto import tqdm
 
-    from . import __version__
-    from .dataset import FORMAT, FORMAT_VERSION, ShardFrames, read_attrs, verify_shard, write_shard
-    from .devices import resolve_device
-    from .generate import output_lock
+    from .. import __version__
+    from ..datasets.generate import output_lock
+    from ..datasets.shards import FORMAT, FORMAT_VERSION, ShardFrames, read_attrs, verify_shard, write_shard
+    from ..devices import resolve_device
 
     if frames < 1 or workers < 1:
         raise ValueError(f"frames and workers must be >= 1, got {frames} and {workers}")

@@ -21,9 +21,9 @@ import warp as wp
 
 from scenes import Scene
 
-from .array import piston_directivity
-from .config import SonarConfig, TracerConfig
-from .devices import cpu_cores, device_calls
+from ..array import piston_directivity
+from ..config import SonarConfig, TracerConfig
+from ..devices import cpu_cores, device_calls
 from .echoes import (
     KIND_SCATTERED,
     KIND_SPECULAR,

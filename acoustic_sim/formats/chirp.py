@@ -46,10 +46,10 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from .config import ChirpConfig, LidarConfig
-from .dataset import COMPRESSION, ShardFrames, write_shard
-from .extras import MissingExtra
-from .lidar import lidar_image, ranges_to_points
+from ..config import ChirpConfig, LidarConfig
+from ..datasets.shards import COMPRESSION, ShardFrames, write_shard
+from ..engine.lidar import lidar_image, ranges_to_points
+from ..extras import MissingExtra
 from .mcap_export import frame_stamps
 
 FORMAT, FORMAT_VERSION = "chirp", "2.1"
@@ -123,7 +123,7 @@ def export_chirp(dataset: str | Path, out: str | Path) -> dict:
     """Write every frame of a dataset folder generated with `--signals` as one CHIRP file."""
     from scipy.spatial.transform import Rotation
 
-    from . import __version__
+    from .. import __version__
 
     folder, out = Path(dataset), Path(out)
     shards = sorted(folder.glob("shard-*.h5"))
@@ -296,9 +296,9 @@ def import_chirp(
             points make the 2D scan [m].
         episode_gap_s: A longer pause between pings starts a new episode [s].
     """
-    from . import __version__
-    from .beamform import energyscape
-    from .render import render_examples
+    from .. import __version__
+    from ..engine.beamform import energyscape
+    from ..render import render_examples
 
     t0, path, out = time.perf_counter(), Path(path), Path(out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())):

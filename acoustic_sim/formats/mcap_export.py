@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .extras import MissingExtra
+from ..extras import MissingExtra
 
 STAMP_START_S = 1_700_000_000
 EPISODE_GAP_S = 1.0

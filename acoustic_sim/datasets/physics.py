@@ -12,7 +12,7 @@ import numpy as np
 
 from scenes.surfaces import SURFACE_CLASSES
 
-from .config import (
+from ..config import (
     NOISE_KINDS,
     ConfigError,
     LidarConfig,
@@ -23,7 +23,7 @@ from .config import (
     TracerConfig,
     check_finite,
 )
-from .settings import apply_settings
+from ..settings import apply_settings
 
 
 def draw_value(rng: np.random.Generator, key: str, spec):

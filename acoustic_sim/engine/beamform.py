@@ -20,8 +20,8 @@ import numpy as np
 import warp as wp
 from scipy import signal as sps
 
-from .config import ProcessingConfig, SonarConfig
-from .devices import device_calls
+from ..config import ProcessingConfig, SonarConfig
+from ..devices import device_calls
 from .kernels import beamform as kernels
 from .signals import tile_block_dim
 

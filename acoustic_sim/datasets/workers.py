@@ -21,7 +21,7 @@ import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 
-from .devices import cpu_cores, cuda_started, quiet_warp, resolve_device, warp_voice
+from ..devices import cpu_cores, cuda_started, quiet_warp, resolve_device, warp_voice
 
 # A worker's work: (its tasks, read lazily; its device; on_frames(n)) -> seconds by part.
 Work = Callable[[Iterable, str, Callable[[int], None]], dict]

@@ -106,8 +106,8 @@ def _write(tmp: Path, frames: ShardFrames, *, attrs: dict, range_m: np.ndarray, 
 
 def _rows(f: h5py.File, name: str, array: np.ndarray) -> h5py.Dataset:
     """A compressed dataset chunked by frame, its chunks compressed on every core (`chunks`)."""
+    from ..devices import cpu_cores
     from .chunks import write_rows
-    from .devices import cpu_cores
 
     dataset = f.create_dataset(name, shape=array.shape, dtype=array.dtype, chunks=(1, *array.shape[1:]), **COMPRESSION)
     write_rows(dataset, array, cpu_cores())

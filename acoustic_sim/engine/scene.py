@@ -10,7 +10,7 @@ import warp as wp
 
 from scenes import Scene
 
-from .user_warning import warn_user
+from ..user_warning import warn_user
 
 
 @dataclass

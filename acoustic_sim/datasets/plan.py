@@ -15,7 +15,7 @@ import numpy as np
 
 import scenes
 
-from .dataset import FORMAT_VERSION
+from .shards import FORMAT_VERSION
 from .suites import Suite
 
 FRAMES_PER_SHARD = 250  # default shard size: ~20 MB; enough shards to keep several workers busy

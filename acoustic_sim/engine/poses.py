@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..user_warning import warn_user
 from .kernels.lidar import POSE_TOLERANCE
 from .scene import warn_if_far
-from .user_warning import warn_user
 
 
 def check_poses(poses: np.ndarray) -> np.ndarray:

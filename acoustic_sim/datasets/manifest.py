@@ -9,9 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .dataset import FORMAT, FORMAT_VERSION
 from .physics import Physics, rig
 from .plan import ShardTask
+from .shards import FORMAT, FORMAT_VERSION
 from .suites import Suite
 
 
@@ -65,8 +65,8 @@ def write_card(folder: Path, manifest: dict) -> None:
     """README.md and card.png: what the dataset holds, how to read it, example frames."""
     import h5py
 
-    from .config import PolarGrid
-    from .render import render_examples
+    from ..config import PolarGrid
+    from ..render import render_examples
 
     examples, seen = [], set()
     for entry in manifest["shards"]:

@@ -9,9 +9,9 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from .air import air_absorption_db_per_m
-from .config import NOISE_CODES, NOISE_KINDS
-from .devices import device_calls
+from ..air import air_absorption_db_per_m
+from ..config import NOISE_CODES, NOISE_KINDS
+from ..devices import device_calls
 from .kernels import signals as kernels
 
 # Fractional-delay filter of a recorded echo: the fewest taps (of DELAY_TAPS_CHOICES) whose

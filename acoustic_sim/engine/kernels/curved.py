@@ -4,7 +4,7 @@ import warp as wp
 
 from .paths import BAFFLE_SLACK, SURFACE_STEP, lookup
 
-CURVED_SPHERE = wp.constant(0)  # curved surface kinds, as acoustic_sim.scene.CURVED_KINDS
+CURVED_SPHERE = wp.constant(0)  # curved surface kinds, as acoustic_sim.engine.scene.CURVED_KINDS
 CURVED_STEPS = wp.constant(24)  # fixed-point steps towards a curved surface's reflection point
 
 

@@ -26,12 +26,12 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from .dataset import FORMAT, FORMAT_VERSION, DatasetError, ShardFrames, read_attrs, verify_shard, write_shard
-from .devices import check_device_name, quiet_warp, resolve_device
+from ..devices import check_device_name, quiet_warp, resolve_device
 from .episode import prepare_episode, simulate_episode
 from .manifest import shard_entry, write_manifest
 from .physics import Physics, rig
 from .plan import ShardTask, plan
+from .shards import FORMAT, FORMAT_VERSION, DatasetError, ShardFrames, read_attrs, verify_shard, write_shard
 from .suites import Suite
 from .workers import LocalWorkers
 
@@ -161,7 +161,7 @@ def _add_episode(frames: ShardFrames, arrays: dict, episode, task: ShardTask) ->
 
 
 def _write_shard(task: ShardTask, frames: ShardFrames, records: list, nominal, device: str) -> None:
-    from . import __version__
+    from .. import __version__
 
     grid = nominal.processing.grid
     config = {"suite": task.suite, "variant": task.variant, "physics": task.physics, "sim": nominal.to_dict()}
