@@ -87,3 +87,58 @@ def test_the_test_set_scores_models_but_never_trains_them(tmp_path, device, caps
     assert "--set does not apply" in capsys.readouterr().err
     names = {s.name for suite in SUITES.values() for s in suite.scenarios}
     assert not names & set(FLOOR_PLANS)
+
+
+def test_the_test_set_is_made_resumed_and_repaired_as_generate_does(tmp_path, device, monkeypatch):
+    """Two 3-frame drives, one shard each, by generate's machinery: plan.json (its plan id in every
+    shard) and the card; a run killed while writing the second shard keeps the first, and the
+    rerun writes only the second; a shard with flipped bytes is moved aside and written again,
+    equal to the first; a rerun with other settings is refused."""
+    import h5py
+
+    import acoustic_sim.datasets.runner as runner
+    from acoustic_sim.datasets.shards import DatasetError, read_attrs
+    from learn.data import load_frames
+
+    out, real_write = tmp_path / "ce", runner.write_shard
+
+    def dying_write(path, frames, **kwargs):
+        if path.name == "shard-00001.h5":
+            raise KeyboardInterrupt
+        real_write(path, frames, **kwargs)
+
+    def make():
+        return generate_crossengine(out, frames=6, seed=1, device=device, progress=False, episode_frames=3)
+
+    monkeypatch.setattr(runner, "write_shard", dying_write)
+    with pytest.raises(KeyboardInterrupt):
+        make()
+    assert sorted(p.name for p in out.glob("shard-*")) == ["shard-00000.h5"]
+    first = (out / "shard-00000.h5").stat().st_mtime_ns
+    monkeypatch.setattr(runner, "write_shard", real_write)
+    summary = make()
+    assert (summary["shards_written"], summary["shards_skipped"]) == (1, 1)
+    assert (out / "shard-00000.h5").stat().st_mtime_ns == first
+    plan = json.loads((out / "plan.json").read_text())
+    assert plan["suite"] == "crossengine" and (plan["frames"], plan["shards"], plan["seed"]) == (6, 2, 1)
+    assert {read_attrs(p)["plan_id"] for p in out.glob("shard-*.h5")} == {plan["plan_id"]}
+    assert "never train" in (out / "README.md").read_text() and (out / "card.png").stat().st_size > 10_000
+    original = load_frames(out)
+    assert list(original.episode) == [0, 0, 0, 1, 1, 1]
+    assert [original.scenarios[k] for k in original.scenario] == ["l_room"] * 3 + ["t_room"] * 3
+
+    shard = out / "shard-00001.h5"
+    with h5py.File(shard, "r") as f:
+        chunk = f["energyscape"].id.get_chunk_info(0)
+    raw = bytearray(shard.read_bytes())
+    middle = chunk.byte_offset + chunk.size // 2
+    raw[middle : middle + 16] = bytes(255 - b for b in raw[middle : middle + 16])
+    shard.write_bytes(bytes(raw))
+    with pytest.warns(UserWarning, match="writing the shard again"):
+        summary = make()
+    assert summary["shards_written"] == 1 and (out / "shard-00001.h5.damaged").exists()
+    repaired = load_frames(out)
+    np.testing.assert_array_equal(repaired.energyscape, original.energyscape)
+    np.testing.assert_array_equal(repaired.label, original.label)
+    with pytest.raises(DatasetError, match="other settings"):
+        generate_crossengine(out, frames=6, seed=2, device=device, progress=False, episode_frames=3)

@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 
 import acoustic_sim.datasets.generate as gen
+import acoustic_sim.datasets.runner as runner
 import acoustic_sim.datasets.workers as workers
 from acoustic_sim.datasets.shards import FORMAT_VERSION, DatasetError, read_attrs
 from acoustic_sim.datasets.suites import SUITES, Physics, load_suite
@@ -91,7 +92,7 @@ def test_shards_open_with_plain_h5py(reference):
 def test_resume_after_a_kill_gives_the_same_dataset(reference, tmp_path, device, monkeypatch):
     """A run killed while writing its second shard leaves only the first under a final name;
     rerunning skips it and finishes with arrays identical to an uninterrupted run."""
-    real_write = gen.write_shard
+    real_write = runner.write_shard
 
     def dying_write(path, frames, **kwargs):
         if path.name == "shard-00001.h5":
@@ -99,12 +100,12 @@ def test_resume_after_a_kill_gives_the_same_dataset(reference, tmp_path, device,
             raise KeyboardInterrupt
         real_write(path, frames, **kwargs)
 
-    monkeypatch.setattr(gen, "write_shard", dying_write)
+    monkeypatch.setattr(runner, "write_shard", dying_write)
     with pytest.raises(KeyboardInterrupt):
         generate(tmp_path, device)
     assert sorted(p.name for p in tmp_path.glob("shard-*")) == ["shard-00000.h5", "shard-00001.h5.tmp"]
     first = (tmp_path / "shard-00000.h5").stat().st_mtime_ns
-    monkeypatch.setattr(gen, "write_shard", real_write)
+    monkeypatch.setattr(runner, "write_shard", real_write)
     summary = generate(tmp_path, device)
     assert summary["shards_skipped"] == 1 and summary["shards_written"] == 1
     assert (tmp_path / "shard-00000.h5").stat().st_mtime_ns == first
@@ -121,7 +122,7 @@ def test_overlapped_parts_change_nothing_but_the_time(reference, tmp_path, devic
     """Preparing the next episode and writing the last shard beside the rendering (the default)
     gives the same arrays as doing each part in turn, and the summary says where the time went."""
     events = []
-    real_prepare, real_write = gen.prepare_episode, gen.write_shard
+    real_prepare, real_write = gen.prepare_episode, runner.write_shard
 
     def prepare(episode, *args):
         events.append(("prepare", episode.index, threading.current_thread() is threading.main_thread()))
@@ -132,7 +133,7 @@ def test_overlapped_parts_change_nothing_but_the_time(reference, tmp_path, devic
         real_write(path, frames, **kwargs)
 
     monkeypatch.setattr(gen, "prepare_episode", prepare)
-    monkeypatch.setattr(gen, "write_shard", write)
+    monkeypatch.setattr(runner, "write_shard", write)
     overlapped = generate(tmp_path / "overlapped", device)
     assert events and not any(on_main for *_, on_main in events)  # all of it beside the rendering thread
     events.clear()
@@ -287,7 +288,7 @@ def test_a_refused_ray_connection_names_token_authentication(tmp_path, monkeypat
     else:
         monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
     with pytest.raises(ConnectionError) as caught:
-        gen._run_on_ray([], "10.0.0.1:6379", gpu=False, bar=None)
+        gen._run_on_ray([], gen.SuiteRenderer(), "10.0.0.1:6379", gpu=False, bar=None)
     assert ("RAY_AUTH_MODE=token" in str(caught.value)) == (mode != "token"), caught.value
 
 
@@ -310,7 +311,7 @@ def test_a_worker_takes_its_next_shard_only_during_the_last_episode_of_this_one(
         return real_simulate(ready, *args, **kwargs)
 
     monkeypatch.setattr(gen, "simulate_episode", simulate)
-    entries, _ = gen.run_tasks(taken(), device)
+    entries, _ = gen.run_tasks(taken(), gen.SuiteRenderer(), device)
     episodes = [e.index for t in tasks for e in t.episodes]
     assert events == [
         ("take", 0),

@@ -15,6 +15,7 @@ import h5py
 import numpy as np
 import pytest
 
+import acoustic_sim.datasets.folder as folder
 import acoustic_sim.datasets.generate as gen
 from acoustic_sim.datasets.shards import DatasetError, ShardFrames, verify_shard, write_shard
 from acoustic_sim.datasets.suites import SUITES, Physics
@@ -75,8 +76,8 @@ def test_a_damaged_shard_is_found_and_written_again(tmp_path, device):
 def test_two_runs_never_write_one_folder(tmp_path, device):
     """A lock held by a live process refuses a second run; a lock left by a dead one is taken over."""
     out = tmp_path / "l"
-    gen._check_plan_file(out, gen.plan(SUITE, out, frames=8, shards=1, seed=2), {"suite": "tiny"})  # as a run does
-    lock = out / gen.LOCK_FILE
+    folder.check_plan_file(out, gen.plan(SUITE, out, frames=8, shards=1, seed=2), {"suite": "tiny"})  # as a run does
+    lock = out / folder.LOCK_FILE
     lock.write_text(f"{os.getpid()} {os.uname().nodename}")
     with pytest.raises(DatasetError, match="another generate"):
         gen.generate(SUITE, out, frames=8, shards=1, seed=2, device=device, progress=False)
@@ -140,7 +141,7 @@ def test_workers_exit_when_the_parent_is_killed(tmp_path):
 _FAKE_OUT = None  # the folder fake_worker_share reports into (set before the fork, inherited)
 
 
-def fake_worker_share(tasks, device, on_frames, overlap):
+def fake_worker_share(tasks, device, on_frames, *, renderer, overlap):
     """Worker 0 fails on its first task; worker 1 works on for 2 s, then notes whether the lock is
     still held."""
     from acoustic_sim.datasets import workers
@@ -151,7 +152,7 @@ def fake_worker_share(tasks, device, on_frames, overlap):
         next(tasks, None)
         raise ValueError("boom in worker 0")
     time.sleep(2)
-    (_FAKE_OUT / "lock_held_at_worker_1_end").write_text(str((_FAKE_OUT / gen.LOCK_FILE).exists()))
+    (_FAKE_OUT / "lock_held_at_worker_1_end").write_text(str((_FAKE_OUT / folder.LOCK_FILE).exists()))
     return {}
 
 
@@ -174,7 +175,7 @@ def test_a_worker_error_stops_the_others_before_the_lock_is_released(tmp_path, m
     with pytest.raises(ValueError, match="boom in worker 0"):
         gen.generate(SUITE, _FAKE_OUT, frames=16, shards=2, seed=3, workers=2, device="cpu", progress=False)
     assert (_FAKE_OUT / "lock_held_at_worker_1_end").read_text() == "True"
-    assert not (_FAKE_OUT / gen.LOCK_FILE).exists() and not multiprocessing.active_children()
+    assert not (_FAKE_OUT / folder.LOCK_FILE).exists() and not multiprocessing.active_children()
 
 
 def test_a_refused_folder_leaves_no_worker_running(tmp_path):

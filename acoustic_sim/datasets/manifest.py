@@ -1,18 +1,36 @@
 """What a finished dataset says about itself: manifest.json (shards, scenarios, seeds, counts),
-README.md (the dataset card) and card.png (example frames)."""
+README.md (the dataset card) and card.png (example frames). The counts and the card's layout are
+every dataset's; what it was made with (rig, physics, another engine) its renderer says (`About`)."""
 
 from __future__ import annotations
 
 import json
 from collections import Counter
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .physics import Physics, rig
 from .plan import ShardTask
 from .shards import FORMAT, FORMAT_VERSION
-from .suites import Suite
+
+
+@dataclass(frozen=True)
+class FactTable:
+    """A table of a dataset card: the sentence above it, its (name, value) rows and its column heads."""
+
+    caption: str
+    rows: tuple[tuple[str, str], ...]
+    columns: tuple[str, str] = ("", "")
+
+
+@dataclass(frozen=True)
+class About:
+    """What a renderer says of one variant's dataset: fields for manifest.json (a `description`
+    at least) and the tables of facts on its card."""
+
+    fields: dict
+    tables: tuple[FactTable, ...] = ()
 
 
 def shard_entry(task: ShardTask) -> dict:
@@ -30,38 +48,34 @@ def shard_entry(task: ShardTask) -> dict:
     }
 
 
-def write_manifest(folder: Path, tasks: list[ShardTask], suite: Suite, meta: dict) -> Path:
-    """manifest.json (shards, scenarios, seeds, counts) and the dataset card of one variant."""
+def write_manifest(folder: Path, tasks: list[ShardTask], about: About) -> Path:
+    """manifest.json (shards, scenarios, seeds, counts, and `about`'s fields) and the dataset card
+    of one variant (its tasks, all written)."""
     entries = [shard_entry(t) for t in tasks]
     scenarios = Counter()
     for e in entries:
         scenarios.update(e["scenarios"])
-    variant = tasks[0].variant
     manifest = {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
         "plan_id": tasks[0].plan_id,
-        "suite": suite.name,
-        "variant": variant,
-        "description": suite.description,
-        "seed": meta["seed"],
+        "suite": tasks[0].suite["name"],
+        "variant": tasks[0].variant,
+        "seed": tasks[0].seed,
         "frames": sum(e["frames"] for e in entries),
         "episodes": sum(len(e["episodes"]) for e in entries),
         "scenarios": dict(scenarios),
-        "physics": tasks[0].physics,
-        "sim": rig(Physics(**tasks[0].physics), suite.settings).to_dict(),  # the rig before per-episode draws
-        "settings": list(suite.settings),
-        "shards": entries,
     }
+    manifest |= about.fields | {"shards": entries}
     path = folder / "manifest.json"
     tmp = path.with_name("manifest.json.tmp")
     tmp.write_text(json.dumps(manifest, indent=1))
     tmp.replace(path)
-    write_card(folder, manifest)
+    write_card(folder, manifest, about.tables)
     return path
 
 
-def write_card(folder: Path, manifest: dict) -> None:
+def write_card(folder: Path, manifest: dict, tables: tuple[FactTable, ...] = ()) -> None:
     """README.md and card.png: what the dataset holds, how to read it, example frames."""
     import h5py
 
@@ -83,8 +97,7 @@ def write_card(folder: Path, manifest: dict) -> None:
     render_examples(examples, PolarGrid(), folder / "card.png")
     title = manifest["suite"] + (f" / {manifest['variant']}" if manifest["variant"] else "")
     rows = "\n".join(f"| {name} | {count:,} |" for name, count in manifest["scenarios"].items())
-    physics = "\n".join(f"| {k} | {v} |" for k, v in manifest["physics"].items())
-    simulated = "\n".join(f"| {k} | {v} |" for k, v in _rig_facts(manifest["sim"], manifest.get("settings", [])))
+    facts = "".join(_table_text(table) for table in tables)
     text = f"""# Dataset: {title}
 
 {manifest["description"]}
@@ -98,23 +111,11 @@ rerunning the same command resumes or verifies it.
 | scenario | frames |
 |---|---|
 {rows}
-
-The rig as simulated (after every setting; per-episode draws below come on top):
-
-| | |
-|---|---|
-{simulated}
-
-Sensor physics of this variant (per-episode ranges are drawn per drive; `manifest.json` has the whole rig):
-
-| setting | value |
-|---|---|
-{physics}
-
+{facts}
 Each `shard-*.h5` holds `energyscape` (frame, range, azimuth) float16, `lidar/ranges`,
 `lidar/image` (the label), `pose`, `time`, `episode`, `scenario`, and the axes `range_m`,
-`azimuth_rad`; its attributes hold every config as JSON and one record per episode (scene,
-seed, SNR, temperature). Read it with h5py:
+`azimuth_rad`; its attributes hold every config as JSON and one record per episode (its scene,
+seed and draws). Read it with h5py:
 
 ```python
 import h5py
@@ -125,13 +126,32 @@ with h5py.File("{manifest["shards"][0]["file"]}") as f:
     (folder / "README.md").write_text(text)
 
 
-def _rig_facts(sim: dict, settings: list[str]) -> list[tuple[str, str]]:
-    """The rig's headline numbers for a dataset card, read from the rig itself (never from a suite's prose)."""
-    tracer, chirp, grid = sim["tracer"], sim["sonar"]["chirp"], sim["processing"]["grid"]
+def _table_text(table: FactTable) -> str:
+    head = "|" + "|".join(f" {c} " if c else " " for c in table.columns) + "|"
+    rows = "".join(f"| {name} | {value} |\n" for name, value in table.rows)
+    return f"\n{table.caption}\n\n{head}\n|---|---|\n{rows}"
+
+
+def rig_facts(sim: dict, settings: list[str]) -> tuple[tuple[str, str], ...]:
+    """Our engine's rig in headline numbers for a dataset card, read from the rig itself (`sim`:
+    `SimConfig.to_dict()`; never from a suite's prose): the tracer's, then `sensor_facts`."""
+    tracer = sim["tracer"]
     facts = [
         ("secondary bounces (max_bounces)", tracer["max_bounces"]),
         ("rays per ping", f"{tracer['ray_count']:,}"),
         ("edge and rough-surface scattering", "on" if tracer["scattering"] else "off"),
+        *sensor_facts(sim),
+    ]
+    if settings:
+        facts.append(("settings given", ", ".join(f"`{s}`" for s in settings)))
+    return tuple((k, str(v)) for k, v in facts)
+
+
+def sensor_facts(sim: dict) -> tuple[tuple[str, str], ...]:
+    """The call, the grid and the LiDAR of a rig (`sim`, as `SimConfig.to_dict()` or its sonar,
+    lidar and processing alone) in headline numbers for a dataset card."""
+    chirp, grid = sim["sonar"]["chirp"], sim["processing"]["grid"]
+    facts = [
         (
             "call",
             f"{chirp['start_frequency_hz'] / 1e3:g} -> {chirp['stop_frequency_hz'] / 1e3:g} kHz, "
@@ -144,6 +164,4 @@ def _rig_facts(sim: dict, settings: list[str]) -> list[tuple[str, str]]:
         ),
         ("LiDAR", f"{sim['lidar']['azimuth_count']:,} beams per scan, noise {sim['lidar']['noise']}"),
     ]
-    if settings:
-        facts.append(("settings given", ", ".join(f"`{s}`" for s in settings)))
-    return [(k, str(v)) for k, v in facts]
+    return tuple((k, str(v)) for k, v in facts)

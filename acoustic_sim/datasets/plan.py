@@ -36,7 +36,9 @@ class Episode:
 
 @dataclass(frozen=True)
 class ShardTask:
-    """Everything a worker needs to write one shard (picklable, JSON-able)."""
+    """Everything a worker needs to write one shard with its run's renderer (picklable,
+    JSON-able). `suite` is the suite's JSON (its `name` at least; another engine keeps its own
+    settings here), `physics` the variant's (empty where there is none)."""
 
     path: str
     variant: str
@@ -52,6 +54,11 @@ class ShardTask:
     @property
     def frame_count(self) -> int:
         return sum(e.frames for e in self.episodes)
+
+
+def plan_id(key: dict) -> str:
+    """The id of a run: a hash of everything that decides its arrays (`key`, JSON-able)."""
+    return hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
 def episode_seed(seed: int, suite_name: str, index: int) -> int:
@@ -103,7 +110,7 @@ def plan(
     key = {"suite": suite_json, "frames": frames, "shards": shards, "seed": seed, "format_version": FORMAT_VERSION}
     key["scenes_revision"] = scenes.REVISION
     key |= {"keep_signals": keep_signals, "keep_arrivals": keep_arrivals}
-    plan_id = hashlib.sha256(json.dumps(key, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    run_id = plan_id(key)
     bounds = np.linspace(0, len(episodes), shards + 1).round().astype(int)
     tasks = []
     for variant, physics in suite.variants.items():
@@ -114,7 +121,7 @@ def plan(
                     path=str(folder / f"shard-{s:05d}.h5"),
                     variant=variant,
                     shard=s,
-                    plan_id=plan_id,
+                    plan_id=run_id,
                     seed=seed,
                     suite=suite_json,
                     physics=physics.to_json(),

@@ -7,23 +7,30 @@ Nothing of our tracer or recorder is used, so a model scored here meets echoes i
 the like of: for scoring only, never for training, early stopping or choosing a threshold.
 Floor plans (L, T, U, corridor junctions, irregular halls) are the families of our `randomised`
 suite's empty rooms: what differs is the engine that makes their echoes.
+
+The set is written by `generate`'s machinery (`datasets.generate.make_dataset`): plan.json, the
+output lock, resuming, rewriting a damaged shard, the manifest and the dataset card are every
+dataset's. What is this module's own: the plan's episodes (`plan_crossengine`: one shard per
+drive) and the renderer that turns a drive into arrays (`CrossEngineRenderer`).
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
-import multiprocessing
 import time
-from concurrent.futures import ProcessPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
+import scenes
 from scenes import FLOOR_PLANS, floor_plan, polygon_room, trajectory
 
 from ..config import LidarConfig, ProcessingConfig, SonarConfig
+from ..datasets.generate import make_dataset
+from ..datasets.manifest import About, FactTable, sensor_facts
+from ..datasets.plan import Episode, ShardTask, plan_id
+from ..datasets.runner import ShardHeader
+from ..datasets.shards import FORMAT_VERSION
 from ..datasets.suites import DRIVE
 from ..extras import MissingExtra
 
@@ -33,6 +40,13 @@ SPEED_M_S = DRIVE["speed_m_s"]  # our robot's speed, as in every suite with one 
 DT_S = 0.1
 EPISODE_FRAMES = 100
 ENGINE = "pyroomacoustics image sources"
+SUITE = "crossengine"
+USE = "scoring only: never train, stop early or choose a threshold on this set"
+DESCRIPTION = (
+    "A test set from another engine: pyroomacoustics' image sources (order 4) in empty L, T, U, junction and "
+    "hall rooms, recorded by the eRTIS array and processed by our energyscape, with exact LiDAR truth from the "
+    "floor plan. For scoring only: never train, stop early or choose a threshold on it."
+)
 
 
 def _need_pyroomacoustics():
@@ -144,45 +158,113 @@ def planner_scene(room: Room):
     return polygon_room(room.plan, corners=np.asarray(room.corners), height=room.height_m)
 
 
-def simulate_episode(index: int, frames: int, seed: int, device: str) -> tuple[dict, dict]:
-    """Episode `index` of the test set: its room, drive, recordings, energyscapes and LiDAR truth."""
-    from ..devices import quiet_warp
-    from ..engine.beamform import energyscape
-    from ..engine.lidar import lidar_image
+@dataclass(frozen=True)
+class Drive:
+    """One episode's host half: its room, the robot's poses (N, 4, 4) and the generator its pings'
+    noise is drawn from (it goes on from where the room's draws stopped)."""
 
-    quiet_warp()  # a spawned worker starts its own Warp
-    episode_seed = int(np.random.default_rng([seed, index]).integers(2**31 - 1))
-    rng = np.random.default_rng(episode_seed)
-    room = draw_room(FLOOR_PLANS[index % len(FLOOR_PLANS)], rng)
-    poses = trajectory(
-        planner_scene(room),
-        frames=frames,
-        dt=DT_S,
-        speed=SPEED_M_S,
-        sensor_height=room.sensor_height_m,
-        seed=episode_seed,
-    )
-    sonar, lidar, processing = SonarConfig.ertis(), LidarConfig.hokuyo_ust20lx(), ProcessingConfig()
-    signals = np.stack([record_ping(room, pose, sonar, rng) for pose in poses])
-    ranges = scan_floor_plan(np.asarray(room.corners), poses, lidar)
-    arrays = {
-        "energyscape": energyscape(signals, sonar, processing, device=device),
-        "lidar_ranges": ranges,
-        "lidar_image": lidar_image(ranges, lidar, processing.grid),
-        "pose": poses,
-        "time": np.arange(frames) * DT_S,
-    }
-    record = {"index": index, "seed": episode_seed, "frames": frames, "scenario": room.plan} | asdict(room)
-    return arrays, record
+    episode: Episode
+    room: Room
+    poses: np.ndarray
+    rng: np.random.Generator
 
 
-def _settings(frames: int, seed: int) -> dict:
+class CrossEngineRenderer:
+    """Drives through `draw_room`'s rooms: pyroomacoustics records each ping (in place of our tracer
+    and recorder), our `energyscape` processes the recordings, the LiDAR truth is cut from the floor
+    plan (`scan_floor_plan`). A `datasets.runner.Renderer`."""
+
+    def prepare(self, task: ShardTask, episode: Episode) -> Drive:
+        rng = np.random.default_rng(episode.seed)
+        room = draw_room(episode.scenario_name, rng)
+        poses = trajectory(
+            planner_scene(room),
+            frames=episode.frames,
+            dt=DT_S,
+            speed=SPEED_M_S,
+            sensor_height=room.sensor_height_m,
+            seed=episode.seed,
+        )
+        return Drive(episode, room, poses, rng)
+
+    def render(self, task: ShardTask, drive: Drive, *, device: str, on_frames, seconds: dict) -> tuple[dict, dict]:
+        from ..engine.beamform import energyscape
+        from ..engine.lidar import lidar_image
+
+        sonar, lidar, processing = SonarConfig.ertis(), LidarConfig.hokuyo_ust20lx(), ProcessingConfig()
+        t0 = time.perf_counter()
+        signals = []
+        for pose in drive.poses:
+            signals.append(record_ping(drive.room, pose, sonar, drive.rng))
+            if on_frames:
+                on_frames(1)
+        image = energyscape(np.stack(signals), sonar, processing, device=device)
+        t1 = time.perf_counter()
+        ranges = scan_floor_plan(np.asarray(drive.room.corners), drive.poses, lidar)
+        seconds["sonar"] = seconds.get("sonar", 0.0) + t1 - t0
+        seconds["lidar"] = seconds.get("lidar", 0.0) + time.perf_counter() - t1
+        episode = drive.episode
+        arrays = {
+            "energyscape": image,
+            "lidar_ranges": ranges,
+            "lidar_image": lidar_image(ranges, lidar, processing.grid),
+            "pose": drive.poses,
+            "time": np.arange(episode.frames) * DT_S,
+        }
+        record = {"index": episode.index, "seed": episode.seed, "frames": episode.frames, "scenario": drive.room.plan}
+        return arrays, record | asdict(drive.room)
+
+    def shard_header(self, task: ShardTask) -> ShardHeader:
+        return ShardHeader(task.suite["config"], list(FLOOR_PLANS), ProcessingConfig().grid)
+
+    def describe(self, tasks: list[ShardTask]) -> About:
+        config = tasks[0].suite["config"]
+        engine = config["engine"]
+        echoes = (
+            f"{engine['name']} (version {engine['version']}) to order {engine['order']}, "
+            f"sampled at {engine['sample_rate_hz'] / 1e3:g} kHz"
+        )
+        rooms = "one per drive, drawn by `draw_room` (its episode record holds it: corners, reflections, SNR)"
+        rows = (("echoes", echoes), ("room", rooms), *sensor_facts(config["sim"]))
+        caption = "The rig (another engine's echoes; our array, call, processing and LiDAR):"
+        return About(
+            {"description": DESCRIPTION, "use": USE, "engine": engine, "sim": config["sim"]},
+            (FactTable(caption, rows),),
+        )
+
+
+def _settings(frames: int, seed: int, episode_frames: int) -> dict:
     pra = _need_pyroomacoustics()
     rig = {"lidar": asdict(LidarConfig.hokuyo_ust20lx()), "sonar": asdict(SonarConfig.ertis())}
     rig["processing"] = asdict(ProcessingConfig())
     engine = {"name": ENGINE, "version": pra.__version__, "order": IMAGE_ORDER, "sample_rate_hz": SAMPLE_RATE_HZ}
-    engine |= {"speed_m_s": SPEED_M_S, "dt_s": DT_S, "episode_frames": EPISODE_FRAMES, "plans": FLOOR_PLANS}
+    engine |= {"speed_m_s": SPEED_M_S, "dt_s": DT_S, "episode_frames": episode_frames, "plans": FLOOR_PLANS}
     return {"frames": frames, "seed": seed, "engine": engine, "sim": rig}
+
+
+def plan_crossengine(
+    out: str | Path, *, frames: int, seed: int = 0, episode_frames: int = EPISODE_FRAMES
+) -> list[ShardTask]:
+    """The test set's shard tasks: one per drive of `episode_frames` frames (the last one shorter),
+    drive i in a room of the floor-plan family i mod 5, each drive seeded from (`seed`, i)."""
+    if frames < 1 or episode_frames < 1:
+        raise ValueError(f"frames and episode_frames must be >= 1, got {frames} and {episode_frames}")
+    config = _settings(frames, seed, episode_frames)
+    run_id = plan_id(config | {"format_version": FORMAT_VERSION, "scenes_revision": scenes.REVISION})
+    suite = {"name": SUITE, "config": config}
+    tasks = []
+    for i, start in enumerate(range(0, frames, episode_frames)):
+        kind = i % len(FLOOR_PLANS)
+        episode_seed = int(np.random.default_rng([seed, i]).integers(2**31 - 1))
+        length = min(episode_frames, frames - start)
+        drive = Episode(i, kind, FLOOR_PLANS[kind], "polygon_room", {"plan": FLOOR_PLANS[kind]}, length, episode_seed)
+        path = str(Path(out) / f"shard-{i:05d}.h5")
+        tasks.append(
+            ShardTask(
+                path=path, variant="", shard=i, plan_id=run_id, seed=seed, suite=suite, physics={}, episodes=(drive,)
+            )
+        )
+    return tasks
 
 
 def generate_crossengine(
@@ -193,68 +275,14 @@ def generate_crossengine(
     device: str = "cpu",
     workers: int = 1,
     progress: bool = True,
+    episode_frames: int = EPISODE_FRAMES,
 ) -> dict:
-    """Write the crossengine test set into `out` (one shard per 100-frame episode, our shard
-    format, `manifest.json`); finished shards of the same settings are kept, so a killed run
-    resumes. Returns a summary like `generate`'s."""
-    from tqdm.auto import tqdm
-
-    from .. import __version__
-    from ..datasets.generate import output_lock
-    from ..datasets.shards import FORMAT, FORMAT_VERSION, ShardFrames, read_attrs, verify_shard, write_shard
-    from ..devices import resolve_device
-
-    if frames < 1 or workers < 1:
-        raise ValueError(f"frames and workers must be >= 1, got {frames} and {workers}")
-    t0, out = time.perf_counter(), Path(out)
-    settings = _settings(frames, seed)
-    plan_id = hashlib.sha256(json.dumps(settings | {"format_version": FORMAT_VERSION}).encode()).hexdigest()[:16]
-    lengths = [min(EPISODE_FRAMES, frames - start) for start in range(0, frames, EPISODE_FRAMES)]
-    paths = [out / f"shard-{i:05d}.h5" for i in range(len(lengths))]
-    grid = ProcessingConfig().grid
-    device = resolve_device(device)
-    out.mkdir(parents=True, exist_ok=True)
-    with output_lock(out):
-        todo = []
-        for i, path in enumerate(paths):
-            if path.exists():
-                if read_attrs(path).get("plan_id") != plan_id:
-                    raise ValueError(f"{path} belongs to another run; use another --out or remove that folder")
-                verify_shard(path)
-                continue
-            todo.append(i)
-        bar = tqdm(total=frames, initial=frames - sum(lengths[i] for i in todo), unit="frame", disable=not progress)
-        bar.set_description("crossengine")
-        context = multiprocessing.get_context("spawn")  # the parent has started Warp (and CUDA): never fork it
-        with ProcessPoolExecutor(workers, mp_context=context) as pool:
-            jobs = {i: pool.submit(simulate_episode, i, lengths[i], seed, device) for i in todo}
-            for i, job in jobs.items():
-                arrays, record = job.result()
-                shard = ShardFrames()
-                for key in ("energyscape", "lidar_ranges", "lidar_image", "pose", "time"):
-                    getattr(shard, key).append(arrays[key])
-                shard.episode.append(np.full(lengths[i], i))
-                shard.scenario.append(np.full(lengths[i], FLOOR_PLANS.index(record["scenario"])))
-                attrs = {"suite": "crossengine", "variant": "", "shard": i, "plan_id": plan_id, "seed": seed}
-                attrs |= {"device": device, "package_version": __version__, "created": time.strftime("%FT%T%z")}
-                attrs |= {"config": settings, "episodes": [record], "scenarios": list(FLOOR_PLANS)}
-                write_shard(paths[i], shard, attrs=attrs, range_m=grid.range_m, azimuth_rad=grid.azimuth_rad)
-                bar.update(lengths[i])
-        bar.close()
-    manifest = {"format": FORMAT, "suite": "crossengine", "variant": "", "plan_id": plan_id, "seed": seed}
-    manifest |= {"frames": frames, "shards": [p.name for p in paths], "engine": settings["engine"]}
-    manifest["use"] = "scoring only: never train, stop early or choose a threshold on this set"
-    (out / "manifest.json").write_text(json.dumps(manifest, indent=1))
-    seconds = time.perf_counter() - t0
-    made = sum(lengths[i] for i in todo)
-    return {
-        "suite": "crossengine",
-        "out": str(out),
-        "frames": frames,
-        "shards": len(paths),
-        "shards_written": len(todo),
-        "shards_skipped": len(paths) - len(todo),
-        "seconds": seconds,
-        "frames_per_s": made / seconds if made else 0.0,
-        "devices": [device],
-    }
+    """Write (or finish) the crossengine test set in `out` with generate's machinery
+    (`make_dataset`: plan.json, lock, resume, repair of damaged shards, manifest.json with its
+    `use`, and the dataset card); returns the same summary as `generate`."""
+    tasks = plan_crossengine(out, frames=frames, seed=seed, episode_frames=episode_frames)
+    meta = {"suite": SUITE, "frames": frames, "shards": len(tasks), "seed": seed}
+    meta |= {"engine": tasks[0].suite["config"]["engine"], "use": USE}
+    return make_dataset(
+        tasks, CrossEngineRenderer(), out, plan_meta=meta, device=device, workers=workers, progress=progress
+    )

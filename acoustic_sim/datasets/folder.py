@@ -1,0 +1,112 @@
+"""The dataset folder a run writes into: `plan.json` says which run it holds (a rerun with other
+settings is refused, never mixed in), `.generate.lock` keeps one writer at a time, and a shard
+counts as done only if it belongs to the plan and passes its checksums (a damaged one is moved
+aside and written again). Every engine's datasets share these rules (`generate.make_dataset`)."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import socket
+import warnings
+from pathlib import Path
+
+from .plan import ShardTask
+from .shards import FORMAT, FORMAT_VERSION, DatasetError, read_attrs, verify_shard
+
+PLAN_FILE = "plan.json"
+LOCK_FILE = ".generate.lock"  # "pid host" of the run writing the folder
+
+
+def check_plan_file(out: Path, tasks: list[ShardTask], meta: dict) -> None:
+    """Write out/plan.json (the plan id and `meta`), or check that an existing one describes the
+    same run; a folder with other files and no plan.json is refused, untouched."""
+    path = out / PLAN_FILE
+    if path.exists():
+        try:
+            old = json.loads(path.read_text())
+        except json.JSONDecodeError:
+            raise DatasetError(f"{path} is not valid JSON; is {out} a sonar2lidar dataset folder?") from None
+        if old.get("format") != FORMAT:
+            raise DatasetError(f"{path} is not a {FORMAT} plan; choose another --out")
+        if old.get("plan_id") != tasks[0].plan_id:
+            raise DatasetError(
+                f"{out} holds a run with other settings (plan {old.get('plan_id')}, suite {old.get('suite')!r}, "
+                f"frames {old.get('frames')}, shards {old.get('shards')}, seed {old.get('seed')}); "
+                "rerun with those settings to resume it, or use another --out"
+            )
+        return
+    if out.exists() and not out.is_dir():
+        raise DatasetError(f"--out {out} is a file; give a folder for the dataset")
+    if out.is_dir() and any(out.iterdir()):
+        raise DatasetError(
+            f"--out {out} holds other files and no {PLAN_FILE}: it is not a dataset folder, and nothing in it "
+            "will be overwritten; choose an empty or new folder"
+        )
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(PLAN_FILE + ".tmp")
+    tmp.write_text(
+        json.dumps({"format": FORMAT, "format_version": FORMAT_VERSION, "plan_id": tasks[0].plan_id} | meta, indent=1)
+    )
+    tmp.replace(path)
+
+
+@contextlib.contextmanager
+def output_lock(out: Path):
+    """Hold `out`/.generate.lock while writing, so two runs never write the same shards. A lock
+    left by a run that died on this host is taken over; a live one is refused."""
+    path = out / LOCK_FILE
+    me = f"{os.getpid()} {socket.gethostname()}"
+    for _ in range(2):
+        try:
+            fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+            break
+        except FileExistsError:
+            pid, _, host = path.read_text(errors="replace").strip().partition(" ")
+            if host != socket.gethostname() or _alive(pid):
+                raise DatasetError(
+                    f"another generate (pid {pid} on {host or '?'}) is writing {out}; wait for it, or delete "
+                    f"{path} if it is no longer running"
+                ) from None
+            path.unlink(missing_ok=True)  # its writer is gone
+    else:
+        raise DatasetError(f"could not take the lock {path}")
+    with os.fdopen(fd, "w") as f:
+        f.write(me)
+    try:
+        yield
+    finally:
+        path.unlink(missing_ok=True)
+
+
+def _alive(pid: str) -> bool:
+    try:
+        os.kill(int(pid), 0)
+    except (ValueError, ProcessLookupError):
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def is_complete(task: ShardTask) -> bool:
+    """Whether the task's shard exists, belongs to this plan and passes its checksums. A shard of
+    this plan that fails them is moved aside (`.damaged`) and counted as not done."""
+    path = Path(task.path)
+    if not path.exists():
+        return False
+    attrs = read_attrs(path)  # raises DatasetError for foreign, truncated or other-version files
+    if attrs.get("plan_id") != task.plan_id or int(attrs["frame_count"]) != task.frame_count:
+        raise DatasetError(
+            f"{path} belongs to another run (plan {attrs.get('plan_id')}, not {task.plan_id}); "
+            "use another --out or remove that folder"
+        )
+    try:
+        verify_shard(path)
+    except DatasetError as err:
+        damaged = path.with_name(path.name + ".damaged")
+        os.replace(path, damaged)
+        warnings.warn(f"{err}; moved it to {damaged.name} and writing the shard again", stacklevel=2)
+        return False
+    return True
