@@ -7,12 +7,15 @@ of every ray, the material's scattered share of the ray's energy goes to the arr
 Lambert lobe if nothing is in the way; a band of half a wavelength along sharp edges scatters
 everything it reflects, a simple stand-in for edge diffraction that makes edges and corners
 echo.
+
+PathTracer batches the pings and keeps their buffers; `path_stages` launches the kernels of a batch.
 """
 
 from __future__ import annotations
 
 import warnings
 from collections import deque
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -33,9 +36,9 @@ from .echoes import (
     TraceBuffers,
     concatenate,
 )
-from .kernels import curved as curved_kernels
 from .kernels import lidar as lidar_kernels
 from .kernels import paths as kernels
+from .path_stages import BatchStages, TracerInputs, reset_tables
 from .poses import check_poses, raise_for_bad_poses, warn_poses_behind
 from .scene import warp_scene
 
@@ -259,144 +262,58 @@ class PathTracer:
         than `busy`) and the copies of its pose checks and overflow counts to the host."""
         n = len(index)
         ws = warp_scene(scene, self.device)
-        tracer = self.config
         b = self._buffers_for(n, size, ws.curved.count, busy)
-        specular, scattered, curved = b.specular, b.scattered, b.curved
         emitter = wp.vec3(*self.sonar.emitter_m)
         with wp.ScopedDevice(self.device):
-            if index[-1] - index[0] + 1 == n:  # a run of poses: a view of the uploaded ones
-                run = slice(int(index[0]), int(index[-1]) + 1)
-                batch_poses, batch_inverse = poses.poses[run], poses.inverse[run]
-            else:  # pings traced again (rare): gathered on the host
-                gathered = poses.host[index]
-                batch_poses = wp.array(gathered.astype(np.float32), dtype=wp.mat44)
-                batch_inverse = wp.array(np.linalg.inv(gathered).astype(np.float32), dtype=wp.mat44)
-            # Tables and counters start at zero (ranks at RANK_NONE), as the kernels expect; every
-            # other array is read only where a kernel of this batch wrote it.
-            for table in (b.key, specular.order, b.planes, b.image_table, b.overflow, b.ray_queries, scattered.count):
-                table.zero_()
-            b.image_rank.fill_(kernels.RANK_NONE)
+            batch_poses, batch_inverse = poses.select(index)
+            reset_tables(b)
             # Read by the host after the trace (`_checked`): a bad pose still raises before any of
             # its echoes are used.
             wp.launch(lidar_kernels.pose_error, dim=n, inputs=[ws.mesh.id, batch_poses], outputs=[b.errors, b.behind])
-            launch = device_calls(self.device)[2]  # trace_rows runs in worker threads too
-
-            def trace_rows(first: int, last: int) -> None:
-                """Every stage for pings first..last-1 (each ping has its own tables)."""
-
-                def rows(a: wp.array) -> wp.array:  # Warp cannot slice an array with an empty axis
-                    return a if 0 in a.shape else a[first:last]
-
-                poses_in, inverse_in = rows(batch_poses), rows(batch_inverse)
-                launch(
-                    kernels.discover_sequences,
-                    dim=(last - first) * tracer.ray_count,
-                    inputs=[
-                        ws.mesh.id,
-                        ws.face_plane,
-                        poses_in,
-                        inverse_in,
-                        emitter,
-                        self._ray_dirs,
-                        tracer.max_bounces + 1,
-                        ws.face_reflection,
-                        ws.face_scattering,
-                        ws.face_sharp_edges,
-                        ws.face_altitudes,
-                        self.edge_width_m,
-                        self._ray_energy,
-                        int(tracer.scattering),
-                    ],
-                    outputs=[
-                        rows(b.key),
-                        rows(scattered.count),
-                        rows(specular.order),
-                        rows(b.planes),
-                        rows(b.overflow),
-                        rows(scattered.source),
-                        rows(scattered.extra_length),
-                        rows(scattered.amplitude),
-                        rows(scattered.order),
-                        rows(b.ray_queries),
-                    ],
-                )
-                slots = (last - first, size)
-                launch(
-                    kernels.validate_sequences,
-                    dim=slots,
-                    inputs=[
-                        ws.mesh.id,
-                        ws.face_plane,
-                        ws.plane_normal,
-                        ws.plane_offset,
-                        ws.face_reflection,
-                        ws.face_scattering,
-                        poses_in,
-                        emitter,
-                        rows(b.key),
-                        rows(specular.order),
-                        rows(b.planes),
-                        ws.plane_curved,
-                        self._directivity,
-                    ],
-                    outputs=[
-                        rows(specular.amplitude),
-                        rows(specular.source),
-                        rows(specular.direction),
-                        rows(specular.point),
-                        rows(b.ray_queries),
-                    ],
-                )
-                images = [rows(specular.order), rows(specular.source), rows(b.key)]
-                launch(
-                    kernels.claim_images,
-                    dim=slots,
-                    inputs=[rows(specular.amplitude), *images],
-                    outputs=[rows(b.image_table), rows(b.image_rank)],
-                )
-                launch(
-                    kernels.drop_duplicate_images,
-                    dim=slots,
-                    inputs=[*images, rows(b.image_table), rows(b.image_rank)],
-                    outputs=[rows(specular.amplitude)],
-                )
-                if ws.curved.count:
-                    surfaces = ws.curved
-                    launch(
-                        curved_kernels.curved_echoes,
-                        dim=(last - first, surfaces.count),
-                        inputs=[
-                            ws.mesh.id,
-                            surfaces.kind,
-                            surfaces.centre,
-                            surfaces.radius,
-                            surfaces.z_range,
-                            surfaces.gain,
-                            poses_in,
-                            inverse_in,
-                            emitter,
-                            self._directivity,
-                        ],
-                        outputs=[
-                            rows(curved.source),
-                            rows(curved.extra_length),
-                            rows(curved.amplitude),
-                            rows(curved.order),
-                            rows(b.ray_queries),
-                        ],
-                    )
-
-            threads = min(self.cpu_threads, n) if self.device.is_cpu else 1
-            edges = np.linspace(0, n, threads + 1).round().astype(int).tolist()
-            if threads == 1:
-                trace_rows(0, n)
-            else:  # Warp runs a CPU launch on one core: slices of the batch in threads use them all
-                with ThreadPoolExecutor(threads) as pool:
-                    list(pool.map(trace_rows, edges[:-1], edges[1:]))  # list(): raise a thread's error here
-            for device_array, host_array in zip((b.errors, b.behind, b.overflow), b.host_checks, strict=True):
-                wp.copy(host_array, device_array)  # behind the trace, in stream order
-            ready = wp.get_stream(self.device).record_event() if self.device.is_cuda else None
+            stages = BatchStages(
+                scene=ws,
+                buffers=b,
+                poses=batch_poses,
+                inverse=batch_inverse,
+                size=size,
+                inputs=self._stage_inputs(emitter),
+                launch=device_calls(self.device)[2],  # the stages run in worker threads too
+            )
+            self._in_slices(stages.trace_rows, n)
+            ready = self._copy_checks_to_host(b)
         return QueuedBatch(index, size, b, ready)
+
+    def _stage_inputs(self, emitter: wp.vec3) -> TracerInputs:
+        """What every batch's stages read of this tracer (the rays as they are now)."""
+        tracer = self.config
+        return TracerInputs(
+            emitter=emitter,
+            ray_dirs=self._ray_dirs,
+            ray_energy=self._ray_energy,
+            directivity=self._directivity,
+            ray_count=tracer.ray_count,
+            max_order=tracer.max_bounces + 1,
+            edge_width_m=self.edge_width_m,
+            scattering=tracer.scattering,
+        )
+
+    def _in_slices(self, trace_rows: Callable[[int, int], None], n: int) -> None:
+        """Run trace_rows(first, last) over the n pings of a batch: in one call on a GPU, in
+        slices in threads on the CPU (Warp runs a CPU launch on one core)."""
+        threads = min(self.cpu_threads, n) if self.device.is_cpu else 1
+        edges = np.linspace(0, n, threads + 1).round().astype(int).tolist()
+        if threads == 1:
+            trace_rows(0, n)
+        else:
+            with ThreadPoolExecutor(threads) as pool:
+                list(pool.map(trace_rows, edges[:-1], edges[1:]))  # list(): raise a thread's error here
+
+    def _copy_checks_to_host(self, b: TraceBuffers) -> wp.Event | None:
+        """Queue the copies of a batch's pose checks and overflow counts to the host, behind its
+        trace in stream order; returns the event after them (None on the CPU)."""
+        for device_array, host_array in zip((b.errors, b.behind, b.overflow), b.host_checks, strict=True):
+            wp.copy(host_array, device_array)
+        return wp.get_stream(self.device).record_event() if self.device.is_cuda else None
 
     @staticmethod
     def _checked(batch: QueuedBatch, behind: np.ndarray | None = None) -> np.ndarray:
@@ -429,6 +346,19 @@ class PosesOnDevice:
                 wp.array(poses.astype(np.float32), dtype=wp.mat44),
                 wp.array(np.linalg.inv(poses).astype(np.float32), dtype=wp.mat44),
             )
+
+    def select(self, index: np.ndarray) -> tuple[wp.array, wp.array]:
+        """Poses and inverses of poses[index] on the device: a view of the uploaded ones for a run
+        of consecutive indices; else (pings traced again, rare) gathered on the host and uploaded
+        to the current device."""
+        if index[-1] - index[0] + 1 == len(index):
+            run = slice(int(index[0]), int(index[-1]) + 1)
+            return self.poses[run], self.inverse[run]
+        gathered = self.host[index]
+        return (
+            wp.array(gathered.astype(np.float32), dtype=wp.mat44),
+            wp.array(np.linalg.inv(gathered).astype(np.float32), dtype=wp.mat44),
+        )
 
 
 @dataclass

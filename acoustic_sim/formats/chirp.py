@@ -46,10 +46,11 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from ..config import ChirpConfig, LidarConfig
-from ..datasets.shards import COMPRESSION, ShardFrames, write_shard
+from ..config import ChirpConfig, LidarConfig, SonarConfig
+from ..datasets.shards import COMPRESSION
 from ..engine.lidar import lidar_image, ranges_to_points
 from ..extras import MissingExtra
+from .chirp_dataset import ImportedPings, write_card, write_manifest, write_shards
 from .mcap_export import frame_stamps
 
 FORMAT, FORMAT_VERSION = "chirp", "2.1"
@@ -275,6 +276,92 @@ def _check_chirp(path: Path) -> None:
         raise ValueError(f"{path} is not a CHIRP file (its format attribute is {kind!r}, not {FORMAT!r})")
 
 
+def _check_import(path: Path, out: Path, rig) -> None:
+    """Refuse, before reading any ping, an --out that is not empty, more than one elevation and a
+    file that is not CHIRP."""
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        raise ValueError(f"--out {out} is not an empty folder; choose a new one")
+    if np.ndim(rig.processing.elevation_deg):
+        raise ValueError("import writes one energyscape per ping: set processing.elevation_deg to one angle")
+    _check_chirp(path)
+
+
+def _microphones(data, call_rate_hz: float, path: Path) -> tuple[object, np.ndarray, float]:
+    """The file's reference sensor (else its first acoustic sensor), checked to hold signals, one
+    position per channel and our call's sample rate; returns it, the microphone positions
+    (channels, 3) [m] and the sample rate [Hz]."""
+    # Sensors are tested against None: chirppy's sensors have a length, so an empty one is falsy.
+    acoustic = data.sensors.get(str(data.reference_sensor))
+    if acoustic is None:
+        acoustic = next(iter(data.get_sensors_by_type("acoustic_sensor")), None)
+    if acoustic is None or acoustic.signals is None or acoustic.get_receiver_positions() is None:
+        raise ValueError(
+            f"{path} holds no microphone data (an acoustic_sensor with data/signals and "
+            "calibration/receiver_relative_translations)"
+        )
+    _, _, channels = acoustic.signals.shape
+    mics = np.asarray(acoustic.get_receiver_positions(), dtype=np.float64)
+    rate = float(acoustic.sample_rates)
+    if mics.shape != (channels, 3):
+        raise ValueError(f"{path}: {channels} microphone channels but positions of shape {mics.shape}")
+    if abs(rate - call_rate_hz) > 1e-6 * call_rate_hz:
+        raise ValueError(
+            f"{path}: the microphones were sampled at {rate:g} Hz, but our call is sampled at {call_rate_hz:g} Hz; "
+            f"give the recorded call with --set sonar.chirp.sample_rate_hz={rate:g} (and its frequencies)"
+        )
+    return acoustic, mics, rate
+
+
+def _ping_stamps(acoustic, path: Path) -> np.ndarray:
+    """Unix time of each ping [s], float64 (pings,), checked to increase."""
+    stamps = np.asarray(acoustic.get_timestamps(), dtype=np.float64)
+    if len(stamps) != acoustic.signals.shape[0] or not np.all(np.diff(stamps) > 0):
+        raise ValueError(f"{path}: {acoustic.name}'s timestamps are not one increasing time per ping")
+    return stamps
+
+
+def _recorded_sonar(sonar: SonarConfig, mics: np.ndarray, samples: int) -> SonarConfig:
+    """The rig's sonar with the file's microphones, taken as nominal (no gains or delays), and
+    record length."""
+    mic_rows = tuple(tuple(float(v) for v in row) for row in mics)
+    return dataclasses.replace(
+        sonar, microphones_m=mic_rows, microphone_gain=(), microphone_delay_s=(), record_samples=samples
+    )
+
+
+def _energyscapes(acoustic, sonar: SonarConfig, processing, *, device) -> np.ndarray:
+    """Our processing of every ping of the sensor, BLOCK pings at once: float16 (pings, R, A)."""
+    from ..engine.beamform import energyscape
+
+    count = acoustic.signals.shape[0]
+    energy = np.empty((count, *processing.grid.shape), np.float16)
+    for first in range(0, count, BLOCK):  # (ping, sample, mic) -> (ping, mic, sample)
+        block = np.asarray(acoustic.signals[first : first + BLOCK], dtype=np.float32).transpose(0, 2, 1)
+        energy[first : first + len(block)] = energyscape(block, sonar, processing, device=device)
+    return energy
+
+
+def _lidar_truth(
+    data, acoustic, planar: LidarConfig, count: int, plane_tolerance_m: float, path: Path
+) -> tuple[np.ndarray, str | None]:
+    """The 2D scan of each ping (`planar_scan` of the first LiDAR's points moved into the sonar's
+    frame), float32 (count, beams) [m], and the LiDAR's name; all inf and None without one."""
+    ranges = np.full((count, planar.azimuth_count), np.inf, np.float32)
+    scanner = next(iter(data.get_sensors_by_type("lidar")), None)
+    if scanner is None:
+        return ranges, None
+    move = data.get_transform(scanner.name, acoustic.name)  # LiDAR frame -> sonar frame
+    for i in range(count):
+        xyz = np.asarray(scanner.at_reference_capture(i)["points"], dtype=np.float64)[:, :3]
+        ranges[i] = planar_scan(xyz @ move[:3, :3].T + move[:3, 3], planar, plane_tolerance_m=plane_tolerance_m)
+    if not np.isfinite(ranges).any():
+        raise ValueError(
+            f"{path}: no point of {scanner.name} lies within {plane_tolerance_m:g} m of the sonar's plane; "
+            "widen --plane-tolerance"
+        )
+    return ranges, scanner.name
+
+
 def import_chirp(
     path: str | Path,
     out: str | Path,
@@ -296,132 +383,37 @@ def import_chirp(
             points make the 2D scan [m].
         episode_gap_s: A longer pause between pings starts a new episode [s].
     """
-    from .. import __version__
-    from ..engine.beamform import energyscape
-    from ..render import render_examples
-
     t0, path, out = time.perf_counter(), Path(path), Path(out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise ValueError(f"--out {out} is not an empty folder; choose a new one")
-    if np.ndim(rig.processing.elevation_deg):
-        raise ValueError("import writes one energyscape per ping: set processing.elevation_deg to one angle")
-    _check_chirp(path)
+    _check_import(path, out, rig)
     chirppy = _chirppy()
     with chirppy.CHIRPDataset(path) as data:
-        # Sensors are tested against None: chirppy's sensors have a length, so an empty one is falsy.
-        acoustic = data.sensors.get(str(data.reference_sensor))
-        if acoustic is None:
-            acoustic = next(iter(data.get_sensors_by_type("acoustic_sensor")), None)
-        if acoustic is None or acoustic.signals is None or acoustic.get_receiver_positions() is None:
-            raise ValueError(
-                f"{path} holds no microphone data (an acoustic_sensor with data/signals and "
-                "calibration/receiver_relative_translations)"
-            )
-        count, samples, channels = acoustic.signals.shape
-        mics = np.asarray(acoustic.get_receiver_positions(), dtype=np.float64)
-        rate, call_rate = float(acoustic.sample_rates), rig.sonar.chirp.sample_rate_hz
-        if mics.shape != (channels, 3):
-            raise ValueError(f"{path}: {channels} microphone channels but positions of shape {mics.shape}")
-        if abs(rate - call_rate) > 1e-6 * call_rate:
-            raise ValueError(
-                f"{path}: the microphones were sampled at {rate:g} Hz, but our call is sampled at {call_rate:g} Hz; "
-                f"give the recorded call with --set sonar.chirp.sample_rate_hz={rate:g} (and its frequencies)"
-            )
+        acoustic, mics, rate = _microphones(data, rig.sonar.chirp.sample_rate_hz, path)
         _warn_if_other_call(data, rig.sonar.chirp, path)
-        stamps = np.asarray(acoustic.get_timestamps(), dtype=np.float64)
-        if len(stamps) != count or not np.all(np.diff(stamps) > 0):
-            raise ValueError(f"{path}: {acoustic.name}'s timestamps are not one increasing time per ping")
-        mic_rows = tuple(tuple(float(v) for v in row) for row in mics)
-        sonar = dataclasses.replace(
-            rig.sonar, microphones_m=mic_rows, microphone_gain=(), microphone_delay_s=(), record_samples=samples
-        )
-        energy = np.empty((count, *rig.processing.grid.shape), np.float16)
-        for first in range(0, count, BLOCK):  # (ping, sample, mic) -> (ping, mic, sample)
-            block = np.asarray(acoustic.signals[first : first + BLOCK], dtype=np.float32).transpose(0, 2, 1)
-            energy[first : first + len(block)] = energyscape(block, sonar, rig.processing, device=device)
+        stamps = _ping_stamps(acoustic, path)
+        sonar = _recorded_sonar(rig.sonar, mics, acoustic.signals.shape[1])
+        energy = _energyscapes(acoustic, sonar, rig.processing, device=device)
         planar = dataclasses.replace(rig.lidar, elevation_min_deg=0.0, elevation_max_deg=0.0, elevation_count=1)
-        ranges = np.full((count, planar.azimuth_count), np.inf, np.float32)
-        scanner = next(iter(data.get_sensors_by_type("lidar")), None)
-        lidar_name = None if scanner is None else scanner.name
-        if scanner is not None:
-            move = data.get_transform(scanner.name, acoustic.name)  # LiDAR frame -> sonar frame
-            for i in range(count):
-                xyz = np.asarray(scanner.at_reference_capture(i)["points"], dtype=np.float64)[:, :3]
-                ranges[i] = planar_scan(xyz @ move[:3, :3].T + move[:3, 3], planar, plane_tolerance_m=plane_tolerance_m)
-            if not np.isfinite(ranges).any():
-                raise ValueError(
-                    f"{path}: no point of {scanner.name} lies within {plane_tolerance_m:g} m of the sonar's plane; "
-                    "widen --plane-tolerance"
-                )
-        poses, pose_source = _recorded_poses(data, acoustic, count)
+        ranges, lidar_name = _lidar_truth(data, acoustic, planar, len(stamps), plane_tolerance_m, path)
+        poses, pose_source = _recorded_poses(data, acoustic, len(stamps))
     rig = dataclasses.replace(rig, sonar=sonar, lidar=planar)
-    episode = episodes_of(stamps, episode_gap_s)
-    grid, name = rig.processing.grid, path.stem
+    grid, scenario = rig.processing.grid, path.stem
     options = {"plane_tolerance_m": plane_tolerance_m, "episode_gap_s": episode_gap_s}
-    source = {"file": path.name, "bytes": path.stat().st_size, "pings": count, "first_unix_s": stamps[0]}
+    source = {"file": path.name, "bytes": path.stat().st_size, "pings": len(stamps), "first_unix_s": stamps[0]}
     plan_id = hashlib.sha256(json.dumps([source, options, rig.to_dict()], default=str).encode()).hexdigest()[:16]
-    labels = lidar_image(ranges, planar, grid)
-    out.mkdir(parents=True, exist_ok=True)
-    entries = []
-    for k in range(episode[-1] + 1):
-        frames = np.flatnonzero(episode == k)
-        shard = ShardFrames(
-            energyscape=[energy[frames]],
-            lidar_ranges=[ranges[frames]],
-            lidar_image=[labels[frames]],
-            pose=[poses[frames]],
-            time=[stamps[frames] - stamps[frames[0]]],
-            episode=[np.full(len(frames), k)],
-            scenario=[np.zeros(len(frames))],
-        )
-        record = {"index": k, "frames": len(frames), "start_unix_s": float(stamps[frames[0]])}
-        attrs = {
-            "suite": "chirp",
-            "variant": "",
-            "shard": k,
-            "plan_id": plan_id,
-            "package_version": __version__,
-            "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-            "config": {"source": source, "import": options, "poses": pose_source, "sim": rig.to_dict()},
-            "episodes": [record],
-            "scenarios": [name],
-        }
-        file = out / f"shard-{k:05d}.h5"
-        write_shard(file, shard, attrs=attrs, range_m=grid.range_m, azimuth_rad=grid.azimuth_rad)
-        entries.append({"file": file.name, "frames": len(frames), "episodes": [k], "bytes": file.stat().st_size})
-    returns = np.isfinite(ranges).sum(axis=1)
-    manifest = {
-        "format": "sonar2lidar-dataset",
-        "format_version": 1,
-        "plan_id": plan_id,
-        "suite": "chirp",
-        "variant": "",
-        "description": f"the CHIRP recording {path.name}, imported",
-        "frames": count,
-        "episodes": len(entries),
-        "scenarios": {name: count},
-        "source": source,
-        "import": options | {"lidar": lidar_name, "poses": pose_source},
-        "sim": rig.to_dict(),
-        "shards": entries,
-    }
-    (out / "manifest.json").write_text(json.dumps(manifest, indent=1, default=float))
-    shown = [(f"ping {i}", energy[i], labels[i]) for i in np.unique(np.linspace(0, count - 1, 3).round().astype(int))]
-    render_examples(shown, grid, out / "card.png")
-    (out / "README.md").write_text(
-        f"# Dataset: the CHIRP recording {path.name}\n\n{count:,} pings in {len(entries)} episodes (a pause over "
-        f"{episode_gap_s:g} s starts one), imported by `python -m acoustic_sim import --format chirp`: energyscapes "
-        f"by our processing with the file's {channels} microphones at {rate / 1e3:g} kHz and our call; LiDAR labels "
-        f"from the points of {lidar_name or 'no LiDAR'} within {plane_tolerance_m:g} m of the sonar's "
-        f"plane ({returns.mean():.0f} returns per scan on average); poses: {pose_source}.\n\n"
-        "![pings: energyscape (dB) with the LiDAR label on top](card.png)\n"
+    config = {"source": source, "import": options, "poses": pose_source, "sim": rig.to_dict()}
+    pings = ImportedPings(
+        stamps, energy, ranges, lidar_image(ranges, planar, grid), poses, episodes_of(stamps, episode_gap_s)
     )
+    out.mkdir(parents=True, exist_ok=True)
+    entries = write_shards(out, pings, grid, config, plan_id=plan_id, scenario=scenario)
+    write_manifest(out, entries, config, plan_id=plan_id, scenario=scenario, lidar=lidar_name)
+    write_card(out, pings, grid, config, lidar=lidar_name, microphones=len(mics), rate_hz=rate)
     return {
         "out": str(out),
-        "pings": count,
+        "pings": len(stamps),
         "episodes": len(entries),
         "lidar": lidar_name,
-        "returns_per_scan": float(returns.mean()),
+        "returns_per_scan": float(np.isfinite(ranges).sum(axis=1).mean()),
         "poses": pose_source,
         "seconds": time.perf_counter() - t0,
     }
