@@ -2,7 +2,8 @@
 # `make test` runs the test suite. Both create the virtualenv on first use.
 VENV ?= .venv
 PY := $(VENV)/bin/python
-# CPU build of torch; on a GPU machine use e.g. TORCH_SPEC="torch" (CUDA build).
+# CPU build of torch (the learn extra), installed first so that the extra finds it; on a GPU
+# machine use e.g. TORCH_SPEC="torch" (CUDA build).
 TORCH_SPEC ?= torch==2.13.0
 OUT ?= out
 DEVICE ?= cpu
@@ -20,7 +21,7 @@ $(VENV)/.installed: pyproject.toml
 	@$(MAKE) --no-print-directory system-deps
 	python3 -m venv $(VENV)
 	$(PY) -m pip install -q "$(TORCH_SPEC)"
-	$(PY) -m pip install -q -e ".[test]"
+	$(PY) -m pip install -q -e ".[learn,test]"
 	touch $@
 
 # Open3D (a test-only reference) needs libusb at import time.

@@ -100,6 +100,13 @@ def test_learn_reads_shards_and_never_imports_the_simulator():
             assert not tops & {"warp", "acoustic_sim", "scenes"}, (name, tops)
 
 
+def test_simulator_and_scenes_never_import_torch():
+    """torch is the `[learn]` extra: simulating, generating and beamforming work without it."""
+    for name, path in modules().items():
+        if not name.startswith("learn"):
+            assert "torch" not in {m.split(".")[0] for m in imports(name, path, modules())}, name
+
+
 def test_kernels_depend_on_warp_alone():
     stdlib = set(sys.stdlib_module_names)
     for name, path in modules().items():

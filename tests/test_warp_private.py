@@ -1,0 +1,75 @@
+"""The parts of Warp outside its public API that the simulator relies on, named one by one, so that
+a Warp upgrade fails here with a clear message rather than deep in a kernel or as a silent slowdown
+(pyproject.toml pins warp-lang to the tested minor version; this says what to check before moving it).
+
+- `warp._src.context.runtime` (read by `acoustic_sim.devices`): whether Warp has started CUDA, which
+  decides whether worker processes may be forked. Where it is gone, workers are always spawned.
+- C++ of Warp's native tile code called from `wp.func_native` snippets (the recorder's row kernel,
+  acoustic_sim/engine/kernels/signals.py): the block barrier, atomic adds into a shared tile and tile
+  coordinates. tests/test_record.py compiles and runs them; this test names them.
+"""
+
+from __future__ import annotations
+
+import ast
+import importlib
+import re
+from pathlib import Path
+
+import warp as wp
+
+from acoustic_sim import devices
+
+ROOT = Path(__file__).resolve().parents[1]
+NATIVE_HEADERS = Path(wp.__file__).parent / "native"
+
+NATIVE = {
+    "WP_TILE_SYNC": r"#define WP_TILE_SYNC\b",  # the block's barrier, on CUDA and on CPU blocks
+    "wp::tile_atomic_add_value": r"\btile_atomic_add_value\(T\* ptr, T value\)",
+    "wp::tile_coord": r"\binline auto tile_coord\(int i\)",
+    # a shared tile's storage, read and written at a coordinate: row.data(coord)
+    ".data": r"struct Storage \{.*?T& operator\(\)\(typename Layout::Coord c\).*?Storage data;",
+}
+"""Native name used in a snippet -> the definition it needs in Warp's headers (a regex)."""
+
+
+def native_snippets() -> list[str]:
+    """The C++ source of every `wp.func_native(...)` in the simulator."""
+    found = []
+    for path in sorted((ROOT / "acoustic_sim").rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Call) and getattr(node.func, "attr", "") == "func_native":
+                found.append(ast.literal_eval(node.args[0]))
+    return found
+
+
+def test_every_native_name_in_our_snippets_is_listed_here():
+    """A new native call must be added to NATIVE (so that the check below covers it)."""
+    snippets = native_snippets()
+    assert len(snippets) >= 2, snippets
+    used = {name for snippet in snippets for name in re.findall(r"wp::\w+|\bWP_\w+|\.\w+(?=\()", snippet)}
+    assert used == set(NATIVE), f"native names in wp.func_native snippets: {sorted(used)}; listed: {sorted(NATIVE)}"
+
+
+def test_warp_native_headers_define_what_our_snippets_call():
+    headers = "\n".join(path.read_text() for path in sorted(NATIVE_HEADERS.glob("*.h")))
+    assert headers, f"Warp {wp.__version__} keeps no native headers in {NATIVE_HEADERS}"
+    missing = [name for name, pattern in NATIVE.items() if not re.search(pattern, headers, re.S)]
+    assert not missing, (
+        f"Warp {wp.__version__} no longer defines {missing} as acoustic_sim/engine/kernels/signals.py "
+        "calls them in wp.func_native: rewrite those snippets or keep the pinned warp-lang"
+    )
+
+
+def test_warp_runtime_is_where_devices_reads_it():
+    """After wp.init: warp._src.context.runtime exists and lists its CUDA devices (none on a CPU machine)."""
+    wp.init()
+    try:
+        runtime = importlib.import_module("warp._src.context").runtime
+    except (ImportError, AttributeError) as err:
+        raise AssertionError(
+            f"Warp {wp.__version__} moved its runtime ({err}): update acoustic_sim.devices._warp_runtime, "
+            "without which worker processes are always spawned"
+        ) from err
+    assert isinstance(runtime.cuda_devices, list)
+    assert devices._warp_runtime() is runtime
