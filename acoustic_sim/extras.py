@@ -1,4 +1,4 @@
-"""Optional extras (pip install -e ".[ros]", ".[chirp]", ".[test]"): the error when one is missing."""
+"""Optional extras (pip install ".[ros]", ".[chirp]", ".[crossengine]"): the error when one is missing."""
 
 
 class MissingExtra(ImportError):

@@ -7,7 +7,8 @@ import sys
 
 INSTALL_HINT = (
     'error: the learner needs PyTorch: pip install "sonar2lidar[learn]" '
-    '(in a clone: pip install ".[learn]"; for the CPU build, pip install torch==2.13.0 first)'
+    '(in a clone: pip install ".[learn]"; CPU only: first pip install torch==2.13.0 '
+    "--index-url https://download.pytorch.org/whl/cpu)"
 )
 
 

@@ -1,6 +1,6 @@
 """The `crossengine` test set: drives through empty polygon rooms whose echoes come from another
-engine, pyroomacoustics' image-source method (order 4; an optional extra, `pip install -e
-".[test]"`, never needed to simulate with ours), recorded by the eRTIS array and processed by our
+engine, pyroomacoustics' image-source method (order 4; an optional extra, `pip install
+".[crossengine]"`, never needed to simulate with ours), recorded by the eRTIS array and processed by our
 `energyscape` as a user's recordings would be, with exact LiDAR truth cut from the floor plan.
 
 Nothing of our tracer or recorder is used, so a model scored here meets echoes it has never seen
@@ -54,7 +54,7 @@ def _need_pyroomacoustics():
         import pyroomacoustics
     except ImportError:
         raise MissingExtra(
-            "the crossengine test set needs pyroomacoustics (an optional extra): pip install -e '.[test]'"
+            "the crossengine test set needs pyroomacoustics (an optional extra): pip install '.[crossengine]'"
         ) from None
     return pyroomacoustics
 
