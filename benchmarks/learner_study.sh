@@ -5,6 +5,7 @@
 set -euo pipefail
 W=${1:-study}; D=$W/data; L=$W/logs; mkdir -p $W/runs $L
 export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=2
+python benchmarks/provenance.py write "$L/provenance.json" --device cuda
 python benchmarks/bench_learn.py --device cuda --out $W/bench
 gen() { python -m acoustic_sim generate --suite "$1" --out "$D/$1" --workers 8 --device cuda:0 --quiet "${@:2}"; }
 gen paper
