@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# The learner study behind benchmarks/results/learner_h100/: generate every suite, time both
+# The learner study behind the superseded results of benchmarks/results/learner_h100/README.md (their
+# files are in the history, commit 54cfdaf): generate every suite, time both
 # networks, train the paper network and ours side by side, run the Table 2 and sim-to-real
 # studies, evaluate. About 10 minutes on one H100; usage: bash benchmarks/learner_study.sh [WORKDIR]
 set -euo pipefail
