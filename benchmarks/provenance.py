@@ -284,6 +284,54 @@ def markdown(prov: dict) -> str:
     )
 
 
+# A machine's absolute path: one of the roots where work folders, homes and caches live, with at
+# least one folder or file below it, not inside a longer path or a URL.
+MACHINE_PATH = re.compile(
+    r"(?<![\w.~/$-])/(?:root|tmp|work|home|Users|mnt|scratch|opt|srv|media|private|var/tmp|var/folders)"
+    r"(?:/[\w.+@%=-]+)+/?"
+)
+
+
+def machine_paths(text: str) -> list[str]:
+    """Every machine's absolute path in `text` (see MACHINE_PATH), in order."""
+    return [m.group(0) for m in MACHINE_PATH.finditer(text)]
+
+
+def relative_form(path: str) -> str:
+    """A machine path without the machine: the root and the work folder under it go (a home's user
+    too), so ROOT/w14/runs/a reads `runs/a` (ROOT: root, tmp, work...), home/USER/repo/learn/x.py reads
+    `learn/x.py`, and a lone tmp/ce500 reads `ce500`."""
+    parts = path.strip("/").split("/")
+    drop = 2 if parts[0] in ("home", "Users") or parts[0] == "var" else 1  # /home/<user>, /var/<kind>
+    drop += 1 if len(parts) > drop + 1 else 0  # the work folder, where something lies below it
+    return "/".join(parts[drop:]) + ("/" if path.endswith("/") else "")
+
+
+def strip_machine_paths(text: str) -> tuple[str, int]:
+    """`text` with every machine path in its relative form, and how many were replaced."""
+    return MACHINE_PATH.subn(lambda m: relative_form(m.group(0)), text)
+
+
+def tracked_text_files(root: Path = ROOT) -> list[Path]:
+    """Every file git tracks under `root` that reads as UTF-8 text (no NUL byte: PNGs, checkpoints and
+    HDF5 files are skipped)."""
+    listing = _run(["git", "ls-files", "-z"], root) or ""
+    found = []
+    for name in filter(None, listing.split("\0")):
+        path = root / name
+        if not path.is_file() or path.is_symlink():
+            continue
+        data = path.read_bytes()
+        if b"\0" in data:
+            continue
+        try:
+            data.decode()
+        except UnicodeDecodeError:
+            continue
+        found.append(path)
+    return found
+
+
 def relative(path: str | Path, start: str | Path | None = None) -> str:
     """`path` as a record should hold it: relative to `start` (default: the working folder), never a
     machine's absolute path."""
@@ -313,12 +361,25 @@ def main(argv: list[str] | None = None) -> None:
     write = sub.add_parser("write", help="write the provenance as JSON beside results a shell script made")
     write.add_argument("out", type=Path, help="the JSON file to write, e.g. RESULTS/provenance.json")
     write.add_argument("--device", default=None)
+    paths = sub.add_parser("paths", help="list tracked text files that hold a machine's absolute path")
+    paths.add_argument("--fix", action="store_true", help="rewrite each such path in its relative form")
     args = parser.parse_args(argv)
     if args.command == "source":
         record = write_source()
         print(f"{SOURCE_FILE.name}: commit {record['commit']}, {len(record['blobs'])} tracked files")
     elif args.command == "show":
         print(json.dumps(provenance(args.device or None), indent=1))
+    elif args.command == "paths":
+        total = 0
+        for path in tracked_text_files():
+            fixed, count = strip_machine_paths(path.read_bytes().decode())  # bytes: line endings kept
+            if count:
+                total += count
+                print(f"{path.relative_to(ROOT)}: {count}")
+                if args.fix:
+                    path.write_bytes(fixed.encode())
+        print(f"{total} machine paths{' rewritten' if args.fix else ''}")
+        raise SystemExit(1 if total and not args.fix else 0)
     else:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         write_json(args.out, {"what": "the provenance of the results beside this file"}, args.device or None)
