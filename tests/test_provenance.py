@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import zipfile
@@ -132,3 +133,58 @@ def test_training_records_no_machine_path(tiny_dataset, tmp_path: Path, monkeypa
     assert summary["out"] == "runs/a"
     assert checkpoint_report(run / "best.pt") == []
     assert machine_paths((run / "config.json").read_text() + (run / "summary.json").read_text()) == []
+
+
+# --- the README's figures and the results index ---------------------------------------------------
+
+INDEX = ROOT / "benchmarks" / "results" / "README.md"
+# Written by benchmarks/clean_clone_run.py, which the lead runs on the CPU machine: linked before it exists.
+AWAITING_RUN = {"benchmarks/results/clean_clone_cpu.md", "benchmarks/results/clean_clone_cpu.json"}
+LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)\)")
+
+
+def local_links(markdown: Path, root: Path = ROOT) -> list[str]:
+    """Repository paths (relative to `root`, normalised) of every markdown link and image in a file,
+    without web links and in-page anchors."""
+    found = []
+    for target in LINK.findall(markdown.read_text()):
+        target = target.split("#")[0]
+        if not target or "://" in target or target.startswith("mailto:"):
+            continue
+        found.append(os.path.relpath(os.path.normpath(markdown.parent / target), root))
+    return found
+
+
+def unindexed(readme: Path, index: Path, root: Path = ROOT) -> list[str]:
+    """The README's pictures and result files that the index does not link (the index itself aside)."""
+    indexed = set(local_links(index, root)) | {os.path.relpath(index, root)}
+    figures = [p for p in local_links(readme, root) if p.endswith(".png") or p.startswith("benchmarks/results/")]
+    return [p for p in figures if p not in indexed and p.rstrip("/") not in indexed]
+
+
+def test_readme_and_index_links_resolve():
+    """Every link of the README and of the results index names a file or folder of the tree."""
+    missing = [
+        f"{doc.relative_to(ROOT)} -> {p}"
+        for doc in (ROOT / "README.md", INDEX)
+        for p in local_links(doc)
+        if not (ROOT / p).exists() and p not in AWAITING_RUN
+    ]
+    assert missing == []
+    script = (ROOT / "benchmarks" / "clean_clone_run.py").read_text()
+    assert all(Path(p).name in script for p in AWAITING_RUN)
+
+
+def test_every_readme_figure_is_indexed():
+    """Each picture of the README and each result file it links has its entry in the index."""
+    assert unindexed(ROOT / "README.md", INDEX) == []
+
+
+def test_index_check_fails_on_a_planted_figure(tmp_path: Path):
+    """A README picture and a result link missing from the index are named; indexed ones are not."""
+    docs = tmp_path / "docs"
+    docs.mkdir()
+    readme, index = tmp_path / "README.md", tmp_path / "index.md"
+    readme.write_text("![a](docs/a.png) ![b](docs/b.png) [r](benchmarks/results/x.md) [web](https://x.org/c.png)\n")
+    index.write_text("[a](docs/a.png)\n")
+    assert unindexed(readme, index, tmp_path) == ["docs/b.png", "benchmarks/results/x.md"]
