@@ -248,7 +248,7 @@ def provenance(device: str | None = None, script: str | None = None) -> dict:
         "commit_from": where["from"],
         "written": _now(),
         "script": script or _script(),
-        "argv": sys.argv[1:],
+        "argv": [strip_machine_paths(arg)[0] for arg in sys.argv[1:]],
         "device": device or NOT_RECORDED,
         "device_name": device_name(device, cards),
         "driver": cards.get("driver", NOT_RECORDED),
