@@ -122,6 +122,26 @@ def test_packages_reads_imported_modules():
     assert {"python", "numpy", "warp"} <= set(found) and "open3d" not in found
 
 
+def test_gpus_from_nvidia_smi(monkeypatch):
+    """nvidia-smi's answers as seen on a lent H200 (driver 580.159.04, CUDA 13.0) are read into cards,
+    driver and CUDA version; without nvidia-smi there are none."""
+    answers = {
+        "--query-gpu=index,name,memory.total,driver_version": "0, NVIDIA H200, 143771 MiB, 580.159.04\n",
+        "": "| NVIDIA-SMI 580.159.04             Driver Version: 580.159.04     CUDA Version: 13.0     |\n",
+    }
+    monkeypatch.setattr(provenance, "_run", lambda cmd, cwd=None: answers[cmd[1] if len(cmd) > 1 else ""])
+    monkeypatch.delenv("CUDA_VISIBLE_DEVICES", raising=False)
+    cards = provenance.gpus()
+    assert cards == {
+        "gpus": [{"index": 0, "name": "NVIDIA H200", "memory": "143771 MiB", "driver": "580.159.04"}],
+        "driver": "580.159.04",
+        "cuda_driver": "13.0",
+    }
+    assert provenance.device_name("cuda:0", cards) == "NVIDIA H200"
+    monkeypatch.setattr(provenance, "_run", lambda cmd, cwd=None: None)
+    assert provenance.gpus() == {}
+
+
 def test_device_names(monkeypatch):
     """cuda:i is the i-th visible card; the CPU is named by its model."""
     cards = {"gpus": [{"index": 0, "name": "A"}, {"index": 3, "name": "B"}]}
