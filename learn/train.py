@@ -30,17 +30,7 @@ from tqdm.auto import tqdm
 
 from .augment import AugmentConfig, augmented_batch
 from .checkpoint import check_compatible, save_checkpoint
-from .data import (
-    FORMAT_VERSION,
-    DataConfig,
-    Frames,
-    Windows,
-    load_frames,
-    recorded_path,
-    split_groups,
-    torch_device,
-    validation_split,
-)
+from .data import FORMAT_VERSION, DataConfig, Frames, Windows, load_frames, split_groups, torch_device, validation_split
 from .evaluate import calibrate_on_predictions, model_predictor, predict_batches, score_predictions
 from .models import ModelConfig, build_model, parameter_count
 from .progress import epoch_line, warn_if_silent, write_fold_summary, write_history
@@ -348,7 +338,7 @@ def _train_one(
     if dist_info.main:  # the run explains itself from its first epoch on, also if it is stopped
         run = {k: meta[k] for k in ("model_config", "data_config", "train_config", "dataset", "parameters")}
         resumed = bool(resume and last.exists())
-        init = None if init_from is None else recorded_path(init_from)
+        init = None if init_from is None else os.path.relpath(Path(init_from).absolute())  # as data.recorded_path
         run |= {"device": str(dev), "resumed": resumed, "init_from": init}
         run["process_group"] = _process_group(dist_info)
         (out / "config.json").write_text(json.dumps(run, indent=1))
@@ -438,7 +428,7 @@ def _train_one(
     if dist_info.main:
         best = max(state["history"], key=lambda r: _nan_low(sign * r[f"val_{config.monitor}"]))
         summary = {
-            "out": recorded_path(out),
+            "out": os.path.relpath(Path(out).absolute()),  # no machine's absolute path in the summary
             "epochs": state["epoch"],
             "best_epoch": best["epoch"],
             "best": {k: v for k, v in best.items() if k.startswith("val_")},
