@@ -31,6 +31,8 @@ sys.path.insert(0, str(ROOT))
 
 from acoustic_sim.datasets.generate import PARTS  # noqa: E402
 from acoustic_sim.datasets.workers import START_ENV  # noqa: E402
+from benchmarks.provenance import markdown as provenance_line  # noqa: E402
+from benchmarks.provenance import write_json  # noqa: E402
 
 MODES = {"in_turn": False, "overlapped": True}
 
@@ -151,8 +153,8 @@ def main(argv=None) -> dict:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     stem = f"generate_{'cuda' if is_cuda else 'cpu'}"
-    (out / f"{stem}.json").write_text(json.dumps(res, indent=1))
-    (out / f"{stem}.md").write_text(markdown(res, args.suite, args))
+    res = write_json(out / f"{stem}.json", res, device=res["device"])
+    (out / f"{stem}.md").write_text(markdown(res, args.suite, args) + "\n" + provenance_line(res["provenance"]) + "\n")
     print((out / f"{stem}.md").read_text())
     return res
 

@@ -29,6 +29,8 @@ import torch.nn.functional as F
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.provenance import markdown as provenance_line  # noqa: E402
+from benchmarks.provenance import write_json  # noqa: E402
 from learn.models import ModelConfig, build_model, parameter_count, predict_image  # noqa: E402
 
 
@@ -129,7 +131,8 @@ def ddp_worker(args) -> None:
     seconds = _timed(step, args.repeats, args.warmup, sync)
     if rank == 0:
         rate = {"gpus" if cuda else "processes": world, "windows_per_s": world * args.batch / seconds}
-        Path(args.worker_out).write_text(json.dumps(rate | {"batch_per_rank": args.batch, "s_per_step": seconds}))
+        rate |= {"batch_per_rank": args.batch, "s_per_step": seconds}
+        Path(args.worker_out).write_text(json.dumps(rate))  # not a result: rank 0's rate, for the parent to read
     dist.destroy_process_group()
 
 
@@ -160,7 +163,7 @@ def bench_ddp(args, device: torch.device, name: str) -> dict:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     stem = f"learn_ddp_{device.type}"
-    (out / f"{stem}.json").write_text(json.dumps(res, indent=1))
+    res = write_json(out / f"{stem}.json", res, device=str(device))
     unit = "GPUs" if device.type == "cuda" else "gloo processes"
     lines = [
         f"# DDP training speed on {name} ({unit}, torch {res['torch']}, {res['date']})",
@@ -173,6 +176,7 @@ def bench_ddp(args, device: torch.device, name: str) -> dict:
         "|---|---|---|",
     ]
     lines += [f"| {n} | {r['windows_per_s']:,.1f} | {r['efficiency']:.0%} |" for n, r in zip(counts, runs, strict=True)]
+    lines += ["", provenance_line(res["provenance"])]
     (out / f"{stem}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return res
@@ -226,7 +230,7 @@ def main(argv=None) -> dict:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     stem = f"learn_{device.type}"
-    (out / f"{stem}.json").write_text(json.dumps(res, indent=1))
+    res = write_json(out / f"{stem}.json", res, device=str(device))
     lines = [
         f"# Learner speed on {name} ({device}, torch {res['torch']}, {res['threads']} threads)",
         "",
@@ -242,6 +246,7 @@ def main(argv=None) -> dict:
             f"{r['frames_per_s_batch32']:,.1f} |"
         )
     lines += ["", f"polar_unet trains **{res['train_speedup']:.1f}x** as many windows per second as the paper network."]
+    lines += ["", provenance_line(res["provenance"])]
     (out / f"{stem}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return res

@@ -28,6 +28,11 @@ import acoustic_sim as sim
 import scenes
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.provenance import markdown as provenance_line  # noqa: E402
+from benchmarks.provenance import write_json  # noqa: E402
+
 SCENE_CANDIDATES = [
     os.environ.get("OFFICE_85K", ""),
     str(ROOT.parent / "shared" / "bench" / "office_85k.npz"),
@@ -243,6 +248,8 @@ def to_markdown(res: dict) -> str:
         for key in ("lidar2d", "lidar3d")
         for p in res[key]["peers"]
     ]
+    if "provenance" in res:
+        lines += ["", provenance_line(res["provenance"])]
     return "\n".join(lines) + "\n"
 
 
@@ -290,7 +297,7 @@ def main(argv=None) -> dict:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     stem = f"lidar_{'cuda' if cuda else 'cpu'}"
-    (out / f"{stem}.json").write_text(json.dumps(res, indent=1))
+    res = write_json(out / f"{stem}.json", res, device=str(device))
     (out / f"{stem}.md").write_text(to_markdown(res))
     print(to_markdown(res))
     return res

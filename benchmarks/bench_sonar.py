@@ -17,7 +17,6 @@ ping (room build + image sources), if installed. Medians after a first call repo
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import platform
 import sys
@@ -32,6 +31,8 @@ sys.path.insert(0, str(ROOT))
 
 import acoustic_sim as sim  # noqa: E402
 from benchmarks.bench_lidar import load_office, random_poses  # noqa: E402
+from benchmarks.provenance import markdown as provenance_line  # noqa: E402
+from benchmarks.provenance import write_json  # noqa: E402
 
 DEFAULT_RAYS = 20_000
 
@@ -161,7 +162,7 @@ def main(argv=None) -> dict:
     stem = f"sonar_{'cuda' if device.is_cuda else 'cpu'}"
     if args.rays != DEFAULT_RAYS:  # a run at another ray count keeps the default's results
         stem += f"_r{args.rays}"
-    (out / f"{stem}.json").write_text(json.dumps(res, indent=1))
+    res = write_json(out / f"{stem}.json", res, device=str(device))
     lines = [
         f"# Sonar throughput on {res['device_name']} ({res['device']})",
         "",
@@ -199,6 +200,7 @@ def main(argv=None) -> dict:
         )
     if peer:
         lines.append(f"| peer: {peer['name']} | {peer['pings_per_s']:,.1f} | image sources only, no signals |")
+    lines += ["", provenance_line(res["provenance"])]
     (out / f"{stem}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return res

@@ -13,11 +13,17 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 
-from learn.cli import named_folder
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.provenance import markdown as provenance_line  # noqa: E402
+from benchmarks.provenance import provenance  # noqa: E402
+from learn.cli import named_folder  # noqa: E402
 
 METRIC = "scan_f1"
 
@@ -150,6 +156,7 @@ def main() -> None:
     }
     args.out.mkdir(parents=True, exist_ok=True)
     text = markdown(table, reference, sets, args.choose, args.report, echo, stops)
+    text += "\n" + provenance_line(provenance()) + "\n"
     (args.out / "compare_arms.md").write_text(text)
     plot(table, reference, [args.choose, args.report], args.out / "compare_arms.png")
     print(text, end="")

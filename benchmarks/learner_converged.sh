@@ -40,6 +40,8 @@ DEVICE=${DEVICE:-cuda}
 K=${K:-5}
 run_name() { if [ "$K" = 5 ]; then echo "${1}_seed$2"; else echo "${1}_k${K}_seed$2"; fi; }
 mkdir -p "$W/logs" "$W/runs"
+# each call's commit, machine and versions, kept with the logs (pack carries them)
+python benchmarks/provenance.py write "$W/logs/provenance-$phase-$(date -u +%Y%m%dT%H%M%SZ).json" --device "$DEVICE"
 case $phase in
 gen)
   GEN=(--workers "${WORKERS:-8}" --device "${GEN_DEVICE:-cuda:0}" --quiet)

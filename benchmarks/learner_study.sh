@@ -1,10 +1,12 @@
 #!/usr/bin/env bash
-# The learner study behind benchmarks/results/learner_h100/: generate every suite, time both
+# The learner study behind the superseded results of benchmarks/results/learner_h100/README.md (their
+# files are in the history, commit 54cfdaf): generate every suite, time both
 # networks, train the paper network and ours side by side, run the Table 2 and sim-to-real
 # studies, evaluate. About 10 minutes on one H100; usage: bash benchmarks/learner_study.sh [WORKDIR]
 set -euo pipefail
 W=${1:-study}; D=$W/data; L=$W/logs; mkdir -p $W/runs $L
 export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=2
+python benchmarks/provenance.py write "$L/provenance.json" --device cuda
 python benchmarks/bench_learn.py --device cuda --out $W/bench
 gen() { python -m acoustic_sim generate --suite "$1" --out "$D/$1" --workers 8 --device cuda:0 --quiet "${@:2}"; }
 gen paper

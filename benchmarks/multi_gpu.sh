@@ -20,7 +20,10 @@ export NCCL_NVLS_ENABLE=0 TORCH_SYMM_MEM_DISABLE_MULTICAST=1 NVSHMEM_DISABLE_NVL
 R=${RESULTS:-benchmarks/results/multi_gpu}
 GPUS=$(python -c "import torch; print(torch.cuda.device_count())")
 mkdir -p "$W" "$R"
-stamp() { echo "== $1 $(date +%T)"; }
+stamp() { # the phase's start in the log, and its commit, machine and versions beside the results
+  echo "== $1 $(date +%T)"
+  python benchmarks/provenance.py write "$R/provenance-$1.json" --device cuda
+}
 
 gen() {
   stamp gen
@@ -85,6 +88,7 @@ train() {
 }
 
 check() {
+  stamp check
   python -m acoustic_sim generate --suite tiny --out "$W/one" --device cuda:0 --shards 3 --quiet
   python -m acoustic_sim generate --suite tiny --out "$W/two" --device auto --workers 2 --shards 3 --quiet
   python benchmarks/same_shards.py "$W/one" "$W/two" | tee "$R/one_gpu_check.txt"
@@ -109,7 +113,7 @@ ddp) ddp ;;
 train) train ;;
 all) # each phase in its own shell: one that fails is reported and the next still runs
   for p in gen ray ddp train; do bash "$0" "$p" "$W" || echo "== phase $p failed (exit $?)"; done
-  stamp done
+  echo "== done $(date +%T)"
   ;;
 check) check ;;
 *)

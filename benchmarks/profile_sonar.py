@@ -13,7 +13,6 @@ the GPU idles. Writes benchmarks/results/sonar_profile_cuda.json and .md.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from collections import defaultdict
@@ -27,6 +26,8 @@ sys.path.insert(0, str(ROOT))
 
 import acoustic_sim as sim  # noqa: E402
 from benchmarks.bench_lidar import load_office, random_poses  # noqa: E402
+from benchmarks.provenance import markdown as provenance_line  # noqa: E402
+from benchmarks.provenance import write_json  # noqa: E402
 
 STAGES = ("trace", "record", "energyscape")
 BATCH = 256
@@ -142,6 +143,8 @@ def markdown(res: dict) -> str:
         for name, k in list(run["kernels"].items())[:15]:
             lines.append(f"| `{name}` | {k['stage']} | {k['ms_per_1000_pings']:.2f} | {k['launches']} |")
         lines.append("")
+    if "provenance" in res:
+        lines += [provenance_line(res["provenance"]), ""]
     return "\n".join(lines)
 
 
@@ -167,7 +170,7 @@ def main(argv=None) -> dict:
     }
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "sonar_profile_cuda.json").write_text(json.dumps(res, indent=1))
+    res = write_json(out / "sonar_profile_cuda.json", res, device=str(device))
     text = markdown(res)
     (out / "sonar_profile_cuda.md").write_text(text)
     print(text)

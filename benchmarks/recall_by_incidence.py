@@ -12,16 +12,22 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import sys
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from learn.checkpoint import load_checkpoint
-from learn.cli import named_folder
-from learn.data import DataConfig, Windows, load_frames
-from learn.evaluate import BASELINE_THRESHOLD, echo_peak_predictor, model_predictor, predict_batches
-from learn.scan import LABEL_THRESHOLD, SCAN_TOLERANCE_M, first_return_ranges
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.provenance import markdown as provenance_line  # noqa: E402
+from benchmarks.provenance import provenance, relative  # noqa: E402
+from learn.checkpoint import load_checkpoint  # noqa: E402
+from learn.cli import named_folder  # noqa: E402
+from learn.data import DataConfig, Windows, load_frames  # noqa: E402
+from learn.evaluate import BASELINE_THRESHOLD, echo_peak_predictor, model_predictor, predict_batches  # noqa: E402
+from learn.scan import LABEL_THRESHOLD, SCAN_TOLERANCE_M, first_return_ranges  # noqa: E402
 
 BANDS_DEG = (0, 30, 50, 70, 90)  # incidence bands [deg]
 NEIGHBOURS = 2  # beams either side that fit the wall's direction
@@ -98,7 +104,8 @@ def main() -> None:
     lines = [
         f"# Recall by incidence angle on `{name}`",
         "",
-        f"Runs: {', '.join(f'`{r}`' for r in args.runs)} (recall averaged over them, each at its own threshold), "
+        f"Runs: {', '.join(f'`{relative(r)}`' for r in args.runs)} (recall averaged over them, each at its own "
+        "threshold), "
         f"and the echo peak; a true return counts as found when the prediction's nearest return in its beam lies "
         f"within {SCAN_TOLERANCE_M} m. Incidence: between the beam and the wall's normal, from the true scan "
         f"({NEIGHBOURS} beams either side; 'no angle' = corners, surface ends and lone returns).",
@@ -117,6 +124,7 @@ def main() -> None:
             recall = np.mean([rows[i][1] for rows in model_rows])
             cells.append(f"{recall:.2f} / {peak_recall:.2f} ({100 * count / max(mask.sum(), 1):.0f} %)")
         lines.append(f"| {family} | " + " | ".join(cells) + " |")
+    lines += ["", provenance_line(provenance(args.device))]
     args.out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
 

@@ -25,6 +25,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.provenance import markdown as provenance_line  # noqa: E402
+from benchmarks.provenance import provenance  # noqa: E402
+
 PACKAGE = "rtisdev==2.16.0"
 CALLS = {"50 -> 25 kHz (our default)": (50e3, 25e3), "80 -> 20 kHz": (80e3, 20e3)}
 
@@ -101,7 +104,8 @@ def main(argv=None) -> Path:
         "is ours), the array focuses: echoes are spots and arcs at a few azimuths. Read the other way\n"
         "(`msb`), the delays no longer fit the array and only full-width range bands remain. Both the real\n"
         "and the simulated pings show such bands (floor, ceiling, the array's sidelobes of strong echoes).\n\n"
-        "![energyscapes](rtisdev.png)\n"
+        "![energyscapes](rtisdev.png)\n\n"
+        f"{provenance_line(provenance('cpu'))}\n"
     )
     print(f"wrote {picture}")
     return picture

@@ -21,9 +21,16 @@ import argparse
 import csv
 import json
 import math
+import sys
 from pathlib import Path
 
 import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.provenance import markdown as provenance_line  # noqa: E402
+from benchmarks.provenance import relative, write_json  # noqa: E402
 
 METRIC = "val_scan_f1"
 
@@ -39,7 +46,7 @@ def load_run(folder: Path) -> dict:
     best = max(history, key=lambda r: -math.inf if math.isnan(r[METRIC]) else r[METRIC])
     rates = [r["samples_per_s"] for r in history[1:]] or [history[0]["samples_per_s"]]  # epoch 1 warms up
     return {
-        "folder": str(folder),
+        "folder": relative(folder),
         "seed": int(config["train_config"]["seed"]),
         "processes": processes,
         "backend": group.get("backend"),
@@ -159,8 +166,10 @@ def main(argv=None) -> dict:
     runs = [load_run(folder) for folder in args.runs]
     result = compare(runs)
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "same_global_batch.json").write_text(json.dumps({"runs": runs} | result, indent=1))
-    (args.out / "same_global_batch.md").write_text(markdown(runs, result))
+    stamped = write_json(args.out / "same_global_batch.json", {"runs": runs} | result)
+    (args.out / "same_global_batch.md").write_text(
+        markdown(runs, result) + "\n" + provenance_line(stamped["provenance"]) + "\n"
+    )
     plot(runs, args.out / "same_global_batch.png")
     print((args.out / "same_global_batch.md").read_text())
     return result

@@ -7,6 +7,7 @@ set -euo pipefail
 phase=$1 W=$2; shift 2
 export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=2
 mkdir -p "$W/logs"
+python benchmarks/provenance.py write "$W/logs/provenance-$phase-$(date -u +%Y%m%dT%H%M%SZ).json" --device cuda
 for s in "$@"; do
   D=$W/data_seed$s
   if [ "$phase" = gen ]; then

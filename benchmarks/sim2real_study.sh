@@ -35,6 +35,8 @@ STUDY=${TAG:+_$TAG}
 GRAPHS=$([[ ${DEVICE:-cuda} == cuda* ]] && echo --cuda-graphs || true)
 VARIANTS=${VARIANTS:-bounces_0,bounces_1,bounces_3}
 mkdir -p "$W/logs" "$W/runs"
+# each call's commit, machine and versions, kept with the logs (learner_converged.sh pack carries them)
+python benchmarks/provenance.py write "$W/logs/provenance-$phase-$(date -u +%Y%m%dT%H%M%SZ).json" --device "${DEVICE:-cuda}"
 case $phase in
 gen)
   what=$1

@@ -27,6 +27,10 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.provenance import markdown as provenance_line  # noqa: E402
+from benchmarks.provenance import write_json  # noqa: E402
 
 
 def load_simulator(tree: Path) -> tuple[str, str]:
@@ -193,7 +197,7 @@ def write(args, revs: dict, commits: dict, runs: dict, rays: list[int]) -> dict:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     stem = f"sonar_same_job_{'cuda' if device.is_cuda else 'cpu'}"
-    (out / f"{stem}.json").write_text(json.dumps(res, indent=1))
+    res = write_json(out / f"{stem}.json", res, device=str(device))
     names = list(revs)
     pairs = [(later, earlier) for i, later in enumerate(names) for earlier in names[:i]]
     lines = [
@@ -215,6 +219,7 @@ def write(args, revs: dict, commits: dict, runs: dict, rays: list[int]) -> dict:
         rates = [f"{median[n]:,.0f}" for n in names]
         ratios = [f"{median[a] / median[b]:.2f}x" for a, b in pairs]
         lines.append(f"| {count:,} | " + " | ".join(rates + ratios) + " |")
+    lines += ["", provenance_line(res["provenance"])]
     (out / f"{stem}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
     return res

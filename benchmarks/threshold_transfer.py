@@ -10,14 +10,20 @@ best on the choice set, and the one best on the report set itself (an oracle, ne
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 
-from learn.checkpoint import load_checkpoint
-from learn.cli import named_folder
-from learn.data import DataConfig, Windows, load_frames
-from learn.evaluate import CALIBRATION_THRESHOLDS, calibrate_on_predictions, model_predictor, predict_batches
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.provenance import markdown as provenance_line  # noqa: E402
+from benchmarks.provenance import provenance, relative  # noqa: E402
+from learn.checkpoint import load_checkpoint  # noqa: E402
+from learn.cli import named_folder  # noqa: E402
+from learn.data import DataConfig, Windows, load_frames  # noqa: E402
+from learn.evaluate import CALIBRATION_THRESHOLDS, calibrate_on_predictions, model_predictor, predict_batches  # noqa: E402
 
 
 def sweep(run: Path, frames, device: str) -> tuple[float, np.ndarray]:
@@ -40,7 +46,8 @@ def main() -> None:
     sets = {choose: load_frames(choose_dir), report: load_frames(report_dir)}
     t = np.asarray(CALIBRATION_THRESHOLDS)
     lines = [
-        f"scan F1 at 0.10 m on `{report}` ({report_dir}) at three thresholds; `{choose}`: {choose_dir}",
+        f"scan F1 at 0.10 m on `{report}` ({relative(report_dir)}) at three thresholds; "
+        f"`{choose}`: {relative(choose_dir)}",
         "",
         f"| run | own threshold | {report} at it | best on {choose} | {report} at it | best on {report} (oracle) "
         f"| {report} at it |",
@@ -51,10 +58,11 @@ def main() -> None:
         _, on_report = sweep(run, sets[report], args.device)
         i_own, i_choice, i_report = int(np.argmin(abs(t - own))), int(np.argmax(on_choice)), int(np.argmax(on_report))
         lines.append(
-            f"| {run} | {own:.2f} | {on_report[i_own]:.3f} | {t[i_choice]:.2f} | {on_report[i_choice]:.3f} "
+            f"| {relative(run)} | {own:.2f} | {on_report[i_own]:.3f} | {t[i_choice]:.2f} | {on_report[i_choice]:.3f} "
             f"| {t[i_report]:.2f} | {on_report[i_report]:.3f} |"
         )
         print(lines[-1], flush=True)
+    lines += ["", provenance_line(provenance(args.device))]
     if args.out:
         args.out.write_text("\n".join(lines) + "\n")
 

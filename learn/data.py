@@ -10,6 +10,7 @@ validation scenes are never seen in training) or by scenario family.
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -120,9 +121,15 @@ def shard_paths(folder: str | Path) -> list[Path]:
     return paths
 
 
+def recorded_path(path: str | Path) -> str:
+    """A path as checkpoints, configs and reports record it: relative to the working folder the
+    command ran in (`../data/x` where it lies outside), never a machine's absolute path."""
+    return os.path.relpath(Path(path).absolute())
+
+
 def load_frames(folder: str | Path) -> Frames:
     """Read every shard of a dataset folder, checking format, version and grids."""
-    parts, names, info = [], [], {"folder": str(folder)}
+    parts, names, info = [], [], {"folder": recorded_path(folder)}
     grid = None
     manifest = Path(folder) / "manifest.json"
     if manifest.exists():

@@ -25,7 +25,7 @@ import torch
 from tqdm.auto import tqdm
 
 from .checkpoint import load_checkpoint
-from .data import DataConfig, Frames, Windows, load_frames
+from .data import DataConfig, Frames, Windows, load_frames, recorded_path
 from .metrics import image_metrics
 from .models import predict_image
 from .report import example_file, report_markdown, write_per_scenario, write_per_window
@@ -261,8 +261,8 @@ def evaluate(
         per_window[name] = score(predict, windows, indices, threshold=t, batch_size=batch_size, progress=bar)
         results[name] = summarise(per_window[name], scenario, frames.scenarios)
     report = {
-        "checkpoints": {name: str(path) for name, path in named.items()},
-        "checkpoint": str(named[first_name]),
+        "checkpoints": {name: recorded_path(path) for name, path in named.items()},
+        "checkpoint": recorded_path(named[first_name]),
         "data": frames.info.get("folder"),
         "suite": frames.info.get("suite"),
         "variant": frames.info.get("variant"),

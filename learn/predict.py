@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from .checkpoint import load_checkpoint
-from .data import DataConfig, Frames, Windows, load_frames
+from .data import DataConfig, Frames, Windows, load_frames, recorded_path
 from .evaluate import check_grid, model_predictor, return_threshold
 from .scan import first_return_ranges
 
@@ -40,7 +40,7 @@ def _frames_from_array(path: Path, ckpt: dict) -> Frames:
         scenarios=["recorded"],
         range_m=np.asarray(ckpt["range_m"]),
         azimuth_rad=np.asarray(ckpt["azimuth_rad"]),
-        info={"folder": str(path)},
+        info={"folder": recorded_path(path)},
     )
 
 

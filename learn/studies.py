@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from .checkpoint import load_checkpoint
-from .data import DataConfig, Windows, load_frames, shard_paths
+from .data import DataConfig, Windows, load_frames, recorded_path, shard_paths
 from .evaluate import evaluate, model_predictor, return_threshold
 from .models import ModelConfig
 from .report import METRICS
@@ -180,8 +180,8 @@ def sim2real(
             table[v] |= {name: far["results"]["model"]["all"], name + ECHO_PEAK: far["results"]["echo peak"]["all"]}
     for name, test in test_frames.items():
         typical_windows({v: out / v for v in variants}, name, test, out / f"examples_{name}.png", device=device)
-    sets = ", ".join(f"{name} `{folder}`" for name, folder in tests.items())
-    header = f"Training data `{ablation}`; test sets: {sets}. Mean over windows (std in metrics.json)."
+    sets = ", ".join(f"{name} `{recorded_path(folder)}`" for name, folder in tests.items())
+    header = f"Training data `{recorded_path(ablation)}`; test sets: {sets}. Mean over windows (std in metrics.json)."
     _write_sim2real(
         table,
         out,

@@ -338,7 +338,8 @@ def _train_one(
     if dist_info.main:  # the run explains itself from its first epoch on, also if it is stopped
         run = {k: meta[k] for k in ("model_config", "data_config", "train_config", "dataset", "parameters")}
         resumed = bool(resume and last.exists())
-        run |= {"device": str(dev), "resumed": resumed, "init_from": None if init_from is None else str(init_from)}
+        init = None if init_from is None else os.path.relpath(Path(init_from).absolute())  # as data.recorded_path
+        run |= {"device": str(dev), "resumed": resumed, "init_from": init}
         run["process_group"] = _process_group(dist_info)
         (out / "config.json").write_text(json.dumps(run, indent=1))
     board = TensorBoardLog(out, val_idx) if tensorboard and dist_info.main else None
@@ -427,7 +428,7 @@ def _train_one(
     if dist_info.main:
         best = max(state["history"], key=lambda r: _nan_low(sign * r[f"val_{config.monitor}"]))
         summary = {
-            "out": str(out),
+            "out": os.path.relpath(Path(out).absolute()),  # no machine's absolute path in the summary
             "epochs": state["epoch"],
             "best_epoch": best["epoch"],
             "best": {k: v for k, v in best.items() if k.startswith("val_")},

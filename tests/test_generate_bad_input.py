@@ -31,7 +31,7 @@ def test_generate_never_writes_into_a_foreign_folder(tmp_path, capsys):
     assert "is a file" in cli_error(capsys, argv)
 
 
-@pytest.mark.parametrize("name", ["../escape", "/tmp/abs", "a/b", ".hidden", "..", "x\\y"])
+@pytest.mark.parametrize("name", ["../escape", "/abs", "a/b", ".hidden", "..", "x\\y"])
 def test_variant_names_cannot_leave_the_output_folder(name):
     with pytest.raises(ValueError, match="variant name"):
         dataclasses.replace(SUITES["tiny"], variants={name: Physics(), "ok": Physics()})

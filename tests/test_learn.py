@@ -196,9 +196,10 @@ def test_evaluate_compares_checkpoints_side_by_side(tiny_dataset, tmp_path, caps
     report = evaluate([f"{k}={v}" for k, v in named.items()], tiny_dataset, tmp_path / "cmp", split="all", timing=False)
     assert list(report["results"]) == ["first", "second", "echo peak", "empty"]
     assert report["thresholds"]["second"] == torch.load(b / "best.pt", weights_only=True)["threshold"]
-    assert report["windows"] == 12 and report["checkpoints"] == {k: str(v) for k, v in named.items()}
+    recorded = {k: os.path.relpath(v) for k, v in named.items()}  # relative to the working folder: no machine path
+    assert report["windows"] == 12 and report["checkpoints"] == recorded
     text = (tmp_path / "cmp" / "report.md").read_text()
-    assert f"| second | `{b / 'best.pt'}` |" in text and "examples_second.png" in text
+    assert f"| second | `{recorded['second']}` |" in text and "examples_second.png" in text
     assert (tmp_path / "cmp" / "examples.png").exists() and (tmp_path / "cmp" / "examples_second.png").exists()
     rows = list(csv.DictReader(open(tmp_path / "cmp" / "per_window.csv")))
     assert len(rows) == 4 * 12 and rows[0]["predictor"] == "first" and list(rows[0])[4] == "scan_f1"
