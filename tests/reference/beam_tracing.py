@@ -222,6 +222,6 @@ def image_sources(planes, source, receiver, max_order, forward=None):
     found = []
     for order, image in candidates.values():
         leaves = walk_back(polygons, image, order, source, receiver)
-        if leaves is not None and (forward is None or forward @ leaves >= -1e-6):
+        if leaves is not None and (forward is None or forward @ leaves >= -1e-6 * np.linalg.norm(leaves)):
             found.append((float(np.linalg.norm(image - receiver)), order, image))
     return sorted(found, key=lambda v: (round(v[0], 6), v[1]))
