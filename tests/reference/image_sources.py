@@ -64,7 +64,9 @@ def blocked(a, b, planes, tol=1e-7) -> bool:
 
 
 def specular_paths(planes, source, receiver, max_order, leaves=None):
-    """All valid specular paths source -> planes -> receiver with 1..max_order reflections.
+    """All valid specular paths source -> planes -> receiver with 1..max_order reflections, trying
+    every plane sequence (planes x (planes - 1) ** (order - 1): up to order 4 or 5;
+    `beam_tracing.image_sources` finds the same paths at higher orders).
 
     Returns a list of (length [m], order, image (3,)), one per distinct image of each order (two
     sequences meeting at an edge between perpendicular planes give one path). `leaves(direction)`
@@ -115,6 +117,45 @@ def specular_paths(planes, source, receiver, max_order, leaves=None):
             key = (order, *np.round(images[-1], 6))
             found.setdefault(key, (float(np.linalg.norm(images[-1] - receiver)), order, images[-1]))
     return sorted(found.values(), key=lambda v: (round(v[0], 6), v[1]))
+
+
+def shoebox_images(size, source, receiver, max_order, leaves=None):
+    """Image sources of `source` in the box [0, size] (closed form) with 1..max_order reflections.
+
+    Along axis i an image lies at 2 n L_i + (1 - 2 q) s_i (n integer, q in {0, 1}) after
+    |2 n - q| reflections on that axis' walls; a path leaves the source along its arrival
+    direction with each axis flipped once per reflection on it. In a box every image is valid
+    and audible. Returns a list of (length [m], order, image (3,)) as `specular_paths` does.
+    """
+    size, source = np.asarray(size, dtype=np.float64), np.asarray(source, dtype=np.float64)
+    receiver = np.asarray(receiver, dtype=np.float64)
+    span = np.arange(-max_order, max_order + 1)
+    n = np.stack(np.meshgrid(span, span, span, indexing="ij"), axis=-1).reshape(-1, 1, 3)
+    q = np.array(list(product((0, 1), repeat=3)))[None]
+    n, q = (np.broadcast_to(a, (len(n), 8, 3)).reshape(-1, 3) for a in (n, q))
+    counts = np.abs(2 * n - q)
+    keep = (counts.sum(axis=1) >= 1) & (counts.sum(axis=1) <= max_order)
+    images = 2 * n[keep] * size + (1 - 2 * q[keep]) * source
+    found = []
+    for image, count in zip(images, counts[keep], strict=True):
+        if leaves is None or leaves((receiver - image) * (-1.0) ** count):
+            found.append((float(np.linalg.norm(image - receiver)), int(count.sum()), image))
+    return sorted(found, key=lambda v: (round(v[0], 6), v[1]))
+
+
+def box_planes(size):
+    """The walls, floor and ceiling of the box [0, size] as planes with normals into the box."""
+    planes = []
+    for axis in range(3):
+        u, v = (axis + 1) % 3, (axis + 2) % 3
+        for at, sign in ((0.0, 1.0), (size[axis], -1.0)):
+            corners = []
+            for a, b in ((0, 0), (1, 0), (1, 1), (0, 1)):
+                corner = np.zeros(3)
+                corner[axis], corner[u], corner[v] = at, a * size[u], b * size[v]
+                corners.append(corner)
+            planes.append(plane_of([corners if sign > 0 else corners[::-1]]))
+    return planes
 
 
 def l_room(height=3.0):
