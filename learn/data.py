@@ -10,8 +10,10 @@ validation scenes are never seen in training) or by scenario family.
 from __future__ import annotations
 
 import json
+import typing
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import h5py
 import numpy as np
@@ -19,7 +21,8 @@ import torch
 
 FORMAT = "sonar2lidar-dataset"  # written by acoustic_sim.datasets.shards; the file format is the interface
 FORMAT_VERSION = 1
-LABELS = ("middle", "last")
+Label = Literal["middle", "last"]
+LABELS: tuple[str, ...] = typing.get_args(Label)
 
 
 class DataError(ValueError):
@@ -39,7 +42,7 @@ class DataConfig:
     """
 
     frames: int = 5
-    label: str = "middle"
+    label: Label = "middle"
     floor_db: float = 40.0
 
     def __post_init__(self) -> None:
