@@ -7,7 +7,8 @@
     └── processing: ProcessingConfig  the beamformer: grid, speed of sound, low-pass, normalisation
 
 Each class checks its own fields when built (ConfigError for NaN/inf, ValueError for a value out
-of range); `settings.apply_settings` applies `section.field=value` from the command line.
+of range); `settings.apply_settings` applies `section.field=value` from the command line
+(`configtree`'s grammar, shared with the learner).
 """
 
 from __future__ import annotations

@@ -1,5 +1,6 @@
 """Sonar-to-LiDAR learning (PyTorch). Reads dataset shards only; never imports warp.
 
+`learn.config` (LearnConfig, the root of the settings: model, data, augment, train),
 `learn.data` (windows of K energyscapes), `learn.models` (the paper's network, our polar UNet),
 `learn.train`, `learn.metrics` (the scan metric first), `learn.evaluate`, `learn.predict`,
 `learn.export`, `learn.studies`; `python -m learn --help` for the command line.

@@ -2,7 +2,7 @@
 
 A checkpoint is a dict of tensors and plain types: "model" (state dict), "optimizer" (absent in
 stripped or packed ones), "state" (epoch, best, history), "threshold" (the calibrated return
-threshold), and the configs, dataset identity and grid it was trained with.
+threshold), the configs (`learn.config.to_record`), dataset identity and grid it was trained with.
 """
 
 from __future__ import annotations
@@ -12,41 +12,40 @@ from pathlib import Path
 
 import torch
 
-from .augment import AugmentConfig
-from .data import FORMAT_VERSION, DataConfig, torch_device
+from .config import LearnConfig, from_record
+from .data import FORMAT_VERSION, torch_device
 from .models import ModelConfig, build_model
 
 # What a resumed run may change: how long it runs and how its steps execute, not what it learns.
 RESUME_MAY_CHANGE = ("epochs", "patience", "max_minutes", "amp", "cuda_graphs")
 
 
-def check_compatible(ckpt: dict, model_config, data_config, train_config, windows) -> None:
+def check_compatible(ckpt: dict, config: LearnConfig, windows) -> None:
     """Refuse to resume from a checkpoint of another model, window, dataset or training recipe
     (loss, optimiser, split, augmentation: all but RESUME_MAY_CHANGE). Configs are compared as
-    configs, so a field added since the checkpoint was written counts at its default; augmentation
-    absent from a checkpoint counts as none, which is what such a run trained with."""
+    configs (`learn.config.from_record`: a field added since the checkpoint was written counts at
+    its default, augmentation absent from it as none, which is what such a run trained with)."""
     try:
-        saved = ModelConfig(**ckpt["model_config"]), DataConfig(**ckpt["data_config"])
-        recipe = dict(ckpt["train_config"])
-        augment = AugmentConfig(**{**dataclasses.asdict(AugmentConfig.none()), **recipe.pop("augment", {})})
-        saved_train = type(train_config)(**recipe, augment=augment)
-    except TypeError as err:  # a field this version does not know
-        raise ValueError(f"--resume: the checkpoint's configs are not this version's: {err}") from None
-    if saved != (model_config, data_config):
+        saved = from_record(ckpt)
+    except ValueError as err:  # a field this version does not know
+        raise ValueError(f"--resume: {err}") from None
+    if (saved.model, saved.data) != (config.model, config.data):
         raise ValueError("--resume: the checkpoint was trained with another model or data config")
     # split_seed None means "the seed's": compare the split each draws, not how it was named
-    same_split = saved_train.split_seed_or_seed == train_config.split_seed_or_seed
+    same_split = saved.train.split_seed_or_seed == config.train.split_seed_or_seed
     changed = [
-        f"{f.name} {getattr(saved_train, f.name)} -> {getattr(train_config, f.name)}"
-        for f in dataclasses.fields(train_config)
+        f"{f.name} {getattr(saved.train, f.name)} -> {getattr(config.train, f.name)}"
+        for f in dataclasses.fields(config.train)
         if f.name not in RESUME_MAY_CHANGE
         and not (f.name == "split_seed" and same_split)
-        and getattr(saved_train, f.name) != getattr(train_config, f.name)
+        and getattr(saved.train, f.name) != getattr(config.train, f.name)
     ]
+    if saved.augment != config.augment:
+        changed.append(f"augment {saved.augment} -> {config.augment}")
     if changed:
         raise ValueError(
             f"--resume: the run was trained with another recipe ({'; '.join(changed)}); resume it with the "
-            "settings in its config.json, or start a new run"
+            "settings in its config.json (--config), or start a new run"
         )
     if ckpt["dataset"]["plan_id"] != windows.frames.info.get("plan_id"):
         raise ValueError("--resume: the checkpoint was trained on another dataset")

@@ -6,18 +6,21 @@ import argparse
 import dataclasses
 import json
 import sys
-import typing
 
 from . import MissingExtra
 
 
 def _configs(args):
-    from .augment import AugmentConfig
-    from .data import DataConfig
-    from .models import ModelConfig
-    from .train import TrainConfig
+    """The run's LearnConfig: the options (whose defaults are `--config`'s file or the config
+    classes'), then each `--set` in turn (`configtree`'s grammar, as `python -m acoustic_sim`'s)."""
+    from configtree import apply_settings
 
-    train = TrainConfig(
+    from .augment import AugmentConfig
+    from .config import LearnConfig
+
+    base = args.base_config
+    train = dataclasses.replace(
+        base.train,
         epochs=args.epochs,
         batch_size=args.batch_size,
         lr=args.lr,
@@ -34,62 +37,22 @@ def _configs(args):
         max_minutes=args.max_minutes,
         cuda_graphs=args.cuda_graphs,
     )
-    configs = {
-        "model": ModelConfig(name=args.model, frames=args.frames, width=args.width),
-        "data": DataConfig(frames=args.frames, label=args.label),
-        "train": train,
-        "augment": AugmentConfig.none() if args.no_augment else train.augment,
-    }
-    configs = apply_settings(configs, args.set or ())
-    if configs["model"].frames != configs["data"].frames:
-        raise ValueError("model.frames and data.frames must agree: set the window length with --frames")
-    return configs["model"], configs["data"], dataclasses.replace(configs["train"], augment=configs["augment"])
-
-
-def apply_settings(configs: dict, settings) -> dict:
-    """`--set section.field=value` on the learner's configs (sections model, data, train, augment;
-    e.g. train.pos_weight=5, data.floor_db=50, augment.mirror=0.5). The value is read as the field's type, `none` for an
-    optional field; the config itself then checks it, so a refusal names the setting."""
-    configs = dict(configs)
-    for setting in settings:
-        name, sep, text = setting.partition("=")
-        section, dot, field = name.strip().partition(".")
-        if not sep or not dot or section not in configs:
-            raise ValueError(f"--set wants {'|'.join(configs)}.field=value, got {setting!r}")
-        config = configs[section]
-        kinds = typing.get_type_hints(type(config))
-        if field not in kinds:
-            raise ValueError(f"--set {setting!r}: {section} has no field {field!r}; it has {', '.join(kinds)}")
-        try:
-            configs[section] = dataclasses.replace(config, **{field: _read_as(text.strip(), kinds[field])})
-        except (TypeError, ValueError) as err:
-            raise ValueError(f"--set {setting!r}: {err}") from None
-    return configs
-
-
-def _read_as(text: str, kind):
-    """`text` as a value of `kind`: bool, int, float, str, or one of them | None."""
-    options = [k for k in typing.get_args(kind) if k is not type(None)] or [kind]
-    if text.lower() == "none" and len(options) < len(typing.get_args(kind)):
-        return None
-    (kind,) = options
-    if kind is bool:
-        if text.lower() not in ("true", "false"):
-            raise ValueError(f"{text!r} is not true or false")
-        return text.lower() == "true"
-    return kind(text)  # int("1.5") and float("x") refuse with their own message
+    config = LearnConfig(
+        model=dataclasses.replace(base.model, name=args.model, frames=args.frames, width=args.width),
+        data=dataclasses.replace(base.data, frames=args.frames, label=args.label),
+        augment=AugmentConfig.none() if args.no_augment else base.augment,
+        train=train,
+    )
+    return apply_settings(config, args.set or ())
 
 
 def _train(args) -> int:
     from .train import train
 
-    model, data, config = _configs(args)
     summary = train(
         args.data,
         args.out,
-        model_config=model,
-        data_config=data,
-        train_config=config,
+        _configs(args),
         device=args.device,
         resume=args.resume,
         folds=args.folds,
@@ -171,14 +134,11 @@ def _export(args) -> int:
 def _table2(args) -> int:
     from .studies import table2
 
-    model, data, config = _configs(args)
     table2(
         args.train,
         args.test,
         args.out,
-        model_config=model,
-        train_config=config,
-        data_config=data,
+        config=_configs(args),
         device=args.device,
         progress=not args.quiet,
     )
@@ -189,14 +149,11 @@ def _table2(args) -> int:
 def _sim2real(args) -> int:
     from .studies import sim2real
 
-    model, data, config = _configs(args)
     sim2real(
         args.ablation,
         {"reality": args.reality, **_named_folders(args.test or [])},
         args.out,
-        model_config=model,
-        train_config=config,
-        data_config=data,
+        config=_configs(args),
         device=args.device,
         progress=not args.quiet,
         score_only=args.score_only,
@@ -252,12 +209,13 @@ def _seeds_summary(args) -> int:
     return 0
 
 
-def _training_options(p) -> None:
-    from .data import DataConfig
-    from .models import MODEL_NAMES, ModelConfig
-    from .train import LOSSES, MONITORS, SPLITS, TrainConfig
+def _training_options(p, base) -> None:
+    """The options of the commands that train; their defaults are `base`'s (a LearnConfig)."""
+    from .config import LOSSES, MONITORS, SPLITS
+    from .models import MODEL_NAMES
 
-    model, data, train = ModelConfig(), DataConfig(), TrainConfig()  # defaults come from the configs
+    model, data, train = base.model, base.data, base.train
+    p.set_defaults(base_config=base)
     p.add_argument("--model", default=model.name, choices=MODEL_NAMES, help="network")
     p.add_argument("--frames", type=int, default=model.frames, help="window length K")
     p.add_argument("--width", type=int, default=model.width, help="base channels of polar_unet")
@@ -289,9 +247,12 @@ def _training_options(p) -> None:
     p.add_argument(
         "--split-seed", type=int, default=train.split_seed, help="the validation split's own seed (default: --seed)"
     )
-    p.add_argument("--no-amp", action="store_true", help="no bfloat16 autocast on GPUs")
+    p.add_argument("--no-amp", action="store_true", default=not train.amp, help="no bfloat16 autocast on GPUs")
     p.add_argument(
-        "--cuda-graphs", action="store_true", help="training steps as CUDA graphs (torch.compile; GPUs only)"
+        "--cuda-graphs",
+        action="store_true",
+        default=train.cuda_graphs,
+        help="training steps as CUDA graphs (torch.compile; GPUs only)",
     )
     p.add_argument(
         "--no-augment",
@@ -305,7 +266,12 @@ def _training_options(p) -> None:
         action="append",
         metavar="SECTION.FIELD=VALUE",
         help="any config field, after the options above (repeatable; e.g. train.pos_weight=5, data.floor_db=50, "
-        "augment.floor_jitter_db=10, augment.band_masks=0, model.row_contrast=true)",
+        "augment.floor_jitter_db=10, augment=none, model.row_contrast=true, train.max_val_windows=none)",
+    )
+    p.add_argument(
+        "--config",
+        metavar="RUN/config.json",
+        help="start from the settings a run recorded (to repeat it): they become the defaults of the options above",
     )
 
 
@@ -314,7 +280,13 @@ def _threshold_option(p) -> None:
     p.add_argument("--threshold", type=float, default=None, help=help_)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(base=None) -> argparse.ArgumentParser:
+    """The command line; `base` (a LearnConfig, default: the config classes' defaults) gives the
+    defaults of the training options."""
+    if base is None:
+        from .config import LearnConfig
+
+        base = LearnConfig()
     fmt = argparse.ArgumentDefaultsHelpFormatter
     parser = argparse.ArgumentParser(prog="python -m learn", description=__doc__)
     common = argparse.ArgumentParser(add_help=False)
@@ -330,7 +302,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--tensorboard", action="store_true", help="also log every epoch (metrics, example windows) in OUT/tensorboard"
     )
-    _training_options(p)
+    _training_options(p, base)
     p.set_defaults(handler=_train)
     p = sub.add_parser(
         "evaluate", help="metrics, baselines, examples and a report", formatter_class=fmt, parents=[common]
@@ -373,7 +345,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--train", required=True, help="training dataset (e.g. the paper suite)")
     p.add_argument("--test", required=True, help="table2 suite folder (minimal/, many/, noisy/)")
     p.add_argument("--out", required=True)
-    _training_options(p)
+    _training_options(p, base)
     p.set_defaults(handler=_table2)
     p = sub.add_parser(
         "sim2real",
@@ -400,7 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--variants", help="comma-separated variants to train or score (default: every one in --ablation)")
     p.add_argument("--out", required=True)
-    _training_options(p)
+    _training_options(p, base)
     p.set_defaults(handler=_sim2real)
     p = sub.add_parser(
         "sim2real-summary", help="mean and std over repeated sim2real runs", formatter_class=fmt, parents=[common]
@@ -432,15 +404,29 @@ USER_ERRORS = (ValueError, TypeError, KeyError, OSError, FloatingPointError, Mis
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
     try:
+        args = build_parser(_recorded_config(argv)).parse_args(argv)
         return args.handler(args)
     except USER_ERRORS as err:
-        if args.debug:
+        if "--debug" in argv:
             raise
         text = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         print(f"error: {text}", file=sys.stderr)
         return 2
+
+
+def _recorded_config(argv: list[str]):
+    """The LearnConfig of `--config FILE` when the command line names one (before the parser is
+    built: its settings are the options' defaults), else None."""
+    first = argparse.ArgumentParser(add_help=False)
+    first.add_argument("--config")
+    named = first.parse_known_args(argv)[0].config
+    if named is None:
+        return None
+    from .config import read_run_config
+
+    return read_run_config(named)
 
 
 if __name__ == "__main__":

@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import json
 import os
+import typing
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import h5py
 import numpy as np
@@ -20,7 +22,8 @@ import torch
 
 FORMAT = "sonar2lidar-dataset"  # written by acoustic_sim.datasets.shards; the file format is the interface
 FORMAT_VERSION = 1
-LABELS = ("middle", "last")
+Label = Literal["middle", "last"]
+LABELS: tuple[str, ...] = typing.get_args(Label)
 
 
 class DataError(ValueError):
@@ -40,7 +43,7 @@ class DataConfig:
     """
 
     frames: int = 5
-    label: str = "middle"
+    label: Label = "middle"
     floor_db: float = 40.0
 
     def __post_init__(self) -> None:

@@ -20,18 +20,17 @@ import numpy as np
 import torch
 
 from .checkpoint import load_checkpoint
+from .config import LearnConfig
 from .data import DataConfig, Windows, load_frames, recorded_path, shard_paths
 from .evaluate import evaluate, model_predictor, return_threshold
 from .models import ModelConfig
 from .report import METRICS
-from .train import TrainConfig, train
+from .train import train
 
 TABLE2_CASES = ("minimal", "many", "noisy")
 FRAME_COUNTS = (1, 3, 5)
 SIM2REAL_KEYS = (("scan_f1", "scan F1"), ("beam_accuracy", "beam acc."), ("chamfer_m", "Chamfer [m]"), ("iou", "IoU"))
 
-DEFAULT_DATA = DataConfig()  # frozen: safe to share as a default
-DEFAULT_MODEL = ModelConfig()
 ECHO_PEAK = "_echo_peak"  # a sim2real table's key for the baseline on a test set: "reality_echo_peak"
 
 
@@ -55,41 +54,28 @@ def table2(
     test_data: str | Path,
     out: str | Path,
     *,
-    model_config: ModelConfig = DEFAULT_MODEL,
-    train_config: TrainConfig,
-    data_config: DataConfig = DEFAULT_DATA,
+    config: LearnConfig,
     device: str = "cpu",
     progress: bool = True,
 ) -> dict:
     """Models with K = 1, 3, 5 trained on `train_data`; then the K = 5 model fine-tuned on each
     Table 2 case's training episodes (`test_data`/minimal, many, noisy) at a tenth of the learning
     rate. Every row is scored on the same held-out episodes of each case. Mean / std over windows.
-    `model_config` and `data_config` give the settings other than K (network and width; label
-    frame, input floor)."""
+    `config` gives the settings other than K (network and width, label frame, input floor, recipe)."""
     out, test_root = Path(out), Path(test_data)
     frames = load_frames(train_data)
     cases = {c: load_frames(_variant_folder(test_root, c)) for c in TABLE2_CASES}
     runs = {}
     for k in FRAME_COUNTS:
         runs[f"K = {k}"] = run = out / f"k{k}"
-        train(
-            frames,
-            run,
-            model_config=dataclasses.replace(model_config, frames=k),
-            data_config=dataclasses.replace(data_config, frames=k),
-            train_config=train_config,
-            device=device,
-            progress=progress,
-            resume=True,
-        )
+        train(frames, run, config.with_frames(k), device=device, progress=progress, resume=True)
     tuned = {c: out / f"k5_finetuned_{c}" for c in TABLE2_CASES}
+    slower = dataclasses.replace(config.train, lr=config.train.lr / 10)
     for c, run in tuned.items():
         train(
             cases[c],
             run,
-            model_config=dataclasses.replace(model_config, frames=5),
-            data_config=dataclasses.replace(data_config, frames=5),
-            train_config=dataclasses.replace(train_config, lr=train_config.lr / 10),
+            dataclasses.replace(config.with_frames(5), train=slower),
             device=device,
             progress=progress,
             resume=True,
@@ -104,7 +90,7 @@ def table2(
     rows = {name: {c: scored(run, c, c) for c in TABLE2_CASES} for name, run in runs.items()}
     rows["K = 5 fine-tuned"] = {c: scored(run, c, "eval") for c, run in tuned.items()}
     lines = [
-        f"# Table 2 layout: {model_config.name}, trained on `{train_data}`, scored on `{test_data}`",
+        f"# Table 2 layout: {config.model.name}, trained on `{train_data}`, scored on `{test_data}`",
         "",
         "scan F1 at 0.10 m mean / std over windows; the paper's MSE in the second table. Rows K = 1, 3, 5 "
         "are trained on the first dataset only; the fine-tuned row is the K = 5 model trained further "
@@ -127,9 +113,7 @@ def sim2real(
     reality: str | Path,
     out: str | Path,
     *,
-    model_config: ModelConfig = DEFAULT_MODEL,
-    train_config: TrainConfig,
-    data_config: DataConfig = DEFAULT_DATA,
+    config: LearnConfig,
     device: str = "cpu",
     progress: bool = True,
     score_only: bool = False,
@@ -138,8 +122,8 @@ def sim2real(
     """One model per variant of a training suite with bounce variants (`ablation`, `randomised`:
     max_bounces 0, 1, 3, ...), each scored on its own held-out episodes (in-domain) and on every
     window of each test set, beside the echo-peak baseline there. `reality` is one folder (named
-    "reality") or {name: folder}, e.g. {"reality": ..., "crossengine": ...}. `model_config` is the
-    network to train (K included); `data_config` gives the window settings other than K.
+    "reality") or {name: folder}, e.g. {"reality": ..., "crossengine": ...}. `config` is what to
+    train (its model's K included).
 
     `score_only`: train nothing; score the runs already in `out/VARIANT` (e.g. trained side by side
     by `learn train` on a GPU, as benchmarks/sim2real_study.sh does), whose checkpoints name their
@@ -155,22 +139,13 @@ def sim2real(
     if not tests or "in_domain" in tests or any(name.endswith(ECHO_PEAK) for name in tests):
         raise ValueError(f"name the test sets (not in_domain or ...{ECHO_PEAK}), got {list(tests)}")
     test_frames = {name: load_frames(folder) for name, folder in tests.items()}
-    table = {}
+    table, model_config = {}, config.model
     for v in variants:
         run = out / v
         if score_only:
             model_config = _trained_model(run)
         else:
-            train(
-                _variant_folder(root, v),
-                run,
-                model_config=model_config,
-                data_config=dataclasses.replace(data_config, frames=model_config.frames),
-                train_config=train_config,
-                device=device,
-                progress=progress,
-                resume=True,
-            )
+            train(_variant_folder(root, v), run, config, device=device, progress=progress, resume=True)
         own = evaluate(
             run / "best.pt", _variant_folder(root, v), run / "in_domain", device=device, split="val", timing=False
         )

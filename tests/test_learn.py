@@ -16,15 +16,22 @@ import torch
 
 from learn.augment import AugmentConfig
 from learn.checkpoint import load_checkpoint, strip_checkpoint
+from learn.config import LearnConfig, TrainConfig
 from learn.data import DataConfig, DataError, Windows, load_frames, normalise, split_groups, validation_split
 from learn.evaluate import evaluate
 from learn.models import ModelConfig
 from learn.predict import predict
-from learn.train import TrainConfig, train
+from learn.train import train
 
 MODEL = ModelConfig(name="polar_unet", frames=3, width=4)
 DATA = DataConfig(frames=3)
 QUICK = TrainConfig(epochs=2, batch_size=4, lr=1e-3, loss="bce", val_fraction=0.5, max_val_windows=8)
+RUN = LearnConfig(model=MODEL, data=DATA, train=QUICK)
+
+
+def recipe(**changes) -> LearnConfig:
+    """RUN with these TrainConfig fields changed."""
+    return dataclasses.replace(RUN, train=dataclasses.replace(QUICK, **changes))
 
 
 def test_windows_take_the_middle_frame_label(tiny_dataset):
@@ -74,7 +81,7 @@ def test_train_checkpoint_resume_and_evaluate(tiny_dataset, tmp_path):
     the same predictions; --resume to 3 epochs adds one epoch (and to 4 from a checkpoint without
     optimizer state, with a warning, written before a model field existed); evaluate writes its report."""
     run = tmp_path / "run"
-    summary = train(tiny_dataset, run, model_config=MODEL, data_config=DATA, train_config=QUICK, progress=False)
+    summary = train(tiny_dataset, run, RUN, progress=False)
     assert summary["epochs"] == 2 and summary["val_windows"] > 0
     for name in ("last.pt", "best.pt", "history.csv", "curves.png", "summary.json"):
         assert (run / name).exists(), name
@@ -85,39 +92,23 @@ def test_train_checkpoint_resume_and_evaluate(tiny_dataset, tmp_path):
     with torch.no_grad():
         again, _ = load_checkpoint(run / "last.pt")
         torch.testing.assert_close(model(x), again(x))
-    more = dataclasses.replace(QUICK, epochs=3)
-    summary = train(
-        tiny_dataset, run, model_config=MODEL, data_config=DATA, train_config=more, resume=True, progress=False
-    )
+    more = recipe(epochs=3)
+    summary = train(tiny_dataset, run, more, resume=True, progress=False)
     assert summary["epochs"] == 3 and len(open(run / "history.csv").read().strip().splitlines()) == 4
-    for other in ({"lr": 2e-3}, {"augment": AugmentConfig.none()}):  # what it learns may not change on resume
+    # what it learns may not change on resume
+    for other in (recipe(epochs=3, lr=2e-3), dataclasses.replace(more, augment=AugmentConfig.none())):
         with pytest.raises(ValueError, match="another recipe"):
-            train(
-                tiny_dataset,
-                run,
-                model_config=MODEL,
-                data_config=DATA,
-                train_config=dataclasses.replace(more, **other),
-                resume=True,
-                progress=False,
-            )
+            train(tiny_dataset, run, other, resume=True, progress=False)
     strip_checkpoint(run / "last.pt", run / "last.pt")  # as packed to move between machines
     older = torch.load(run / "last.pt", weights_only=True)
     del older["model_config"]["row_contrast"]  # as written before that field existed: it resumes at its default
     del older["train_config"]["augment"]  # ... and before augmentation: it trained with none, and resumes so
     torch.save(older, run / "last.pt")
     with pytest.raises(ValueError, match="augment"):
-        train(tiny_dataset, run, model_config=MODEL, data_config=DATA, train_config=more, resume=True, progress=False)
+        train(tiny_dataset, run, more, resume=True, progress=False)
     with pytest.warns(UserWarning, match="no optimizer state"):
-        summary = train(
-            tiny_dataset,
-            run,
-            model_config=MODEL,
-            data_config=DATA,
-            train_config=dataclasses.replace(QUICK, epochs=4, augment=AugmentConfig.none()),
-            resume=True,
-            progress=False,
-        )
+        none = dataclasses.replace(recipe(epochs=4), augment=AugmentConfig.none())
+        summary = train(tiny_dataset, run, none, resume=True, progress=False)
     assert summary["epochs"] == 4
     report = evaluate(run / "best.pt", tiny_dataset, run / "eval", timing=False)
     assert report["split"] == "val" and set(report["results"]) == {"model", "echo peak", "empty"}
@@ -172,7 +163,7 @@ def test_predict_reads_scans_at_the_threshold(tiny_dataset, tmp_path):
     from learn.metrics import first_return_ranges
 
     run = tmp_path / "run"
-    train(tiny_dataset, run, model_config=MODEL, data_config=DATA, train_config=QUICK, progress=False)
+    train(tiny_dataset, run, RUN, progress=False)
     best = torch.load(run / "best.pt", weights_only=True)
     for override in (None, 0.3):
         got = np.load(predict(run / "best.pt", tiny_dataset, tmp_path / f"p{override}.npz", threshold=override))
@@ -190,8 +181,7 @@ def test_evaluate_compares_checkpoints_side_by_side(tiny_dataset, tmp_path, caps
     read other windows (K) are refused; with `progress` a bar counts the windows of each predictor."""
     a, b, k5 = tmp_path / "a", tmp_path / "b", tmp_path / "k5"
     for run, seed in ((a, 0), (b, 1)):
-        config = dataclasses.replace(QUICK, epochs=1, seed=seed)
-        train(tiny_dataset, run, model_config=MODEL, data_config=DATA, train_config=config, progress=False)
+        train(tiny_dataset, run, recipe(epochs=1, seed=seed), progress=False)
     named = {"first": a / "best.pt", "second": b / "best.pt"}
     report = evaluate([f"{k}={v}" for k, v in named.items()], tiny_dataset, tmp_path / "cmp", split="all", timing=False)
     assert list(report["results"]) == ["first", "second", "echo peak", "empty"]
@@ -210,9 +200,7 @@ def test_evaluate_compares_checkpoints_side_by_side(tiny_dataset, tmp_path, caps
     bars = capsys.readouterr().err
     assert all(f"scoring {name}" in bars for name in ("model", "echo peak", "empty")) and "12/12" in bars, bars
     assert _same(alone["results"]["model"], report["results"]["second"])
-    five = ModelConfig(name="polar_unet", frames=5, width=4)
-    config = dataclasses.replace(QUICK, epochs=1)
-    train(tiny_dataset, k5, model_config=five, data_config=DataConfig(frames=5), train_config=config, progress=False)
+    train(tiny_dataset, k5, recipe(epochs=1).with_frames(5), progress=False)
     with pytest.raises(ValueError, match="other windows"):
         evaluate({"a": a / "best.pt", "k5": k5 / "best.pt"}, tiny_dataset, tmp_path / "bad", timing=False)
 
@@ -285,17 +273,15 @@ def test_ddp_under_torchrun_on_cpu(tiny_dataset, tmp_path, processes):
     assert group == {"backend": "gloo", "processes": processes}
     if processes == 1:
         plain = tmp_path / "plain"
-        train(tiny_dataset, plain, model_config=MODEL, data_config=DATA, train_config=QUICK, progress=False)
+        train(tiny_dataset, plain, RUN, progress=False)
         assert json.loads((plain / "config.json").read_text())["process_group"] is None
 
 
 def test_monitor_picks_best_checkpoint_by_chamfer(tiny_dataset, tmp_path):
     """With monitor="chamfer_m" best.pt is the epoch of the lowest validation Chamfer distance,
     and it stores that epoch's calibrated threshold."""
-    config = dataclasses.replace(QUICK, epochs=3, monitor="chamfer_m", patience=3)
-    summary = train(
-        tiny_dataset, tmp_path / "run", model_config=MODEL, data_config=DATA, train_config=config, progress=False
-    )
+    config = recipe(epochs=3, monitor="chamfer_m", patience=3)
+    summary = train(tiny_dataset, tmp_path / "run", config, progress=False)
     rows = [line.split(",") for line in (tmp_path / "run" / "history.csv").read_text().strip().splitlines()]
     chamfer = [float(r[rows[0].index("val_chamfer_m")]) for r in rows[1:]]
     assert summary["best_epoch"] == 1 + int(np.argmin(chamfer))
@@ -313,8 +299,7 @@ def test_split_seed_holds_the_validation_episodes_while_the_seed_varies(tiny_dat
     episodes = load_frames(tiny_dataset).episode
     own = [tuple(np.unique(episodes[validation_split(episodes, 0.5, seed=s)])) for s in range(20)]
     seed = next(s for s in range(1, 20) if own[s] != own[0])
-    config = dataclasses.replace(QUICK, epochs=1, seed=seed, split_seed=0)
-    train(tiny_dataset, tmp_path / "run", model_config=MODEL, data_config=DATA, train_config=config, progress=False)
+    train(tiny_dataset, tmp_path / "run", recipe(epochs=1, seed=seed, split_seed=0), progress=False)
     written = json.loads((tmp_path / "run" / "config.json").read_text())
     assert tuple(written["dataset"]["val_episodes"]) == own[0] != own[seed]
     assert written["train_config"]["split_seed"] == 0 and written["train_config"]["seed"] == seed
@@ -327,18 +312,13 @@ def test_resuming_with_the_split_seed_named_is_the_same_recipe():
     from types import SimpleNamespace
 
     from learn.checkpoint import check_compatible
+    from learn.config import to_record
 
-    saved = dataclasses.replace(QUICK, seed=3)
-    ckpt = {
-        "model_config": dataclasses.asdict(MODEL),
-        "data_config": dataclasses.asdict(DATA),
-        "train_config": dataclasses.asdict(saved),
-        "dataset": {"plan_id": "p"},
-    }
+    ckpt = to_record(recipe(seed=3)) | {"dataset": {"plan_id": "p"}}
     windows = SimpleNamespace(frames=SimpleNamespace(info={"plan_id": "p"}))
-    check_compatible(ckpt, MODEL, DATA, dataclasses.replace(saved, split_seed=3), windows)
+    check_compatible(ckpt, recipe(seed=3, split_seed=3), windows)
     with pytest.raises(ValueError, match="split_seed None -> 4"):
-        check_compatible(ckpt, MODEL, DATA, dataclasses.replace(saved, split_seed=4), windows)
+        check_compatible(ckpt, recipe(seed=3, split_seed=4), windows)
 
 
 def _same(a: dict, b: dict) -> bool:
@@ -356,12 +336,12 @@ def test_sim2real_table_matches_its_reports_and_summarises_runs(tiny_dataset, tm
     ablation.mkdir()
     for name in ("bounces_0", "bounces_3"):
         (ablation / name).symlink_to(tiny_dataset, target_is_directory=True)
-    config = dataclasses.replace(QUICK, epochs=1)
+    config = recipe(epochs=1)
     runs = [tmp_path / f"seed{s}" for s in (0, 1)]
+    model = ModelConfig(width=4, frames=3, row_contrast=True)
     for seed, run in enumerate(runs):
-        train_config = dataclasses.replace(config, seed=seed)
-        model = ModelConfig(width=4, frames=3, row_contrast=True)
-        sim2real(ablation, tiny_dataset, run, model_config=model, train_config=train_config, progress=False)
+        seeded = dataclasses.replace(recipe(epochs=1, seed=seed), model=model)
+        sim2real(ablation, tiny_dataset, run, config=seeded, progress=False)
     table = json.loads((runs[1] / "sim2real.json").read_text())
     trained = torch.load(runs[0] / "bounces_3" / "best.pt", weights_only=True)["model_config"]
     assert trained == dataclasses.asdict(model)  # the whole network config reaches every variant's run
@@ -374,17 +354,15 @@ def test_sim2real_table_matches_its_reports_and_summarises_runs(tiny_dataset, tm
     )
 
     assert (runs[1] / "examples_reality.png").stat().st_size > 10_000  # each variant's median window
-    rescored = sim2real(ablation, tiny_dataset, runs[1], score_only=True, train_config=config, progress=False)
+    rescored = sim2real(ablation, tiny_dataset, runs[1], score_only=True, config=config, progress=False)
     assert _same(rescored, table)  # score_only reads the trained runs and scores them alike
     with pytest.raises(ValueError, match=r"no best\.pt to score"):
-        sim2real(ablation, tiny_dataset, tmp_path / "none", score_only=True, train_config=config, progress=False)
-    cut = dataclasses.replace(config, epochs=3, max_minutes=1e-6)  # stops on its budget after epoch 1
+        sim2real(ablation, tiny_dataset, tmp_path / "none", score_only=True, config=config, progress=False)
+    cut = recipe(epochs=3, max_minutes=1e-6)  # stops on its budget after epoch 1
     for v in ("bounces_0", "bounces_3"):
-        model, data = ModelConfig(width=4, frames=3), DataConfig(frames=3)
-        run = tmp_path / "cut" / v
-        train(ablation / v, run, model_config=model, data_config=data, train_config=cut, progress=False)
+        train(ablation / v, tmp_path / "cut" / v, cut, progress=False)
     with pytest.warns(UserWarning, match="training has not stopped"):
-        sim2real(ablation, tiny_dataset, tmp_path / "cut", score_only=True, train_config=config, progress=False)
+        sim2real(ablation, tiny_dataset, tmp_path / "cut", score_only=True, config=config, progress=False)
 
     summary = sim2real_summary(runs, tmp_path / "summary")
     per_run = [json.loads((r / "sim2real.json").read_text())["bounces_3"]["reality"]["iou"]["mean"] for r in runs]
@@ -399,7 +377,7 @@ def test_sim2real_table_matches_its_reports_and_summarises_runs(tiny_dataset, tm
 
     # one named variant (part 4 of the study trains only its best), scored as in the full table
     one = sim2real(
-        ablation, tiny_dataset, runs[1], score_only=True, train_config=config, progress=False, variants=["bounces_3"]
+        ablation, tiny_dataset, runs[1], score_only=True, config=config, progress=False, variants=["bounces_3"]
     )
     assert list(one) == ["bounces_3"] and _same(one["bounces_3"], table["bounces_3"])
     with pytest.raises(ValueError, match=r"not all in .*holds \['bounces_0', 'bounces_3'\]"):
@@ -408,7 +386,7 @@ def test_sim2real_table_matches_its_reports_and_summarises_runs(tiny_dataset, tm
             tiny_dataset,
             runs[1],
             score_only=True,
-            train_config=config,
+            config=config,
             progress=False,
             variants=["bounces_1"],
         )
@@ -423,8 +401,7 @@ def test_table2_scores_every_row_on_the_same_held_out_episodes(tiny_dataset, tmp
     cases.mkdir()
     for c in TABLE2_CASES:
         (cases / c).symlink_to(tiny_dataset, target_is_directory=True)
-    quick = dataclasses.replace(QUICK, epochs=1)
-    rows = table2(tiny_dataset, cases, tmp_path / "t2", model_config=ModelConfig(width=4), train_config=quick)
+    rows = table2(tiny_dataset, cases, tmp_path / "t2", config=recipe(epochs=1))
     assert list(rows) == ["K = 1", "K = 3", "K = 5", "K = 5 fine-tuned"]
     held = torch.load(tmp_path / "t2" / "k5_finetuned_noisy" / "best.pt", weights_only=True)["dataset"]["val_episodes"]
     k5 = json.loads((tmp_path / "t2" / "k5" / "noisy" / "metrics.json").read_text())
@@ -482,19 +459,62 @@ def test_set_reaches_fields_no_option_names_and_the_run_records_them(tiny_datase
     assert written["data_config"] == {"frames": 3, "label": "middle", "floor_db": 50.0}
     assert written["model_config"] == {"name": "polar_unet", "frames": 3, "width": 4, "row_contrast": True}
     assert written["dataset"]["plan_id"] == load_frames(tiny_dataset).info["plan_id"] and not written["resumed"]
+    from learn.cli import _configs, _recorded_config, build_parser
+    from learn.config import from_record
+
+    ran = _configs(build_parser().parse_args(argv))  # the whole config, in both places
+    assert from_record(written) == from_record(load_checkpoint(run / "best.pt")[1]) == ran
+    again = ["train", "--data", str(tiny_dataset), "--out", "again", "--config", str(run / "config.json")]
+    assert _configs(build_parser(_recorded_config(again)).parse_args(again)) == ran  # a repeat of it
+
+
+def test_config_option_starts_from_a_recorded_run(tmp_path, capsys):
+    """`learn train --config RUN/config.json`: the run's settings become the options' defaults, so the
+    same command repeats it; options and --set still change single fields; a record from before
+    augmentation had a section reads as none; an unreadable file is one `error:` line."""
+    from learn.cli import _configs, build_parser, main
+    from learn.config import read_run_config, to_record
+
+    recorded = dataclasses.replace(recipe(seed=7, max_minutes=30.0, amp=False), augment=AugmentConfig(mirror=0.1))
+    recorded = dataclasses.replace(recorded, model=dataclasses.replace(MODEL, row_contrast=True))
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps(to_record(recorded) | {"dataset": {"plan_id": "p"}, "device": "cpu"}))
+
+    def configs(*extra):
+        from learn.cli import _recorded_config
+
+        argv = ["train", "--data", "d", "--out", "o", "--config", str(path), *extra]
+        return _configs(build_parser(_recorded_config(argv)).parse_args(argv))
+
+    assert recorded != LearnConfig() and configs() == recorded
+    assert configs("--epochs", "9", "--set", "augment.mirror=0.2") == dataclasses.replace(
+        recorded, train=dataclasses.replace(recorded.train, epochs=9), augment=AugmentConfig(mirror=0.2)
+    )
+    assert configs("--no-augment").augment == AugmentConfig.none()
+    older = to_record(recorded)
+    del older["train_config"]["augment"], older["model_config"]["row_contrast"]
+    path.write_text(json.dumps(older))
+    assert read_run_config(path) == dataclasses.replace(recorded, augment=AugmentConfig.none(), model=MODEL)
+    for content, words in (("{", "is not JSON"), ('{"model_config": {}}', "not this version's"), ("[]", "not a run")):
+        path.write_text(content)
+        assert main(["train", "--data", "d", "--out", str(tmp_path / "o"), "--config", str(path)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"error: --config {path}") and words in err, err
+    assert main(["train", "--data", "d", "--out", "o", "--config", str(tmp_path / "none.json")]) == 2
+    assert "does not exist" in capsys.readouterr().err
 
 
 @pytest.mark.parametrize(
     "setting, message",
     [
-        ("train.lr", "--set wants model|data|train|augment.field=value"),
-        ("optim.lr=1", "--set wants model|data|train|augment.field=value"),
+        ("train.lr", "--set wants section.field=value (sections: model, data, augment, train)"),
+        ("optim.lr=1", "no section 'optim'; the sections are model, data, augment, train"),
         ("train.speed=1", "train has no field 'speed'"),
-        ("train.epochs=1.5", "invalid literal for int"),
-        ("train.amp=maybe", "'maybe' is not true or false"),
-        ("train.epochs=none", "invalid literal for int"),
-        ("train.loss=hinge", "loss must be one of"),
-        ("data.label=first", "label must be one of"),
+        ("train.epochs=1.5", "'1.5' is not a valid value: give an integer"),
+        ("train.amp=maybe", "'maybe' is not a valid value: give true or false"),
+        ("train.epochs=none", "'none' is not a valid value: give an integer"),
+        ("train.loss=hinge", "'hinge' is not a valid value: give one of 'mse', 'bce'"),
+        ("data.label=first", "'first' is not a valid value: give one of 'middle', 'last'"),
         ("model.frames=3", "must agree: set the window length with --frames"),
     ],
 )
@@ -592,7 +612,7 @@ def test_tensorboard_logs_every_epoch(tiny_dataset, tmp_path, monkeypatch, capsy
     (one `error:` line from the command line)."""
     event_accumulator = pytest.importorskip("tensorboard.backend.event_processing.event_accumulator")
     run = tmp_path / "run"
-    train(tiny_dataset, run, model_config=MODEL, data_config=DATA, train_config=QUICK, progress=False, tensorboard=True)
+    train(tiny_dataset, run, RUN, progress=False, tensorboard=True)
     board = event_accumulator.EventAccumulator(str(run / "tensorboard"), size_guidance={"images": 0})
     board.Reload()
     history = list(csv.DictReader(open(run / "history.csv")))
@@ -608,7 +628,7 @@ def test_tensorboard_logs_every_epoch(tiny_dataset, tmp_path, monkeypatch, capsy
     assert {"speed/samples_per_s", "speed/train_seconds"} <= set(board.Tags()["scalars"])
     monkeypatch.setitem(sys.modules, "torch.utils.tensorboard", None)
     with pytest.raises(ImportError, match=r"sonar2lidar\[tensorboard\]"):
-        train(tiny_dataset, tmp_path / "no", model_config=MODEL, data_config=DATA, train_config=QUICK, tensorboard=True)
+        train(tiny_dataset, tmp_path / "no", RUN, tensorboard=True)
     assert not (tmp_path / "no").exists()  # refused before anything was written
     from learn.cli import main
 

@@ -14,23 +14,25 @@ import torch
 
 from learn.checkpoint import load_checkpoint
 from learn.cli import main
+from learn.config import LearnConfig, TrainConfig
 from learn.data import DataConfig, DataError, load_frames
 from learn.evaluate import check_grid
 from learn.models import ModelConfig
-from learn.train import TrainConfig, train
+from learn.train import train
 
 from .crafted import pickle_payload
 
 MODEL = ModelConfig(name="polar_unet", frames=3, width=4)
 DATA = DataConfig(frames=3)
 QUICK = TrainConfig(epochs=1, batch_size=4, lr=1e-3, loss="bce", val_fraction=0.5, max_val_windows=8)
+RUN = LearnConfig(model=MODEL, data=DATA, train=QUICK)
 
 
 @pytest.fixture(scope="module")
 def run(tiny_dataset, tmp_path_factory):
     """A one-epoch run on the tiny dataset: (run folder, best.pt)."""
     out = tmp_path_factory.mktemp("run")
-    train(tiny_dataset, out, model_config=MODEL, data_config=DATA, train_config=QUICK, progress=False)
+    train(tiny_dataset, out, RUN, progress=False)
     return out, out / "best.pt"
 
 
@@ -54,10 +56,10 @@ def test_train_never_overwrites_a_run(run, tiny_dataset, capsys):
     )
     assert best.read_bytes() == before
     with pytest.raises(ValueError, match="is a file"):
-        train(tiny_dataset, best, model_config=MODEL, data_config=DATA, train_config=QUICK)
+        train(tiny_dataset, best, RUN)
     copy = out.parent / (out.name + "_copy")
     shutil.copytree(out, copy)
-    train(tiny_dataset, copy, model_config=MODEL, data_config=DATA, train_config=QUICK, progress=False, overwrite=True)
+    train(tiny_dataset, copy, RUN, progress=False, overwrite=True)
     assert torch.load(copy / "last.pt", weights_only=True)["state"]["epoch"] == 1
 
 
@@ -171,4 +173,4 @@ def test_non_finite_data_and_loss_stop_training(tiny_dataset, tmp_path, monkeypa
 
     monkeypatch.setattr(learn.train, "loss_fn", lambda *a: torch.tensor(float("nan"), requires_grad=True))
     with pytest.raises(FloatingPointError, match="loss became nan"):
-        train(tiny_dataset, tmp_path / "r", model_config=MODEL, data_config=DATA, train_config=QUICK, progress=False)
+        train(tiny_dataset, tmp_path / "r", RUN, progress=False)

@@ -24,9 +24,10 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.provenance import machine_paths, strip_machine_paths, tracked_text_files  # noqa: E402
+from learn.config import LearnConfig, TrainConfig  # noqa: E402
 from learn.data import DataConfig, recorded_path  # noqa: E402
 from learn.models import ModelConfig  # noqa: E402
-from learn.train import TrainConfig, train  # noqa: E402
+from learn.train import train  # noqa: E402
 
 CHECKPOINT = ROOT / "learn" / "pretrained" / "polar_unet_k5.pt"
 # Planted paths are assembled, so that this file does not hold them itself.
@@ -123,8 +124,9 @@ def test_training_records_no_machine_path(tiny_dataset, tmp_path: Path, monkeypa
     monkeypatch.chdir(work)
     run = work / "runs" / "a"
     quick = TrainConfig(epochs=1, batch_size=4, lr=1e-3, loss="bce", val_fraction=0.5, max_val_windows=4)
-    model, data = ModelConfig(name="polar_unet", frames=3, width=4), DataConfig(frames=3)
-    train(Path(tiny_dataset).absolute(), run, model_config=model, data_config=data, train_config=quick, progress=False)
+    model = ModelConfig(name="polar_unet", frames=3, width=4)
+    recipe = LearnConfig(model=model, data=DataConfig(frames=3), train=quick)
+    train(Path(tiny_dataset).absolute(), run, recipe, progress=False)
     folder = os.path.relpath(tiny_dataset, work)
     ckpt = torch.load(run / "best.pt", map_location="cpu", weights_only=True)
     config = json.loads((run / "config.json").read_text())
