@@ -28,10 +28,10 @@ from acoustic_sim.settings import apply_settings
 
 
 def test_settings_reach_every_level_of_the_tree():
-    """Each level is reached (`none` and `None` clear a field that was set); a preset by name gives
+    """Each level is reached (`none` and `None` clear fields that were set); a preset by name gives
     its beam pattern (64 x 1024 beams over 360 x 45 deg, 0.3-100 m) in place of the Hokuyo's."""
     got = apply_settings(
-        SimConfig(tracer=TracerConfig(edge_width_m=0.004), processing=ProcessingConfig(lowpass_hz=2000.0)),
+        SimConfig(tracer=TracerConfig(edge_width_m=0.004)),  # none must clear it (None is the default)
         [
             "tracer.max_bounces=1",
             "tracer.scattering=false",
