@@ -80,13 +80,14 @@ def run_checked(cmd: list[str], what: str, **kwargs) -> subprocess.CompletedProc
     return done
 
 
-def export(rev: str, into: Path) -> str:
-    """The revision's simulator (acoustic_sim, scenes) under `into`; returns its full commit id."""
+def export(rev: str, into: Path, *, repo: Path = ROOT) -> str:
+    """The revision's simulator (acoustic_sim, scenes) of the git repository `repo` under `into`;
+    returns its full commit id."""
     commit = run_checked(
-        ["git", "rev-parse", "--verify", "--quiet", rev + "^{commit}"], f"revision {rev!r}", cwd=ROOT, text=True
+        ["git", "rev-parse", "--verify", "--quiet", rev + "^{commit}"], f"revision {rev!r}", cwd=repo, text=True
     ).stdout.strip()
     into.mkdir(parents=True)
-    archive = run_checked(["git", "archive", commit, "acoustic_sim", "scenes"], f"git archive {rev}", cwd=ROOT).stdout
+    archive = run_checked(["git", "archive", commit, "acoustic_sim", "scenes"], f"git archive {rev}", cwd=repo).stdout
     run_checked(["tar", "-x", "-C", str(into)], f"unpacking {rev}", input=archive)
     return commit
 

@@ -1,4 +1,5 @@
-"""The render command writes a readable PNG and fails clearly on bad input."""
+"""The command line: render and generate, their messages and settings files (what `render` draws:
+tests/test_render.py)."""
 
 import subprocess
 import sys
@@ -6,36 +7,6 @@ import sys
 import pytest
 
 from acoustic_sim.cli import main
-
-
-def test_render_writes_png(tmp_path, device):
-    out = tmp_path / "room.png"
-    assert main(["render", "--scene", "box_room", "--frames", "10", "--device", device, "--out", str(out)]) == 0
-    data = out.read_bytes()
-    assert data[:8] == b"\x89PNG\r\n\x1a\n" and len(data) > 20_000
-
-
-def test_render_svg_with_scene_args(tmp_path, device):
-    plan = tmp_path / "plan.svg"
-    plan.write_text(
-        '<svg xmlns="http://www.w3.org/2000/svg"><rect x="0" y="0" width="600" height="400"/>'
-        '<circle cx="300" cy="200" r="40"/></svg>'
-    )
-    out = tmp_path / "plan.png"
-    args = [
-        "render",
-        "--svg",
-        str(plan),
-        "--scene-arg",
-        "wall_height=2.0",
-        "--frames",
-        "5",
-        "--device",
-        device,
-        "--out",
-        str(out),
-    ]
-    assert main(args) == 0 and out.exists()
 
 
 def test_render_reports_bad_input(tmp_path, capsys):
@@ -55,30 +26,6 @@ def test_module_entry_point_help():
         [sys.executable, "-m", "acoustic_sim", "render", "--help"], capture_output=True, text=True, check=True
     )
     assert "--scene" in done.stdout and "--out" in done.stdout
-
-
-def test_render_sonar_writes_png(tmp_path, device):
-    out = tmp_path / "sonar.png"
-    args = [
-        "render",
-        "--sonar",
-        "--scene",
-        "box_room",
-        "--frames",
-        "5",
-        "--frame",
-        "2",
-        "--rays",
-        "2000",
-        "--max-bounces",
-        "2",
-        "--device",
-        device,
-        "--out",
-        str(out),
-    ]
-    assert main(args) == 0
-    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_generate_command_and_its_errors(tmp_path, device, capsys):

@@ -28,8 +28,10 @@ from acoustic_sim.settings import apply_settings
 
 
 def test_settings_reach_every_level_of_the_tree():
+    """Each level is reached (`none` and `None` clear fields that were set); a preset by name gives
+    its beam pattern (64 x 1024 beams over 360 x 45 deg, 0.3-100 m) in place of the Hokuyo's."""
     got = apply_settings(
-        SimConfig(),
+        SimConfig(tracer=TracerConfig(edge_width_m=0.004)),  # none must clear it (None is the default)
         [
             "tracer.max_bounces=1",
             "tracer.scattering=false",
@@ -49,7 +51,12 @@ def test_settings_reach_every_level_of_the_tree():
     assert got.processing.elevation_deg == (0.0, 10.0)
     assert got.sonar.atmosphere.temperature_c == 30.0 and got.sonar.microphones_m == SonarConfig.ertis().microphones_m
     assert (got.lidar.noise, got.lidar.noise_m) == ("gaussian", 0.02)
-    assert apply_settings(SimConfig(), ["lidar=multibeam_64x1024"]).lidar == LidarConfig.multibeam_64x1024()
+    multibeam = apply_settings(SimConfig(), ["lidar=multibeam_64x1024"]).lidar
+    assert (multibeam.azimuth_count, multibeam.elevation_count, multibeam.beam_count) == (1024, 64, 65536)
+    assert (multibeam.azimuth_min_deg, multibeam.azimuth_max_deg) == (-180.0, 180.0 - 360.0 / 1024)
+    assert (multibeam.elevation_min_deg, multibeam.elevation_max_deg) == (-22.5, 22.5)
+    assert (multibeam.range_min_m, multibeam.range_max_m) == (0.3, 100.0)
+    assert SimConfig().lidar == LidarConfig.hokuyo_ust20lx() and SimConfig().lidar.beam_count == 1081  # replaced
     assert apply_settings(SimConfig(), []) == SimConfig()
 
 
@@ -97,21 +104,37 @@ def test_noise_kinds_have_the_kernels_codes():
 
 
 def test_edge_band_defaults_to_half_a_wavelength():
+    """Half a wavelength at the call's centre (37.5 kHz) in dry air at 20 C: c = sqrt(gamma R T / M)
+    = 343.2 m/s, 4.58 mm."""
     sonar = SonarConfig.ertis()
-    c, f = sonar.atmosphere.speed_of_sound, 0.5 * (50e3 + 25e3)
-    assert TracerConfig().edge_width_for(sonar) == pytest.approx(0.5 * c / f)
+    c = np.sqrt(1.4 * 8.314462 * 293.15 / 0.0289647)
+    assert TracerConfig().edge_width_for(sonar) == pytest.approx(0.5 * c / 37.5e3, rel=2e-4)
     assert TracerConfig(edge_width_m=0.0).edge_width_for(sonar) == 0.0
 
 
 def test_processing_config_and_keywords_give_the_same_energyscape(device):
+    """The grid and low-pass given as a ProcessingConfig or as keywords reach the beamformer alike:
+    both equal a full-rate numpy matched filter, delay-and-sum and envelope (tests/reference) on a
+    grid of baseband samples (5 deg, 0.06-0.48 m), within 0.5 % of the peak; the default low-pass
+    differs from it (so the setting is not ignored)."""
+    from tests.reference.beamform import full_rate_envelope
+
     rng = np.random.default_rng(0)
     config = SonarConfig.ertis()
     signals = rng.normal(0.0, 1.0, (1, config.microphone_count, 2048))
-    grid = PolarGrid(range_max_m=1.5, azimuth_step_deg=5.0)
+    step = 343.0 * 8 / 450e3 / 2  # range between baseband samples (decimation 8, 343 m/s in processing)
+    grid = PolarGrid(range_min_m=30.5 * step, range_max_m=250.5 * step, range_bin_m=step, azimuth_step_deg=5.0)
     by_config = energyscape(signals, config, ProcessingConfig(grid=grid, lowpass_hz=None), device=device)
     by_keywords = energyscape(signals, config, grid=grid, lowpass_hz=None, device=device)
-    np.testing.assert_array_equal(by_config, by_keywords)
-    assert by_config.shape == (1, *grid.shape)
+    assert by_config.shape == by_keywords.shape == (1, *grid.shape) == (1, 220, 37)
+    ref = full_rate_envelope(
+        signals[0], config.microphones_m, config.chirp.samples(), 450e3, grid.azimuth_rad, (20e3, 55e3)
+    )
+    want = ref[:, np.rint(grid.range_m / step).astype(int) * 8].T  # (R, A)
+    for got in (by_config[0], by_keywords[0]):
+        assert np.abs(got - want).max() < 0.005 * want.max()
+    lowpassed = energyscape(signals, config, ProcessingConfig(grid=grid), device=device)[0]
+    assert np.abs(lowpassed - want).max() > 0.05 * want.max()
 
 
 def test_suite_settings_are_simulated_and_recorded(tmp_path, device):
@@ -126,11 +149,20 @@ def test_suite_settings_are_simulated_and_recorded(tmp_path, device):
     want = rig(suite.variants[""], suite.settings)
     with h5py.File(shard) as f:
         assert f["energyscape"].shape == (2, *want.processing.grid.shape) == (2, 140, 91)
-        np.testing.assert_allclose(f["range_m"][:], want.processing.grid.range_m)
+        np.testing.assert_allclose(f["range_m"][:], 0.21 + 0.02 * np.arange(140))  # 2 cm bins, 0.2-3 m
+        np.testing.assert_allclose(f["azimuth_rad"][:], np.deg2rad(np.arange(-90.0, 91.0, 2.0)))
         recorded = json.loads(f.attrs["config"])["sim"]
     manifest = json.loads((tmp_path / "d" / "manifest.json").read_text())
     assert recorded == manifest["sim"] == json.loads(json.dumps(want.to_dict()))
-    assert recorded["tracer"]["ray_count"] == 500
+    assert recorded["processing"]["grid"] == {
+        "range_min_m": 0.2,
+        "range_max_m": 3.0,
+        "range_bin_m": 0.02,
+        "azimuth_min_deg": -90.0,
+        "azimuth_max_deg": 90.0,
+        "azimuth_step_deg": 2.0,
+    }
+    assert recorded["tracer"]["ray_count"] == 500 and recorded["tracer"]["max_bounces"] == Physics().max_bounces
     with pytest.raises(ConfigError, match="no field"):
         dataclasses.replace(base, settings=("tracer.rayz=1",))
     assert "settings" not in base.to_json() and suite.to_json()["settings"] == suite.settings

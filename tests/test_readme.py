@@ -11,8 +11,13 @@ earlier one wrote.
   values, suite and device names are checked; every input file it names must exist or lie in the output
   of an earlier command. It then runs as written (`python` = this interpreter), unless a rule of
   PARSE_ONLY matches it or one of its inputs comes only from a parse-only command: those are only
-  parsed. `pip` and `make` lines are checked against pyproject.toml and the Makefile.
-- python: runs as written in a subprocess (cwd the temporary folder).
+  parsed. `pip` and `make` lines are checked against pyproject.toml and the Makefile. What a command
+  that ran wrote is checked against what the README says it writes (tests/readme_outputs.py: the
+  picture and its settings file, the shards' arrays and frame counts, the MCAP topics, the CHIRP
+  round trip within 0.2 %, the scans of `predict`, the ONNX threshold) and its printed lines where
+  the README quotes them; a command that runs without such a check fails the test.
+- python: runs as written in a subprocess (cwd the temporary folder); the shapes its comments give
+  (`ranges = ...  # (50, 1081) metres`) are checked on the values.
 - toml: loaded as a suite file, as `generate --suite FILE` loads it; a block whose first line is
   `# PATH` must equal that file of the repository.
 - a block without a language is text (the layout).
@@ -37,6 +42,8 @@ from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+
+from tests import readme_outputs
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
@@ -201,6 +208,7 @@ class Walk:
     def __init__(self, cwd: Path, *, run: bool = True):
         self.cwd, self.run = cwd, run
         self.made: set[Path] = set()
+        self.exported: dict[Path, Path] = {}  # CHIRP files written by an earlier command -> their dataset
         self.report: list[str] = []
 
     def check(self, argv: list[str]) -> None:
@@ -236,18 +244,41 @@ class Walk:
             if command.args and getattr(command.args, "out", None):
                 self.made.add(Path(os.path.normpath(command.args.out)))
             return
-        self._run([sys.executable, *argv[1:]], command.text)
+        stdout = self._run([sys.executable, *argv[1:]], command.text)
+        self.report.append(f"  checked: {self._outputs(command, stdout)}")
+
+    def _outputs(self, command: Command, stdout: str) -> str:
+        """What a command that ran wrote and printed, against the README (tests/readme_outputs.py)."""
+        args, out = command.args, readme_outputs
+        if command.subcommand == "acoustic_sim render":
+            return out.check_render(args, self.cwd, stdout)
+        if command.subcommand == "acoustic_sim generate":
+            return out.check_generate(args, self.cwd, stdout, command.frames)
+        if command.subcommand == "acoustic_sim export" and args.format == "mcap":
+            return out.check_export_mcap(args, self.cwd)
+        if command.subcommand == "acoustic_sim export" and args.format == "chirp":
+            self.exported[Path(os.path.normpath(args.out))] = Path(args.dataset)
+            return out.check_export_chirp(args, self.cwd)
+        if command.subcommand == "acoustic_sim import" and args.format == "chirp":
+            source = self.exported.get(Path(os.path.normpath(args.recordings[0])))
+            return out.check_import_chirp(args, self.cwd, source)
+        if command.subcommand == "learn predict":
+            return out.check_predict(args, self.cwd)
+        if command.subcommand == "learn export":
+            return out.check_onnx(args, self.cwd, stdout)
+        raise AssertionError("it ran, but tests/readme_outputs.py has no check of what it writes")
 
     def _made_by_parse_only(self, path: str) -> bool:
         path = Path(os.path.normpath(path))
         return any(path == out or out in path.parents for out in self.made)
 
-    def _run(self, argv: list[str], text: str, timeout: float = 300) -> None:
+    def _run(self, argv: list[str], text: str, timeout: float = 300) -> str:
         env = os.environ | {"PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
         start = time.perf_counter()
         done = subprocess.run(argv, cwd=self.cwd, env=env, capture_output=True, text=True, timeout=timeout)
         assert done.returncode == 0, f"exit code {done.returncode}:\n{done.stdout[-3000:]}\n{done.stderr[-3000:]}"
         self.report.append(f"ran {time.perf_counter() - start:5.1f} s  {text}")
+        return done.stdout
 
     def _check_pip(self, args: list[str]) -> None:
         extras = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"])
@@ -272,10 +303,13 @@ class Walk:
 
     def python(self, code: str, number: int) -> None:
         script = self.cwd / f"readme_block_{number}.py"
-        script.write_text(code)
         compile(code, str(script), "exec")
+        probed, claims = readme_outputs.shape_probe(code)
+        assert claims, f"README.md:{number}: the block comments no shape to check (`x = ...  # (dims)`)"
+        script.write_text(probed)
         if self.run:
-            self._run([sys.executable, script.name], f"python block at README.md:{number}")
+            stdout = self._run([sys.executable, script.name], f"python block at README.md:{number}")
+            self.report.append(f"  checked: {readme_outputs.check_shapes(claims, stdout, number)}")
 
     def toml(self, code: str, number: int) -> None:
         from acoustic_sim.datasets.suites import load_suite
@@ -315,6 +349,7 @@ def test_readme_code_blocks_run(tmp_path, capsys):
     ran = sum(line.startswith("ran") for line in state.report)
     print("\n".join(["README.md code blocks:", *state.report]))
     assert ran >= 10, "most of the README's CPU commands should run"
+    assert sum(line.startswith("  checked: ") for line in state.report) == ran  # each one's outputs
     with capsys.disabled():
         print(f"\nREADME.md: {ran} commands and blocks ran, {len(state.report) - ran} were parsed, loaded or skipped")
 

@@ -1,6 +1,7 @@
 """benchmarks/sonar_same_job.py without a GPU: revisions are named and exported as git has them,
 a child process imports the exported simulator and not the working tree's, and the table reports
-medians over rounds with ratios of each revision to every earlier one."""
+medians over rounds with ratios of each revision to every earlier one. The exports read a
+two-commit repository made here, so the tests pass in a shallow clone (only HEAD of this one)."""
 
 import argparse
 import json
@@ -12,11 +13,33 @@ import pytest
 from benchmarks import sonar_same_job
 
 ROOT = sonar_same_job.ROOT
-OLDER = "a1936a1"  # the last commit recording with 8 taps: its acoustic_sim/signals.py differs from today's
+SIMULATOR = ("acoustic_sim/__init__.py", "acoustic_sim/config.py", "scenes/__init__.py")
 
 
-def git(*args):
-    return subprocess.run(["git", *args], cwd=ROOT, capture_output=True, check=True).stdout
+def git(*args, cwd=ROOT):
+    return subprocess.run(["git", *args], cwd=cwd, capture_output=True, check=True).stdout
+
+
+@pytest.fixture
+def history(tmp_path):
+    """A repository of two commits: the second changes acoustic_sim/config.py and adds
+    acoustic_sim/engine/signals.py; learn/ (not the simulator) is in both. Returns its folder."""
+    repo = tmp_path / "repo"
+    files = {
+        "acoustic_sim/__init__.py": "from .config import TAPS\n",
+        "acoustic_sim/config.py": "TAPS = 8\n",
+        "scenes/__init__.py": "",
+        "learn/__init__.py": "",
+    }
+    git("init", "-q", str(repo), cwd=tmp_path)
+    for change in ({}, {"acoustic_sim/config.py": "TAPS = 4\n", "acoustic_sim/engine/signals.py": "# taps\n"}):
+        for path, text in (files | change).items():
+            (repo / path).parent.mkdir(parents=True, exist_ok=True)
+            (repo / path).write_text(text)
+        git("add", "-A", cwd=repo)
+        identity = ["-c", "user.name=test", "-c", "user.email=test@example.com", "-c", "commit.gpgsign=false"]
+        git(*identity, "commit", "-qm", "a commit", cwd=repo)
+    return repo
 
 
 def test_revisions_keep_their_order_and_names():
@@ -35,34 +58,42 @@ def test_revisions_need_distinct_identifier_names_and_two_at_least(items):
         sonar_same_job.parse_revs(items)
 
 
-@pytest.mark.parametrize("rev", ["HEAD", OLDER])
-def test_export_is_the_commits_simulator(tmp_path, rev):
-    try:
-        git("cat-file", "-e", f"{OLDER}^{{commit}}")
-    except subprocess.CalledProcessError:
-        pytest.fail(f"commit {OLDER} is not in this clone (a shallow clone?): the comparison needs history")
-    commit = sonar_same_job.export(rev, tmp_path / "tree")
-    assert commit == git("rev-parse", rev).decode().strip()
-    for path in ("acoustic_sim/__init__.py", "acoustic_sim/config.py", "scenes/__init__.py"):
-        assert (tmp_path / "tree" / path).read_bytes() == git("show", f"{rev}:{path}")
+@pytest.mark.parametrize("rev", ["HEAD", "HEAD~1"])
+def test_export_is_the_commits_simulator(tmp_path, history, rev):
+    """Each commit's own files (the two differ in config.py), the simulator only, and its full id."""
+    commit = sonar_same_job.export(rev, tmp_path / "tree", repo=history)
+    assert commit == git("rev-parse", rev, cwd=history).decode().strip()
+    for path in SIMULATOR:
+        assert (tmp_path / "tree" / path).read_bytes() == git("show", f"{rev}:{path}", cwd=history)
+    assert (tmp_path / "tree" / "acoustic_sim/engine/signals.py").exists() == (rev == "HEAD")
     assert not (tmp_path / "tree" / "learn").exists()  # the simulator only
 
 
-def test_the_older_commit_really_differs():
-    """Keeps the export test meaningful: a copy of the working tree would fail it for OLDER."""
-    assert git("show", f"{OLDER}:acoustic_sim/signals.py") != git("show", "HEAD:acoustic_sim/engine/signals.py")
+def test_the_two_commits_differ(history):
+    """Keeps the export test meaningful: a copy of one commit would fail it for the other."""
+    older, newer = (git("show", f"{rev}:acoustic_sim/config.py", cwd=history) for rev in ("HEAD~1", "HEAD"))
+    assert older != newer
 
 
-def test_a_bad_revision_is_one_clear_error(tmp_path):
+def test_export_of_this_repository_by_default(tmp_path):
+    """Without `repo`, the benchmark's own repository (HEAD, which a shallow clone has)."""
+    commit = sonar_same_job.export("HEAD", tmp_path / "tree")
+    assert commit == git("rev-parse", "HEAD").decode().strip()
+    for path in SIMULATOR:
+        assert (tmp_path / "tree" / path).read_bytes() == git("show", f"HEAD:{path}")
+    assert not (tmp_path / "tree" / "learn").exists()
+
+
+def test_a_bad_revision_is_one_clear_error(tmp_path, history):
     with pytest.raises(SystemExit, match="no-such-revision"):
-        sonar_same_job.export("no-such-revision", tmp_path / "bad")
+        sonar_same_job.export("no-such-revision", tmp_path / "bad", repo=history)
 
 
 @pytest.mark.parametrize("outer", [None, str(ROOT)])
-def test_the_child_imports_the_exported_tree(tmp_path, monkeypatch, outer):
+def test_the_child_imports_the_exported_tree(tmp_path, history, monkeypatch, outer):
     """Run from the working tree (its own acoustic_sim first on sys.path), with or without it on
     PYTHONPATH, the child's simulator comes from the export."""
-    sonar_same_job.export(OLDER, tmp_path / "tree")
+    sonar_same_job.export("HEAD~1", tmp_path / "tree", repo=history)
     if outer is None:
         monkeypatch.delenv("PYTHONPATH", raising=False)
     else:
