@@ -2,7 +2,7 @@
 # Converged learner results on one GPU: the `paper` suite at 60,000 frames (~54,000 for training,
 # whole episodes held out for validation), each network trained with several seeds side by side
 # until validation scan F1 (0.10 m) stops improving for PATIENCE sub-epochs of 12,000 windows,
-# then scored on its held-out episodes and on a fresh 1,000-frame drive (suite seed 1000: scenes
+# then scored on its validation episodes (which early stopping read) and on a fresh 1,000-frame drive (suite seed 1000: scenes
 # no model saw) beside the echo-peak and empty baselines. Phases, so each fits one 10-minute call
 # of the GPU machine; `train` resumes from last.pt, so calling it again continues unfinished runs.
 #
@@ -78,7 +78,7 @@ from learn.data import load_frames
 from learn.evaluate import evaluate
 
 work, device, names = sys.argv[1], sys.argv[2], sys.argv[3:]
-for data, folder in (("paper", "held_out"), ("drive", "drive")):  # held_out: the episodes validation held out
+for data, folder in (("paper", "held_out"), ("drive", "drive")):  # held_out: the validation episodes (early stopping read them)
     frames = load_frames(f"{work}/data/{data}")
     for name in names:
         run = f"{work}/runs/{name}"

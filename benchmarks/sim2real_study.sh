@@ -2,7 +2,7 @@
 # The multipath sim-to-real study on one GPU: our polar UNet trained on `ablation` (the paper's
 # scenarios) and on `randomised` (randomised physics, empty polygon rooms as well), each rendered
 # with 0, 1 and 3 secondary bounces (FRAMES per variant, 50,000 by default), seeds 0-2, until
-# validation scan F1 (0.10 m) stops improving; then scored on held-out episodes of its own
+# validation scan F1 (0.10 m) stops improving; then scored on validation episodes of its own
 # variant, on `reality` and on `crossengine` (another engine's image sources, which no model
 # trains, stops or calibrates on) beside the echo-peak baseline, with paired per-seed differences.
 # Phases, so each fits one 10-minute call of the GPU machine; `train` resumes from last.pt:

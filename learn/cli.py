@@ -231,7 +231,12 @@ def _training_options(p, base) -> None:
         choices=list(MONITORS),
         help="validation metric for best.pt and stopping (scan_f1 at 0.10 m; ssim is the paper's)",
     )
-    p.add_argument("--val-fraction", type=float, default=train.val_fraction, help="share of episodes held out")
+    p.add_argument(
+        "--val-fraction",
+        type=float,
+        default=train.val_fraction,
+        help="share of episodes held out for validation (early stopping and the threshold read them)",
+    )
     p.add_argument("--split-by", default=train.split_by, choices=SPLITS, help="what validation holds out whole")
     p.add_argument("--max-train-windows", type=int, default=train.max_train_windows, help="per epoch (None: all)")
     p.add_argument("--max-val-windows", type=int, default=train.max_val_windows, help="validated per epoch")

@@ -45,7 +45,7 @@ class TrainConfig:
         monitor: The validation metric that picks best.pt and stops early: "scan_f1" (at 0.10 m,
             the default), "beam_accuracy", "chamfer_m" (lower is better) or "ssim" (the paper's;
             it rewards near-empty images on sparse labels).
-        val_fraction: Share of episodes (or scenarios, `split_by`) held out when not folding.
+        val_fraction: Share of episodes (or scenarios, `split_by`) held out for validation when not folding.
         seed: Initialisation, batch order and augmentation draws; also the validation split (or
             folds) unless `split_seed` is set.
         split_seed: Seed of the validation split (or folds) alone: fix it to vary `seed` over one

@@ -60,7 +60,8 @@ def table2(
 ) -> dict:
     """Models with K = 1, 3, 5 trained on `train_data`; then the K = 5 model fine-tuned on each
     Table 2 case's training episodes (`test_data`/minimal, many, noisy) at a tenth of the learning
-    rate. Every row is scored on the same held-out episodes of each case. Mean / std over windows.
+    rate. Every row is scored on the same validation episodes of each case (those early stopping
+    read). Mean / std over windows.
     `config` gives the settings other than K (network and width, label frame, input floor, recipe)."""
     out, test_root = Path(out), Path(test_data)
     frames = load_frames(train_data)
@@ -95,7 +96,8 @@ def table2(
         "scan F1 at 0.10 m mean / std over windows; the paper's MSE in the second table. Rows K = 1, 3, 5 "
         "are trained on the first dataset only; the fine-tuned row is the K = 5 model trained further "
         "on each case's other episodes (lr / 10). "
-        "Every row scores the same held-out episodes of each case.",
+        "Every row scores the same validation episodes of each case (the ones early stopping read: "
+        "not a test set).",
         "",
         "| input | " + " | ".join(f"{c} reflectors" if c != "noisy" else "noisy input" for c in TABLE2_CASES) + " |",
         "|---|---|---|---|",
@@ -120,7 +122,7 @@ def sim2real(
     variants: list[str] | None = None,
 ) -> dict:
     """One model per variant of a training suite with bounce variants (`ablation`, `randomised`:
-    max_bounces 0, 1, 3, ...), each scored on its own held-out episodes (in-domain) and on every
+    max_bounces 0, 1, 3, ...), each scored on its own validation episodes (in-domain) and on every
     window of each test set, beside the echo-peak baseline there. `reality` is one folder (named
     "reality") or {name: folder}, e.g. {"reality": ..., "crossengine": ...}. `config` is what to
     train (its model's K included).
@@ -350,7 +352,7 @@ def seeds_summary(reports: list[str | Path], out: str | Path) -> dict:
 def table2_summary(runs: list[str | Path], out: str | Path) -> dict:
     """Table 2 over repeated runs (e.g. seeds), from their table2.json and the K = 5 row's reports:
     scan F1 mean ± std of the runs' window means per row and case, the echo-peak baseline on the
-    same windows, and per-run paired differences (each run scores all its rows on the same held-out
+    same windows, and per-run paired differences (each run scores all its rows on the same validation
     episodes, so the episodes' difficulty cancels out of a difference)."""
     tables = [json.loads((Path(r) / "table2.json").read_text()) for r in runs]
     if len(tables) < 2:
@@ -371,7 +373,8 @@ def table2_summary(runs: list[str | Path], out: str | Path) -> dict:
     lines = [
         f"# Table 2 layout over {len(runs)} runs ({names})",
         "",
-        "scan F1 at 0.10 m: mean ± std over the runs of each run's mean over its held-out windows.",
+        "scan F1 at 0.10 m: mean ± std over the runs of each run's mean over its validation windows "
+        "(the episodes its early stopping read).",
         "",
         "| input | " + " | ".join(TABLE2_CASES) + " |",
         "|---|---|---|---|",

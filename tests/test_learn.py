@@ -392,8 +392,8 @@ def test_sim2real_table_matches_its_reports_and_summarises_runs(tiny_dataset, tm
         )
 
 
-def test_table2_scores_every_row_on_the_same_held_out_episodes(tiny_dataset, tmp_path):
-    """K = 1, 3, 5 models and the fine-tuned K = 5 rows are scored on each case's held-out
+def test_table2_scores_every_row_on_the_same_validation_episodes(tiny_dataset, tmp_path):
+    """K = 1, 3, 5 models and the fine-tuned K = 5 rows are scored on each case's validation
     episodes (those the fine-tuning never saw), and the table carries the reports' numbers."""
     from learn.studies import TABLE2_CASES, table2
 
