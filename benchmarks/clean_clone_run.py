@@ -180,6 +180,8 @@ def main(argv=None) -> dict:
         "cli_errors": cli_error_cases(steps["collect"]["output"]),
     }
     args.out.mkdir(parents=True, exist_ok=True)
+    # The stamp names the clone's commit (clean by construction), not this tree's, which may have moved on.
+    os.environ |= {"SONAR2LIDAR_COMMIT": commit, "SONAR2LIDAR_DIRTY": "0"}
     record = write_json(args.out / "clean_clone_cpu.json", record, device="cpu")
     text = markdown(record) + "\n" + provenance_line(record["provenance"]) + "\n"
     (args.out / "clean_clone_cpu.md").write_text(text)

@@ -122,12 +122,20 @@ def test_main_writes_the_record(tmp_path: Path, monkeypatch):
             assert env["PYTEST_ADDOPTS"] == "--durations=15"
         return {"command": line, "seconds": seconds.get(line, 2.0), "returncode": 0, "output": output}
 
+    cloned = "c" * 40  # not this tree's HEAD: the stamp must name the clone's commit, not where the script runs
+
+    def fake_clone(root, dest):
+        dest.mkdir(parents=True)
+        return cloned
+
     monkeypatch.setattr(ccr, "timed", fake_timed)
+    monkeypatch.setattr(ccr, "clone_head", fake_clone)
+    for name in ("SONAR2LIDAR_COMMIT", "SONAR2LIDAR_DIRTY"):  # restored after the test, whatever main sets
+        monkeypatch.setenv(name, "")
     record = ccr.main(["--out", str(tmp_path)])
     written = json.loads((tmp_path / "clean_clone_cpu.json").read_text())
     assert written == json.loads(json.dumps(record))
-    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True)
-    assert written["commit"] == head.stdout.strip() == written["provenance"]["commit"]
+    assert written["commit"] == cloned == written["provenance"]["commit"] and written["provenance"]["dirty"] is False
     assert written["demo_with_setup_s"] == 446.0 and written["test_with_setup_s"] == 521.5
     assert written["demo"]["scores"]["pretrained"] == {"scan_f1": 0.923, "beam_accuracy": 0.906}
     assert written["cli_errors"] == {"cases": 3, "collected": 5}

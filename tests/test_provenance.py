@@ -140,8 +140,6 @@ def test_training_records_no_machine_path(tiny_dataset, tmp_path: Path, monkeypa
 # --- the README's figures and the results index ---------------------------------------------------
 
 INDEX = ROOT / "benchmarks" / "results" / "README.md"
-# Written by benchmarks/clean_clone_run.py, which the lead runs on the CPU machine: linked before it exists.
-AWAITING_RUN = {"benchmarks/results/clean_clone_cpu.md", "benchmarks/results/clean_clone_cpu.json"}
 LINK = re.compile(r"!?\[[^\]]*\]\(([^)\s]+)\)")
 
 
@@ -170,11 +168,9 @@ def test_readme_and_index_links_resolve():
         f"{doc.relative_to(ROOT)} -> {p}"
         for doc in (ROOT / "README.md", INDEX)
         for p in local_links(doc)
-        if not (ROOT / p).exists() and p not in AWAITING_RUN
+        if not (ROOT / p).exists()
     ]
     assert missing == []
-    script = (ROOT / "benchmarks" / "clean_clone_run.py").read_text()
-    assert all(Path(p).name in script for p in AWAITING_RUN)
 
 
 def test_every_readme_figure_is_indexed():
