@@ -4,6 +4,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import h5py
+
 
 def pickle_payload(path: Path, marker: Path) -> Path:
     """A .pt file that, if unpickled, runs `touch marker`; written by a separate interpreter so the
@@ -17,3 +19,14 @@ def pickle_payload(path: Path, marker: Path) -> Path:
     )
     subprocess.run([sys.executable, "-c", code], check=True)
     return path
+
+
+def damage_energyscape_chunk(shard: Path) -> None:
+    """Flip 16 bytes in the middle of the shard's first energyscape chunk, as a bad disk sector
+    would: the file still opens, and only the chunk's checksum can tell."""
+    with h5py.File(shard, "r") as f:
+        chunk = f["energyscape"].id.get_chunk_info(0)
+    raw = bytearray(shard.read_bytes())
+    middle = chunk.byte_offset + chunk.size // 2
+    raw[middle : middle + 16] = bytes(255 - b for b in raw[middle : middle + 16])
+    shard.write_bytes(bytes(raw))

@@ -20,6 +20,7 @@ from acoustic_sim.formats.crossengine import (
     scan_floor_plan,
 )
 from scenes import pose, trajectory
+from tests.crafted import damage_energyscape_chunk
 
 L_ROOM = ((0.0, 0.0), (6.0, 0.0), (6.0, 3.0), (3.0, 3.0), (3.0, 5.0), (0.0, 5.0))
 
@@ -94,7 +95,6 @@ def test_the_test_set_is_made_resumed_and_repaired_as_generate_does(tmp_path, de
     shard) and the card; a run killed while writing the second shard keeps the first, and the
     rerun writes only the second; a shard with flipped bytes is moved aside and written again,
     equal to the first; a rerun with other settings is refused."""
-    import h5py
 
     import acoustic_sim.datasets.runner as runner
     from acoustic_sim.datasets.shards import DatasetError, read_attrs
@@ -128,12 +128,7 @@ def test_the_test_set_is_made_resumed_and_repaired_as_generate_does(tmp_path, de
     assert [original.scenarios[k] for k in original.scenario] == ["l_room"] * 3 + ["t_room"] * 3
 
     shard = out / "shard-00001.h5"
-    with h5py.File(shard, "r") as f:
-        chunk = f["energyscape"].id.get_chunk_info(0)
-    raw = bytearray(shard.read_bytes())
-    middle = chunk.byte_offset + chunk.size // 2
-    raw[middle : middle + 16] = bytes(255 - b for b in raw[middle : middle + 16])
-    shard.write_bytes(bytes(raw))
+    damage_energyscape_chunk(shard)
     with pytest.warns(UserWarning, match="writing the shard again"):
         summary = make()
     assert summary["shards_written"] == 1 and (out / "shard-00001.h5.damaged").exists()

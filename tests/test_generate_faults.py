@@ -20,6 +20,7 @@ import acoustic_sim.datasets.generate as gen
 from acoustic_sim.datasets.shards import DatasetError, ShardFrames, verify_shard, write_shard
 from acoustic_sim.datasets.suites import SUITES, Physics
 from learn.data import DataError, load_frames
+from tests.crafted import damage_energyscape_chunk
 
 SUITE = dataclasses.replace(SUITES["tiny"], variants={"": Physics(ray_count=2000)})
 
@@ -57,12 +58,7 @@ def test_a_damaged_shard_is_found_and_written_again(tmp_path, device):
     shard = out / "shard-00000.h5"
     verify_shard(shard)
     original = load_frames(out).energyscape.copy()
-    with h5py.File(shard, "r") as f:
-        chunk = f["energyscape"].id.get_chunk_info(0)
-    raw = bytearray(shard.read_bytes())
-    middle = chunk.byte_offset + chunk.size // 2
-    raw[middle : middle + 16] = bytes(255 - b for b in raw[middle : middle + 16])
-    shard.write_bytes(bytes(raw))
+    damage_energyscape_chunk(shard)
     with pytest.raises(DatasetError, match="damaged"):
         verify_shard(shard)
     with pytest.raises(DataError, match="damaged"):
