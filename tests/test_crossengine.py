@@ -20,7 +20,8 @@ from acoustic_sim.formats.crossengine import (
     scan_floor_plan,
 )
 from scenes import pose, trajectory
-from tests.crafted import damage_energyscape_chunk
+
+from .crafted import damage_energyscape_chunk
 
 L_ROOM = ((0.0, 0.0), (6.0, 0.0), (6.0, 3.0), (3.0, 3.0), (3.0, 5.0), (0.0, 5.0))
 

@@ -20,7 +20,8 @@ import acoustic_sim.datasets.generate as gen
 from acoustic_sim.datasets.shards import DatasetError, ShardFrames, verify_shard, write_shard
 from acoustic_sim.datasets.suites import SUITES, Physics
 from learn.data import DataError, load_frames
-from tests.crafted import damage_energyscape_chunk
+
+from .crafted import damage_energyscape_chunk
 
 SUITE = dataclasses.replace(SUITES["tiny"], variants={"": Physics(ray_count=2000)})
 
