@@ -8,7 +8,7 @@
 
 Each class checks its own fields when built (ConfigError for NaN/inf, ValueError for a value out
 of range); `settings.apply_settings` applies `section.field=value` from the command line
-(`configtree`'s grammar, shared with the learner).
+(`clitools`'s grammar, shared with the learner).
 """
 
 from __future__ import annotations

@@ -12,8 +12,8 @@ from . import MissingExtra
 
 def _configs(args):
     """The run's LearnConfig: the options (whose defaults are `--config`'s file or the config
-    classes'), then each `--set` in turn (`configtree`'s grammar, as `python -m acoustic_sim`'s)."""
-    from configtree import apply_settings
+    classes'), then each `--set` in turn (`clitools`'s grammar, as `python -m acoustic_sim`'s)."""
+    from clitools import apply_settings
 
     from .augment import AugmentConfig
     from .config import LearnConfig

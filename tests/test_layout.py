@@ -1,6 +1,6 @@
 """The architecture's rules, read from the source with `ast` (nothing is imported):
 scenes -> acoustic_sim -> shards -> learn flows one way (both command lines on the settings
-grammar in configtree, which needs the standard library alone), no module imports itself back
+grammar in clitools, which needs the standard library alone), no module imports itself back
 through others (function-level imports count too: they are circles that only wait to be called), the
 simulator's three stages (engine, datasets, formats) sit on its configuration and import each
 other one way only, kernels depend on Warp alone, and modules stay small enough to read."""
@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-PACKAGES = ("configtree", "scenes", "acoustic_sim", "learn")
+PACKAGES = ("clitools", "scenes", "acoustic_sim", "learn")
 MAX_LINES = 450
 
 
@@ -109,12 +109,12 @@ def test_simulator_and_scenes_never_import_torch():
 
 
 def test_the_settings_grammar_needs_the_standard_library_alone():
-    """configtree, the `--set` grammar of both command lines, imports neither of them (nor numpy):
+    """clitools, the `--set` grammar of both command lines, imports neither of them (nor numpy):
     the learner may use it without the simulator."""
     stdlib = set(sys.stdlib_module_names)
     for name, path in modules().items():
-        if name.split(".")[0] == "configtree":
-            others = {m for m in imports(name, path, modules()) if m.split(".")[0] not in stdlib | {"configtree"}}
+        if name.split(".")[0] == "clitools":
+            others = {m for m in imports(name, path, modules()) if m.split(".")[0] not in stdlib | {"clitools"}}
             assert not others, (name, others)
 
 

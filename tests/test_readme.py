@@ -47,7 +47,7 @@ from tests import readme_outputs
 
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
-LINKED = ("configtree", "acoustic_sim", "scenes", "learn", "examples", "benchmarks", "Makefile", "pyproject.toml")
+LINKED = ("clitools", "acoustic_sim", "scenes", "learn", "examples", "benchmarks", "Makefile", "pyproject.toml")
 """What the temporary folder shares with the repository; everything else the commands write stays there."""
 
 MAX_CPU_FRAMES = 100

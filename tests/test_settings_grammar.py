@@ -21,7 +21,7 @@ from typing import Literal
 
 import pytest
 
-import configtree
+import clitools
 from acoustic_sim.config import ConfigError, LidarConfig, SimConfig
 from acoustic_sim.settings import apply_settings as sim_apply_settings
 from learn import cli as learn_cli
@@ -193,7 +193,7 @@ def test_both_command_lines_read_a_setting_alike(text, kind, want, monkeypatch):
     assert repr(sim) == repr(learn), (sim, learn)
     if isinstance(want, Refused):
         assert isinstance(sim, Refused) and want.words in sim.words, sim
-        assert sim_error is ConfigError and learn_error is configtree.SettingsError  # each CLI's error class
+        assert sim_error is ConfigError and learn_error is clitools.SettingsError  # each CLI's error class
     else:
         assert repr(sim) == repr(want), (sim, want)
 
@@ -239,7 +239,7 @@ def test_every_field_of_both_trees_reads_its_own_value_back(cli):
     assert {"<class 'int'>", "<class 'float'>", "<class 'bool'>"} <= kinds and any("Literal" in k for k in kinds)
     for path, hint, value in leaves:
         text = _as_text(value)
-        assert repr(configtree.read_value(text, hint)) == repr(value), (path, text)
+        assert repr(clitools.read_value(text, hint)) == repr(value), (path, text)
         assert apply([f"{path}={text}"]) == root, path
 
 

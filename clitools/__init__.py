@@ -1,4 +1,7 @@
-"""One grammar for `--set section.field=value`, shared by both command lines (standard library only).
+"""What both command lines (`python -m acoustic_sim`, `python -m learn`) share, in the standard
+library alone so that the learner needs nothing of the simulator.
+
+`settings`: one grammar for `--set section.field=value`.
 
 A setting names a field of a tree of frozen dataclasses by its path from the root
 (`tracer.max_bounces=1`, `processing.grid.range_max_m=4`, `train.lr=3e-4`) and gives its value as
