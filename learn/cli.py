@@ -62,15 +62,10 @@ def _train(args) -> int:
         tensorboard=args.tensorboard,
     )
     if summary:
-        shown = summary["folds"] if "folds" in summary else [summary]
-        for s in shown:
-            best = s["best"]
-            print(
-                f"{s['out']}: kept epoch {s['best_epoch']} of {s['epochs']}: validation scan F1 "
-                f"{best['val_scan_f1']:.3f} at threshold {best['val_threshold']:.2f} (beam accuracy "
-                f"{best['val_beam_accuracy']:.3f}, missed {best['val_missed']:.2f}, false {best['val_false']:.2f}); "
-                f"{s['samples_per_s']:,.0f} training windows/s; {s['parameters']:,} parameters"
-            )
+        from .progress import summary_line
+
+        for s in summary["folds"] if "folds" in summary else [summary]:
+            print(summary_line(s))
     return 0
 
 
@@ -419,6 +414,11 @@ def main(argv: list[str] | None = None) -> int:
         text = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         print(f"error: {text}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as err:  # Ctrl-C: one line (what was kept, how to go on), the shell's 130
+        if "--debug" in argv:
+            raise
+        print(f"interrupted: {err}" if str(err) else "interrupted", file=sys.stderr)
+        return 130
 
 
 def _recorded_config(argv: list[str]):

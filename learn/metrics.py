@@ -276,7 +276,8 @@ def image_metrics(
 
     Returns:
         float64 tensors of shape (B,): the `scan_metrics` at 0.10 m ("scan_f1", "beam_accuracy",
-        "return_precision", "return_recall", "range_mae_tp_m", "missed", "false", "no_return"),
+        "return_precision", "return_recall", "range_mae_tp_m", "missed", "wrong_range", "false",
+        "no_return"),
         "chamfer_m" [m], "iou", the tolerance-dependent scan metrics again at 0.05 and 0.25 m
         (keys ending "_5cm", "_25cm"), "mse", "ssim" (data_range 1, 7 x 7 window) and
         "peak_range_mae_m" [m] (ignores confidence). Only the range errors may be nan (no true

@@ -24,6 +24,7 @@ METRICS = (
     ("return_recall", "recall", "{:.3f}"),
     ("range_mae_tp_m", "range MAE of TP [m]", "{:.3f}"),
     ("missed", "missed", "{:.2f}"),
+    ("wrong_range", "wrong range", "{:.2f}"),
     ("false", "false", "{:.2f}"),
     ("chamfer_m", "Chamfer [m]", "{:.3f}"),
     ("iou", "IoU", "{:.3f}"),

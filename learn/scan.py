@@ -94,7 +94,9 @@ def scan_scores(pred_ranges: torch.Tensor, true_ranges: torch.Tensor, *, toleran
         "beam_accuracy" ((TP + correct empties) / beams), "return_precision" (TP / predicted
         returns), "return_recall" (TP / true returns), "range_mae_tp_m" (mean |dr| [m] over the
         true positives; nan if there is none), "missed" (share of the true returns where the
-        prediction has none), "false" (share of the empty beams where the prediction returns),
+        prediction has none), "wrong_range" (share of the true returns where the prediction
+        returns at the wrong range; with recall and missed it adds up to 1 on a scan with
+        returns), "false" (share of the empty beams where the prediction returns),
         "no_return" (share of all beams where the prediction has no return).
     """
     if pred_ranges.shape != true_ranges.shape:
@@ -113,6 +115,7 @@ def scan_scores(pred_ranges: torch.Tensor, true_ranges: torch.Tensor, *, toleran
         "return_recall": _ratio(n_tp, n_t, n_p == 0),
         "range_mae_tp_m": _share(torch.where(tp, error, 0.0).sum(-1), n_tp),
         "missed": _ratio((has_t & ~has_p).sum(-1), n_t, False),  # nothing to miss: 0
+        "wrong_range": _ratio((has_t & has_p & ~tp).sum(-1), n_t, False),
         "false": _ratio((has_p & ~has_t).sum(-1), n_empty, False),
         "no_return": (~has_p).sum(-1).double() / beams,
     }

@@ -14,12 +14,10 @@ that epoch are read at it, and the checkpoint stores it for evaluate, predict an
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import time
-import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -28,12 +26,12 @@ import torch.nn.functional as F
 from tqdm.auto import tqdm
 
 from .augment import augmented_batch
-from .checkpoint import check_compatible, save_checkpoint
 from .config import MONITORS, LearnConfig, TrainConfig, to_record
 from .data import FORMAT_VERSION, Frames, Windows, load_frames, split_groups, torch_device, validation_split
 from .evaluate import calibrate_on_predictions, model_predictor, predict_batches, score_predictions
 from .models import build_model, parameter_count
-from .progress import epoch_line, warn_if_silent, write_fold_summary, write_history
+from .progress import epoch_line, sizes_line, write_fold_summary
+from .runs import run_folder, save_epoch, save_history, start_state, write_run_config, write_summary
 from .tensorboard import TensorBoardLog, summary_writer
 
 
@@ -61,6 +59,10 @@ def _check_finite(total: torch.Tensor, epoch: int, step: int) -> None:
             f"the training loss became {float(total)} in epoch {epoch + 1} by step {step + 1}: "
             "lower --lr or check the data"
         )
+
+
+class RunInterrupted(KeyboardInterrupt):
+    """Ctrl-C during training; its message says what the run folder keeps and how to go on."""
 
 
 def _unwrap(model):
@@ -138,14 +140,23 @@ def train(
     last.pt and best.pt (weights, optimizer, epoch, all configs, dataset identity), history.csv
     and curves.png, summary.json. With folds > 1: out/fold_i/ each,
     and folds.json/folds.md with mean and std over the folds. A folder that already holds
-    checkpoints is continued (`resume`) or replaced (`overwrite`), never silently overwritten.
+    checkpoints is continued (`resume`, exactly as if never stopped: every random draw of an
+    epoch comes from (seed, epoch)) or replaced (`overwrite`), never silently overwritten; one
+    run at a time writes it (`learn.runs`). Ctrl-C raises RunInterrupted, whose message says
+    what the folder keeps.
     `tensorboard` also logs every epoch under out/tensorboard (`learn.tensorboard`).
     """
-    _check_out(Path(out), resume=resume, overwrite=overwrite)
     if tensorboard:
         summary_writer()  # a missing extra is refused before anything is written
     if init_from is not None and not Path(init_from).is_file():
         raise FileNotFoundError(f"--init-from checkpoint {init_from} does not exist")
+    with run_folder(Path(out), resume=resume, overwrite=overwrite):  # locked: one run writes it at a time
+        each = {"resume": resume, "progress": progress, "init_from": init_from, "tensorboard": tensorboard}
+        return _train_in(data, Path(out), config, device=device, folds=folds, **each)
+
+
+def _train_in(data, out: Path, config: LearnConfig, *, device: str, folds: int, **each) -> dict:
+    """`train` once its run folder is held."""
     dist_info, dev = _init_distributed(device)
     if dev.type == "cpu":
         torch.set_flush_denormal(True)  # denormal gradients make CPU steps many times slower
@@ -154,9 +165,7 @@ def train(
         raise ValueError(f"{frames.info['folder']} is the crossengine test set: score models on it, never train on it")
     windows = Windows(frames, config.data, dev)
     groups = windows.episode if config.train.split_by == "episode" else windows.scenario
-    out = Path(out)
-    each = {"config": config, "dist_info": dist_info, "resume": resume, "progress": progress}
-    each |= {"init_from": init_from, "tensorboard": tensorboard}
+    each |= {"config": config, "dist_info": dist_info}
     if folds > 1:
         fold_of = split_groups(groups, folds, seed=config.train.split_seed_or_seed)
         results = [
@@ -174,21 +183,6 @@ def train(
         dist.barrier()  # rank 0 writes the summaries last; leaving without this aborts gloo ranks at exit
         dist.destroy_process_group()
     return result
-
-
-def _check_out(out: Path, *, resume: bool, overwrite: bool) -> None:
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"--out {out} is a file; give a folder for the run")
-    found = sorted(p.relative_to(out).as_posix() for p in out.glob("**/*.pt")) if out.is_dir() else []
-    if found and not (resume or overwrite):
-        raise ValueError(
-            f"--out {out} already holds a run ({', '.join(found[:3])}); continue it with --resume, "
-            "replace it with --overwrite, or choose another folder"
-        )
-
-
-def _nan_low(x: float) -> float:
-    return -math.inf if math.isnan(x) else x
 
 
 def _train_one(
@@ -215,45 +209,105 @@ def _train_one(
     out.mkdir(parents=True, exist_ok=True)
     last = out / "last.pt"
     resumed = bool(resume and last.exists())
-    state = _start_state(model, optimizer, config, windows, last if resumed else None, init_from)
+    state = start_state(model, optimizer, config, windows, last if resumed else None, init_from)
     model, stepper = _for_device(model, recipe, dist_info, dev)
-    started = time.perf_counter()
     meta = _run_record(config, windows, val_mask, fold, parameter_count(_unwrap(model)))
     if dist_info.main:  # the run explains itself from its first epoch on, also if it is stopped
-        _write_run_config(out, meta, dev, resumed, init_from, dist_info)
+        write_run_config(out, meta, dev, resumed, init_from, _process_group(dist_info))
+        sizes = sizes_line(
+            train_windows=len(train_idx),
+            train_episodes=len(np.unique(windows.episode[train_idx])),
+            per_epoch=min(len(train_idx), recipe.max_train_windows or len(train_idx)),
+            val_windows=len(val_idx),
+            val_of=int(val_mask.sum()),
+            val_episodes=len(np.unique(windows.episode[val_idx])),
+        )
+        tqdm.write(sizes if fold is None else f"fold {fold}: {sizes}")
     board = TensorBoardLog(out, val_idx) if tensorboard and dist_info.main else None
-    rng = np.random.default_rng(recipe.seed + 1000 * state["epoch"])
-    draws = torch.Generator(device=dev)  # augmentation draws, reseeded every epoch like the order
-    while state["epoch"] < recipe.epochs and state["stale"] < recipe.patience:
-        epoch = state["epoch"]
-        order = _epoch_order(rng, train_idx, recipe, dist_info)
-        draws.manual_seed(recipe.seed + 1000 * epoch + dist_info.rank)
-        shown = progress and dist_info.main
-        train_loss, train_s = _train_epoch(model, stepper, optimizer, windows, order, config, draws, state, shown)
-        stop = torch.zeros(1, device=dev)
-        if dist_info.main:
-            metrics = validate(model, windows, val_idx, amp=recipe.amp)
-            row = {"epoch": epoch + 1, "step": state["step"], "train_loss": train_loss}
-            row |= {f"val_{k}": v for k, v in metrics.items()}
-            row |= {"train_seconds": train_s, "samples_per_s": len(order) * dist_info.world / train_s}
-            improved = _keep(state, row, recipe.monitor)
-            tqdm.write(epoch_line(row, recipe, state, improved))  # also with --quiet: logs need it
-            _save_epoch(out, model, optimizer, state, metrics["threshold"], meta, improved, recipe.monitor)
-            if board:
-                board.epoch(row, model_predictor(_unwrap(model), amp=recipe.amp), windows)
-            out_of_time = recipe.max_minutes is not None and time.perf_counter() - started > 60 * recipe.max_minutes
-            stop[0] = float(state["stale"] >= recipe.patience or out_of_time)
-        else:
-            state["epoch"] = epoch + 1
-        if dist_info.joined:
-            import torch.distributed as dist
+    run = _Run(model, stepper, optimizer, windows, train_idx, val_idx, out, config, dist_info, meta, board, progress)
+    run.saved = state["epoch"]
+    try:
+        while state["epoch"] < recipe.epochs and state["stale"] < recipe.patience:
+            if _epoch(run, state):
+                break
+    except KeyboardInterrupt:
+        raise RunInterrupted(_interrupted_text(out, run.saved, recipe.epochs)) from None
+    finally:
+        if board:
+            board.close()
+    return write_summary(out, state, recipe, meta, len(train_idx), len(val_idx)) if dist_info.main else {}
 
-            dist.broadcast(stop, 0)
-        if stop.item():
-            break
-    if board:
-        board.close()
-    return _write_summary(out, state, recipe, meta, len(train_idx), len(val_idx)) if dist_info.main else {}
+
+@dataclass
+class _Run:
+    """What every epoch of one model's training works with (its progress is the `state` dict)."""
+
+    model: torch.nn.Module
+    stepper: object  # the model, or its compiled CUDA graphs
+    optimizer: torch.optim.Optimizer
+    windows: Windows
+    train_idx: np.ndarray
+    val_idx: np.ndarray
+    out: Path
+    config: LearnConfig
+    dist_info: _Dist
+    meta: dict
+    board: TensorBoardLog | None
+    progress: bool
+    started: float = field(default_factory=time.perf_counter)
+    saved: int = 0  # the epoch last.pt holds
+
+
+def _epoch(run: _Run, state: dict) -> bool:
+    """Train one epoch, then (rank 0) validate it, keep it or not, save it and say so; True when
+    the run stops after it (patience or time spent; every rank learns it from rank 0)."""
+    recipe, dev, epoch, dist_info = run.config.train, run.windows.device, state["epoch"], run.dist_info
+    model, optimizer, windows, out = run.model, run.optimizer, run.windows, run.out
+    order_rng, draws = _epoch_streams(recipe.seed, epoch, dist_info.rank, dev)
+    order = _epoch_order(order_rng, run.train_idx, recipe, dist_info)
+    shown = run.progress and dist_info.main
+    train_loss, train_s = _train_epoch(model, run.stepper, optimizer, windows, order, run.config, draws, state, shown)
+    stop = torch.zeros(1, device=dev)
+    if dist_info.main:
+        metrics = validate(model, windows, run.val_idx, amp=recipe.amp)
+        row = {"epoch": epoch + 1, "step": state["step"], "train_loss": train_loss}
+        row |= {f"val_{k}": v for k, v in metrics.items()}
+        row |= {"train_seconds": train_s, "samples_per_s": len(order) * dist_info.world / train_s}
+        previous = state.get("best_epoch")
+        improved = _keep(state, row, recipe.monitor)
+        tqdm.write(epoch_line(row, recipe, state, improved, previous))  # also with --quiet: logs need it
+        save_epoch(out, _unwrap(model), optimizer, state, metrics["threshold"], run.meta, improved)
+        run.saved = state["epoch"]
+        save_history(out, state, recipe.monitor)
+        if run.board:
+            run.board.epoch(row, model_predictor(_unwrap(model), amp=recipe.amp), windows)
+        spent = time.perf_counter() - run.started
+        out_of_time = recipe.max_minutes is not None and spent > 60 * recipe.max_minutes
+        stop[0] = float(state["stale"] >= recipe.patience or out_of_time)
+    else:
+        state["epoch"] = epoch + 1
+    if dist_info.joined:
+        import torch.distributed as dist
+
+        dist.broadcast(stop, 0)
+    return bool(stop.item())
+
+
+def _epoch_streams(seed: int, epoch: int, rank: int, device) -> tuple[np.random.Generator, torch.Generator]:
+    """The random streams of one epoch, drawn from (seed, epoch) alone so that a resumed run draws
+    what an uninterrupted one would: the window order (the same on every rank), this rank's
+    augmentation draws, and torch's global generator (dropout, should a model ever have it)."""
+    torch.manual_seed(int(np.random.SeedSequence([seed, epoch, rank]).generate_state(1)[0]))
+    draws = torch.Generator(device=device)
+    draws.manual_seed(seed + 1000 * epoch + rank)
+    return np.random.default_rng(seed + 1000 * epoch), draws
+
+
+def _interrupted_text(out: Path, saved: int, epochs: int) -> str:
+    """What a Ctrl-C leaves: the epoch last.pt holds and how to go on."""
+    if saved == 0:
+        return f"no epoch had ended, so {out} holds no checkpoint: the same command starts the run again"
+    return f"{out / 'last.pt'} keeps epoch {saved} of {epochs}: the same command with --resume continues the run"
 
 
 def _validation_windows(val_mask: np.ndarray, recipe: TrainConfig) -> np.ndarray:
@@ -263,25 +317,6 @@ def _validation_windows(val_mask: np.ndarray, recipe: TrainConfig) -> np.ndarray
         draw = np.random.default_rng(recipe.split_seed_or_seed).choice(val_idx, recipe.max_val_windows, replace=False)
         val_idx = np.sort(draw)
     return val_idx
-
-
-def _start_state(model, optimizer, config: LearnConfig, windows: Windows, last: Path | None, init_from) -> dict:
-    """The run's progress so far (epoch, step, best, stale, history): restored with the weights
-    and optimizer from `last` when resuming, else new (weights from `init_from` when fine-tuning)."""
-    if last is not None:
-        ckpt = torch.load(last, map_location=windows.device, weights_only=True)
-        check_compatible(ckpt, config, windows)
-        model.load_state_dict(ckpt["model"])
-        if "optimizer" in ckpt:
-            optimizer.load_state_dict(ckpt["optimizer"])
-        else:  # packed to travel between machines (benchmarks/learner_converged.sh pack)
-            warnings.warn(f"{last} has no optimizer state: Adam restarts its moment estimates", stacklevel=3)
-        state = ckpt["state"]
-        state.setdefault("best", state.pop("best_ssim", -math.inf))  # checkpoints from before `monitor`
-        return state
-    if init_from is not None:  # fine-tuning: weights only
-        model.load_state_dict(torch.load(init_from, map_location=windows.device, weights_only=True)["model"])
-    return {"epoch": 0, "step": 0, "best": -math.inf, "stale": 0, "history": []}
 
 
 def _for_device(model, recipe: TrainConfig, dist_info: _Dist, dev: torch.device):
@@ -318,15 +353,6 @@ def _run_record(config: LearnConfig, windows: Windows, val_mask: np.ndarray, fol
         "range_m": windows.frames.range_m.tolist(),
         "azimuth_rad": windows.frames.azimuth_rad.tolist(),
     }
-
-
-def _write_run_config(out: Path, meta: dict, dev, resumed: bool, init_from, dist_info: _Dist) -> None:
-    """config.json: the whole config (`learn train --config` reads it back), the dataset, where it ran."""
-    run = {k: meta[k] for k in ("model_config", "data_config", "train_config", "dataset", "parameters")}
-    init = None if init_from is None else os.path.relpath(Path(init_from).absolute())  # as data.recorded_path
-    run |= {"device": str(dev), "resumed": resumed, "init_from": init}
-    run["process_group"] = _process_group(dist_info)
-    (out / "config.json").write_text(json.dumps(run, indent=1))
 
 
 def _epoch_order(rng: np.random.Generator, train_idx: np.ndarray, recipe: TrainConfig, dist_info: _Dist):
@@ -383,33 +409,3 @@ def _keep(state: dict, row: dict, monitor: str) -> bool:
     state["stale"] = 0 if improved else state["stale"] + 1
     state["epoch"] = row["epoch"]
     return improved
-
-
-def _save_epoch(out: Path, model, optimizer, state: dict, threshold: float, meta: dict, improved: bool, monitor: str):
-    """last.pt every epoch and best.pt when kept (each with the threshold calibrated this epoch),
-    history.csv and curves.png."""
-    ckpt = {"model": _unwrap(model).state_dict(), "optimizer": optimizer.state_dict(), "state": state}
-    ckpt |= {"threshold": threshold} | meta
-    save_checkpoint(ckpt, out / "last.pt")
-    if improved:
-        save_checkpoint(ckpt, out / "best.pt")
-    write_history(out, state["history"], state.get("best_epoch"), monitor)
-
-
-def _write_summary(out: Path, state: dict, recipe: TrainConfig, meta: dict, train_count: int, val_count: int) -> dict:
-    """summary.json: the kept epoch's validation metrics and threshold, speed, sizes and configs."""
-    sign = MONITORS[recipe.monitor]
-    best = max(state["history"], key=lambda r: _nan_low(sign * r[f"val_{recipe.monitor}"]))
-    summary = {
-        "out": os.path.relpath(Path(out).absolute()),  # no machine's absolute path in the summary
-        "epochs": state["epoch"],
-        "best_epoch": best["epoch"],
-        "best": {k: v for k, v in best.items() if k.startswith("val_")},
-        "samples_per_s": float(np.median([r["samples_per_s"] for r in state["history"]])),
-        "train_windows": train_count,
-        "val_windows": val_count,
-    } | {k: meta[k] for k in ("model_config", "data_config", "train_config", "parameters", "dataset")}
-    summary["threshold"] = best["val_threshold"]
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
-    warn_if_silent(best, out, hint="" if recipe.loss == "bce" else ", or with --loss bce")
-    return summary

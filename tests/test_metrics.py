@@ -175,7 +175,8 @@ def test_scan_scores_by_hand(dev):
     2: none / 1.00 missed; 3: 3.00 / none false; 4: none / none correct empty;
     5: 1.50 / 1.50 true positive (0); 6: 4.00 / 4.08 true positive (0.08); 7: none / 2.00 missed.
     TP 3 of 5 predicted and 6 true returns: F1 2 * 3 / 11, precision 3/5, recall 3/6, beam
-    accuracy (3 + 1) / 8, range error of TP (0.05 + 0 + 0.08) / 3, missed 2/6, false 1 of the 2
+    accuracy (3 + 1) / 8, range error of TP (0.05 + 0 + 0.08) / 3, missed 2/6, wrong range 1/6
+    (beam 1; with recall and missed it makes 1), false 1 of the 2
     empty beams, no return on 3 of 8 beams. At 0.05 m (inclusive) beam 6 drops out: TP 2."""
     pred = f64([[1.00, 2.00, INF, 3.00, INF, 1.50, 4.00, INF]], dev)
     true = f64([[1.05, 2.30, 1.00, INF, INF, 1.50, 4.08, 2.00]], dev)
@@ -187,6 +188,7 @@ def test_scan_scores_by_hand(dev):
         "return_recall": 3 / 6,
         "range_mae_tp_m": 0.13 / 3,
         "missed": 2 / 6,
+        "wrong_range": 1 / 6,
         "false": 1 / 2,
         "no_return": 3 / 8,
     }
@@ -404,7 +406,8 @@ def test_image_metrics_on_a_batch(dev):
     got = image_metrics(pred, target, range_m, azimuth_rad, threshold=0.6)
     scan = ["scan_f1", "beam_accuracy", "return_precision", "return_recall", "range_mae_tp_m"]
     extra = [f"{k}_{cm}cm" for cm in (5, 25) for k in scan]
-    others = ["missed", "false", "no_return", "chamfer_m", "iou", *extra, "mse", "ssim", "peak_range_mae_m"]
+    others = ["missed", "wrong_range", "false", "no_return", "chamfer_m", "iou", *extra]
+    others += ["mse", "ssim", "peak_range_mae_m"]
     assert list(got) == scan + others
     assert all(v.shape == (4,) and v.dtype == torch.float64 for v in got.values())
     want = scan_metrics(pred, target, range_m, threshold=0.6)

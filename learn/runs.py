@@ -1,0 +1,197 @@
+"""The folder of a training run (`learn train --out`): one run at a time writes it; what a run
+finds there before it starts and what it leaves. A folder that holds a run is continued
+(`--resume`, from its last.pt, refused by name when that file does not fit the run) or replaced
+(`--overwrite`: the old run's files go first, so the folder never holds the config of one run
+beside the checkpoints of another), never written over by surprise. config.json, the
+checkpoints, history.csv and summary.json are written whole or not at all.
+
+The lock is `clitools.locks.folder_lock` (an flock on OUT/.train.lock, freed by the kernel when its
+process ends, so a killed run's lock file is taken over); the dataset folders of `generate` keep
+their own "pid host" lock file.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import os
+import warnings
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from clitools.locks import folder_lock
+
+from .checkpoint import check_compatible, config_changes, load_weights, read_checkpoint, save_checkpoint
+from .config import MONITORS, LearnConfig, TrainConfig
+from .data import Windows
+from .evaluate import check_grid
+from .models import ModelConfig
+from .progress import warn_if_silent, write_history, write_whole
+
+LOCK_FILE = ".train.lock"
+RUN_FILES = ("config.json", "last.pt", "best.pt", "history.csv", "curves.png", "summary.json", "folds.json", "folds.md")
+"""What a run writes into its folder (and into each fold_k/ of a k-fold run)."""
+
+
+@contextlib.contextmanager
+def run_folder(out: Path, *, resume: bool, overwrite: bool) -> Iterator[Path]:
+    """Hold the run folder `out` for one run: create it, lock it (rank 0 of a torchrun; the other
+    ranks only check), refuse what the run must not touch, clear a run that `overwrite` replaces.
+    A folder this call created and the run left empty (a refused run) is removed again."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file; give a folder for the run")
+    created = not out.exists()
+    out.mkdir(parents=True, exist_ok=True)
+    main = os.environ.get("RANK", "0") == "0"  # set by torchrun, before the process group exists
+    try:
+        with folder_lock(out, LOCK_FILE, command="learn train") if main else contextlib.nullcontext():
+            check_run_folder(out, resume=resume, overwrite=overwrite)
+            if main:
+                clear_run(out, keep_run=not overwrite)
+            yield out
+    finally:
+        if created and out.is_dir() and not any(out.iterdir()):
+            out.rmdir()
+
+
+def check_run_folder(out: Path, *, resume: bool, overwrite: bool) -> None:
+    """Refuse a folder that holds a run unless it is continued or replaced, and a run to continue
+    whose last.pt is missing (best.pt alone would restart from scratch and overwrite it)."""
+    found = sorted(p.relative_to(out).as_posix() for p in out.glob("**/*.pt"))
+    if found and not (resume or overwrite):
+        raise ValueError(
+            f"--out {out} already holds a run ({', '.join(found[:3])}); continue it with --resume, "
+            "replace it with --overwrite, or choose another folder"
+        )
+    if resume and not overwrite:
+        for best in sorted(out.glob("**/best.pt")):
+            if not (best.parent / "last.pt").exists():
+                raise ValueError(
+                    f"--resume: {best.parent} has best.pt but no last.pt, the checkpoint a run continues from; "
+                    f"fine-tune the kept model into a new folder with --init-from {best}, or replace the run "
+                    "with --overwrite"
+                )
+
+
+def clear_run(out: Path, *, keep_run: bool = False) -> None:
+    """Remove the files of the run in `out` (and in its fold_k/ folders): the checkpoints,
+    history, summaries and TensorBoard events that `learn train` writes, nothing else. With
+    `keep_run`, only the temporary files a killed run left (the lock is held: no live run
+    writes them)."""
+    for folder in [out, *sorted(out.glob("fold_*"))]:
+        if not folder.is_dir():
+            continue
+        doomed = [folder / f"{name}.tmp" for name in RUN_FILES]
+        if not keep_run:
+            doomed += [folder / name for name in RUN_FILES]
+            doomed += list((folder / "tensorboard").glob("events.out.tfevents.*"))
+        for path in doomed:
+            path.unlink(missing_ok=True)
+        for empty in (folder / "tensorboard", folder):
+            if not keep_run and empty != out and empty.is_dir() and not any(empty.iterdir()):
+                empty.rmdir()
+
+
+def start_state(model, optimizer, config: LearnConfig, windows: Windows, last: Path | None, init_from) -> dict:
+    """The run's progress so far (epoch, step, best, stale, history): restored with the weights
+    and optimizer from `last` when resuming, else new (weights from `init_from` when fine-tuning).
+    A file that does not fit this run is refused naming the file and what differs."""
+    if last is not None:
+        ckpt = read_checkpoint(last, windows.device, role="--resume")
+        check_compatible(ckpt, config, windows, path=last)
+        check_same_grid(windows, ckpt, f"--resume {last}")
+        load_weights(model, ckpt, last, role="--resume")
+        if "optimizer" in ckpt:
+            try:
+                optimizer.load_state_dict(ckpt["optimizer"])
+            except (ValueError, KeyError, TypeError, RuntimeError) as err:
+                raise ValueError(f"--resume {last}: its optimizer state does not fit this model ({err})") from None
+        else:  # packed to travel between machines (benchmarks/learner_converged.sh pack)
+            warnings.warn(f"{last} has no optimizer state: Adam restarts its moment estimates", stacklevel=3)
+        state = ckpt.get("state")
+        if not isinstance(state, dict) or not {"epoch", "step", "stale", "history"} <= set(state):
+            raise ValueError(f"--resume {last} holds no training progress (a stripped or exported checkpoint?)")
+        state.setdefault("best", state.pop("best_ssim", -math.inf))  # checkpoints from before `monitor`
+        kept = last.with_name("best.pt")
+        if state.get("best_epoch") is not None and not kept.exists():
+            raise ValueError(
+                f"--resume: {kept} is missing (the run kept epoch {state['best_epoch']} there); put it back, "
+                "or start a new run"
+            )
+        return state
+    if init_from is not None:  # fine-tuning: weights only
+        ckpt = read_checkpoint(init_from, windows.device, role="--init-from")
+        changed = config_changes(ModelConfig(**ckpt["model_config"]), config.model, "model")
+        if changed:
+            raise ValueError(
+                f"--init-from {init_from} holds another model than this run builds ({'; '.join(changed)}): give "
+                "the same --model, --frames and --width (or --set model.FIELD)"
+            )
+        check_same_grid(windows, ckpt, f"--init-from {init_from}")
+        load_weights(model, ckpt, init_from, role="--init-from")
+    return {"epoch": 0, "step": 0, "best": -math.inf, "stale": 0, "history": []}
+
+
+def check_same_grid(windows: Windows, ckpt: dict, name: str) -> None:
+    """Refuse a checkpoint trained on another range/azimuth grid than the run's data (old ones
+    without the grid pass: their dataset identity was checked)."""
+    if "range_m" in ckpt and "azimuth_rad" in ckpt:
+        check_grid(windows.frames, ckpt, name)
+
+
+def write_run_config(out: Path, meta: dict, dev, resumed: bool, init_from, process_group: dict | None) -> None:
+    """config.json: the whole config (`learn train --config` reads it back), the dataset, where it ran."""
+    run = {k: meta[k] for k in ("model_config", "data_config", "train_config", "dataset", "parameters")}
+    init = None if init_from is None else os.path.relpath(Path(init_from).absolute())  # as data.recorded_path
+    run |= {"device": str(dev), "resumed": resumed, "init_from": init}
+    run["process_group"] = process_group
+    write_whole(out / "config.json", json.dumps(run, indent=1))
+
+
+RESUME_HINT = "continue the run with --resume"
+
+
+def save_epoch(out: Path, model, optimizer, state: dict, threshold: float, meta: dict, improved: bool) -> None:
+    """best.pt when kept, then last.pt (each with the threshold calibrated this epoch). best.pt
+    goes first: a run stopped between the two resumes from the last.pt before, redoes this epoch
+    exactly and keeps it again."""
+    ckpt = {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "state": state}
+    ckpt |= {"threshold": threshold} | meta
+    if improved:
+        save_checkpoint(ckpt, out / "best.pt", then=RESUME_HINT)
+    save_checkpoint(ckpt, out / "last.pt", then=RESUME_HINT)
+
+
+def save_history(out: Path, state: dict, monitor: str) -> None:
+    """history.csv and curves.png (the kept epoch marked); a full disk is one line naming the folder."""
+    try:
+        write_history(out, state["history"], state.get("best_epoch"), monitor)
+    except OSError as err:  # curves.png from matplotlib
+        raise OSError(f"could not write the history of {out} ({err.strerror or err}); {RESUME_HINT}") from None
+
+
+def write_summary(out: Path, state: dict, recipe: TrainConfig, meta: dict, train_count: int, val_count: int) -> dict:
+    """summary.json: the kept epoch's validation metrics and threshold, speed, sizes and configs."""
+    sign = MONITORS[recipe.monitor]
+    best = max(state["history"], key=lambda r: _nan_low(sign * r[f"val_{recipe.monitor}"]))
+    summary = {
+        "out": os.path.relpath(Path(out).absolute()),  # no machine's absolute path in the summary
+        "epochs": state["epoch"],
+        "best_epoch": best["epoch"],
+        "best": {k: v for k, v in best.items() if k.startswith("val_")},
+        "samples_per_s": float(np.median([r["samples_per_s"] for r in state["history"]])),
+        "train_windows": train_count,
+        "val_windows": val_count,
+    } | {k: meta[k] for k in ("model_config", "data_config", "train_config", "parameters", "dataset")}
+    summary["threshold"] = best["val_threshold"]
+    write_whole(out / "summary.json", json.dumps(summary, indent=1))
+    warn_if_silent(best, out, hint="" if recipe.loss == "bce" else ", or with --loss bce")
+    return summary
+
+
+def _nan_low(x: float) -> float:
+    return -math.inf if math.isnan(x) else x
