@@ -11,14 +11,17 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import math
 import zipfile
+from numbers import Integral, Real
 from pathlib import Path
 
 import torch
 
 from .config import LearnConfig, from_record
 from .data import FORMAT_VERSION, DataConfig, torch_device
-from .models import ModelConfig, build_model
+from .inputs import check_fits, regular_file
+from .models import ModelConfig, build_model, check_model_size
 
 # What a resumed run may change: how long it runs and how its steps execute, not what it learns.
 RESUME_MAY_CHANGE = ("epochs", "patience", "max_minutes", "amp", "cuda_graphs")
@@ -93,8 +96,7 @@ def read_checkpoint(path: str | Path, device: str | torch.device = "cpu", *, rol
     PyTorch file, not a dict of weights and configs, another dataset format, window lengths of
     the model and the data that disagree."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{role} {path} does not exist")
+    check_checkpoint_file(path, role)
     if not zipfile.is_zipfile(path):  # torch.save writes a zip archive; anything else is not ours
         raise ValueError(f"{role} {path} is not a checkpoint this learner can read safely: not a PyTorch file")
     try:
@@ -121,6 +123,7 @@ def read_checkpoint(path: str | Path, device: str | torch.device = "cpu", *, rol
             f"{role} {path} is inconsistent: its model reads windows of {model.frames} frames, its data config "
             f"cuts {data.frames}"
         )
+    check_checkpoint_content(ckpt, path)  # finite weights, grid and threshold; a model that fits in memory
     return ckpt
 
 
@@ -174,3 +177,81 @@ def strip_checkpoint(src: str | Path, dst: str | Path) -> Path:
 def _first_line(err: BaseException) -> str:
     text = str(err).strip()
     return text.splitlines()[0] if text else type(err).__name__
+
+
+# ---------------------------------------------------------------------------------------------
+# What a loaded checkpoint must hold before it is used: a damaged, hand-edited or diverged one
+# would otherwise give NaN images with exit 0, exhaust memory, or fail deep inside with a bare
+# KeyError or "could not convert string to float" that names neither the file nor the field.
+
+USE_ANOTHER = "use a checkpoint written by `learn train` (or learn/pretrained/polar_unet_k5.pt)"
+
+
+def check_checkpoint_file(path: Path, role: str = "checkpoint") -> None:
+    """A checkpoint path that is a regular file (a FIFO would block torch.load forever) whose
+    size fits in memory."""
+    regular_file(path, role)
+    size = path.stat().st_size
+    check_fits(size, f"checkpoint {path} ({size:,} bytes)", USE_ANOTHER)
+
+
+def check_checkpoint_content(ckpt: dict, path: Path) -> None:
+    """Every field a loaded checkpoint is read for, refused with the file and field named:
+    configs that build (and fit in memory), finite weights, a finite grid, threshold and floor."""
+    for key, kind in (("model", dict), ("model_config", dict), ("data_config", dict), ("dataset", dict)):
+        if not isinstance(ckpt.get(key), kind):
+            raise ValueError(f"{path}: {key} is {_found(ckpt.get(key))}, not a {kind.__name__}: {USE_ANOTHER}")
+    try:
+        model_config, data_config = ModelConfig(**ckpt["model_config"]), DataConfig(**ckpt["data_config"])
+    except (TypeError, ValueError) as err:  # an unknown field, a wrong type or value
+        raise ValueError(f"{path}: its configs do not build ({err}): {USE_ANOTHER}") from None
+    if model_config.frames != data_config.frames:
+        raise ValueError(
+            f"{path}: model_config.frames {model_config.frames} but data_config.frames {data_config.frames} "
+            f"(windows the network cannot take): {USE_ANOTHER}"
+        )
+    try:
+        check_model_size(model_config)
+    except ValueError as err:
+        raise ValueError(f"{path}: model_config: {err}") from None
+    for key in ("range_m", "azimuth_rad"):
+        axis = ckpt.get(key)
+        if not (isinstance(axis, list | tuple) and axis and all(_finite_number(v) for v in axis)):
+            raise ValueError(f"{path}: {key} is {_found(axis)}, not a list of finite numbers: {USE_ANOTHER}")
+    if "threshold" in ckpt and not (_finite_number(ckpt["threshold"]) and 0 < ckpt["threshold"] <= 1):
+        raise ValueError(f"{path}: threshold is {_found(ckpt['threshold'])}, not a number in (0, 1]: {USE_ANOTHER}")
+    if not isinstance(ckpt.get("parameters"), Integral):
+        raise ValueError(f"{path}: parameters is {_found(ckpt.get('parameters'))}, not a count: {USE_ANOTHER}")
+    dataset = ckpt["dataset"]
+    if not isinstance(dataset.get("plan_id"), str | None):
+        raise ValueError(f"{path}: dataset.plan_id is {_found(dataset.get('plan_id'))}, not text: {USE_ANOTHER}")
+    episodes = dataset.get("val_episodes", [])
+    if not (isinstance(episodes, list) and all(isinstance(e, Integral) for e in episodes)):
+        raise ValueError(f"{path}: dataset.val_episodes is {_found(episodes)}, not episode numbers: {USE_ANOTHER}")
+    check_finite_weights(ckpt["model"], path)
+
+
+def check_finite_weights(weights: dict, path: Path) -> None:
+    """Refuse a state dict holding anything but tensors, or NaN or inf in a floating one (a run
+    that diverged writes such weights, and they predict NaN images)."""
+    for name, tensor in weights.items():
+        if not isinstance(tensor, torch.Tensor):
+            raise ValueError(f"{path}: model weight {name} is {_found(tensor)}, not a tensor: {USE_ANOTHER}")
+        if tensor.is_floating_point() and not bool(torch.isfinite(tensor).all()):
+            bad = int((~torch.isfinite(tensor)).sum())
+            raise ValueError(
+                f"{path}: model weight {name} holds {bad:,} NaN or inf values (the run diverged): use an earlier "
+                "checkpoint of the run, or train again with a lower learning rate"
+            )
+
+
+def _finite_number(value) -> bool:
+    return isinstance(value, Real) and not isinstance(value, bool) and math.isfinite(value)
+
+
+def _found(value) -> str:
+    """A field's value in a message, cut short."""
+    if isinstance(value, dict | list | tuple) and len(value) > 4:
+        return f"a {type(value).__name__} of {len(value)} items"
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."

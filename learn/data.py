@@ -9,25 +9,25 @@ validation scenes are never seen in training) or by scenario family.
 
 from __future__ import annotations
 
-import json
+import math
 import os
 import typing
 from dataclasses import dataclass
+from numbers import Integral, Real
 from pathlib import Path
 from typing import Literal
 
-import h5py
 import numpy as np
 import torch
 
-FORMAT = "sonar2lidar-dataset"  # written by acoustic_sim.datasets.shards; the file format is the interface
-FORMAT_VERSION = 1
+from .inputs import check_fits, read_json
+from .shardfile import FORMAT as FORMAT  # re-exported: learn.data is where readers look for them
+from .shardfile import FORMAT_VERSION as FORMAT_VERSION
+from .shardfile import DataError as DataError
+from .shardfile import ShardHeader, read_arrays, read_header
+
 Label = Literal["middle", "last"]
 LABELS: tuple[str, ...] = typing.get_args(Label)
-
-
-class DataError(ValueError):
-    """A dataset that cannot be read as asked (missing, foreign, other version, inconsistent)."""
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -47,14 +47,17 @@ class DataConfig:
     floor_db: float = 40.0
 
     def __post_init__(self) -> None:
+        if not isinstance(self.frames, Integral) or isinstance(self.frames, bool):
+            raise ValueError(f"frames must be an integer, got {self.frames!r}")
         if self.frames < 1:
             raise ValueError(f"frames must be >= 1, got {self.frames}")
-        if self.label not in LABELS:
+        if not isinstance(self.label, str) or self.label not in LABELS:
             raise ValueError(f"label must be one of {LABELS}, got {self.label!r}")
         if self.label == "middle" and self.frames % 2 == 0:
             raise ValueError(f"label 'middle' needs an odd window length K, got frames={self.frames} (or label 'last')")
-        if not self.floor_db > 0:
-            raise ValueError(f"floor_db must be > 0, got {self.floor_db}")
+        if not isinstance(self.floor_db, Real) or not (self.floor_db > 0 and math.isfinite(self.floor_db)):
+            # an infinite floor maps every cell to NaN (inf / inf), a NaN one every comparison to False
+            raise ValueError(f"floor_db must be a finite number of dB > 0, got {self.floor_db!r}")
 
     @property
     def label_offset(self) -> int:
@@ -131,46 +134,84 @@ def recorded_path(path: str | Path) -> str:
 
 
 def load_frames(folder: str | Path) -> Frames:
-    """Read every shard of a dataset folder, checking format, version and grids."""
-    parts, names, info = [], [], {"folder": recorded_path(folder)}
-    grid = None
-    manifest = Path(folder) / "manifest.json"
-    if manifest.exists():
-        meta = json.loads(manifest.read_text())
-        info |= {k: meta.get(k) for k in ("suite", "variant", "plan_id", "physics")}
-    for path in shard_paths(folder):
-        try:
-            f = h5py.File(path, "r")
-        except OSError as err:
-            raise DataError(f"{path} is not a readable HDF5 file ({err})") from None
-        with f:
-            if f.attrs.get("format") != FORMAT:
-                raise DataError(f"{path} is not a {FORMAT} shard")
-            version = int(f.attrs.get("format_version", -1))
-            if version != FORMAT_VERSION:
-                raise DataError(f"{path} has format_version {version}; this learner reads {FORMAT_VERSION}")
-            axes = (f["range_m"][:], f["azimuth_rad"][:])
-            if grid is None:
-                grid = axes
-            elif not (np.array_equal(grid[0], axes[0]) and np.array_equal(grid[1], axes[1])):
-                raise DataError(f"{path} uses another range/azimuth grid than the first shard")
-            local = json.loads(f.attrs["scenarios"])
-            for name in local:
-                if name not in names:
-                    names.append(name)
-            remap = np.array([names.index(n) for n in local], dtype=np.int64)
-            try:
-                arrays = [f[k][:] for k in ("energyscape", "lidar/image", "episode", "scenario")]
-            except (OSError, KeyError) as err:  # a checksum or decompression failure, a missing dataset
-                first = str(err).strip().splitlines()[0]
-                raise DataError(f"{path} is damaged or incomplete ({first}); regenerate it") from None
-            energyscape, label, episode, scenario = arrays
-            if not np.isfinite(energyscape).all():
-                raise DataError(f"{path}: energyscape holds NaN or inf values; regenerate this shard")
-            parts.append((energyscape, label, episode.astype(np.int64), remap[scenario.astype(np.int64)]))
-            info.setdefault("config", json.loads(f.attrs["config"]))
-    energyscape, label, episode, scenario = (np.concatenate(p) for p in zip(*parts, strict=True))
+    """Read every shard of a dataset folder: each checked as `learn.shardfile` says, all of one run
+    (one plan id and variant, no shard twice: episode ids restart at 0 in every run, so shards of
+    two runs would join unrelated drives into windows), on one grid, and within the memory
+    available before anything is allocated."""
+    folder = Path(folder)
+    info = {"folder": recorded_path(folder)}
+    manifest = _manifest(folder)
+    headers = [read_header(path) for path in shard_paths(folder)]
+    _check_one_run(headers, manifest)
+    first = headers[0]
+    for header in headers[1:]:
+        if (header.range_count, header.azimuth_count) != (first.range_count, first.azimuth_count):
+            raise DataError(f"{header.path} uses another range/azimuth grid than {first.path}")
+    total, shape = sum(h.frames for h in headers), (first.range_count, first.azimuth_count)
+    held = total * (shape[0] * shape[1] * 3 + 16)  # float16 energyscape, uint8 label, two int64
+    check_fits(
+        held + 2 * max(h.read_bytes for h in headers),  # and one shard's arrays as read, then converted
+        f"{folder} ({len(headers)} shards, {total:,} frames of {shape[0]} x {shape[1]})",
+        "read fewer shards (a folder holding some of them) or use a machine with more memory",
+    )
+    energyscape, label = np.empty((total, *shape), np.float16), np.empty((total, *shape), np.uint8)
+    episode, scenario = np.empty(total, np.int64), np.empty(total, np.int64)
+    names, seen, grid, start = [], {}, None, 0
+    for header in headers:
+        arrays = read_arrays(header, seen)
+        if grid is None:
+            grid = (arrays.range_m, arrays.azimuth_rad)
+        elif not (np.array_equal(grid[0], arrays.range_m) and np.array_equal(grid[1], arrays.azimuth_rad)):
+            raise DataError(f"{header.path} uses another range/azimuth grid than {first.path}")
+        names += [n for n in header.scenarios if n not in names]
+        remap = np.array([names.index(n) for n in header.scenarios], dtype=np.int64)
+        rows = slice(start, start + header.frames)
+        energyscape[rows], label[rows], episode[rows] = arrays.energyscape, arrays.label, arrays.episode
+        scenario[rows] = remap[arrays.scenario]
+        start += header.frames
+    info |= {k: manifest.get(k) for k in ("suite", "variant", "physics")}
+    info |= {"plan_id": first.plan_id, "config": first.config}
     return Frames(energyscape, label, episode, scenario, names, grid[0], grid[1], info)
+
+
+def _manifest(folder: Path) -> dict:
+    """manifest.json's fields ({} where the folder has none)."""
+    path = folder / "manifest.json"
+    if not os.path.lexists(path):
+        return {}
+    manifest = read_json(path, "manifest", "regenerate the dataset, or remove manifest.json (its shards say the rest)")
+    if not isinstance(manifest.get("plan_id"), str | None):
+        raise DataError(f"manifest {path}: plan_id is {manifest['plan_id']!r}, not a plan id (text)")
+    return manifest | {"path": path}
+
+
+def _check_one_run(headers: list[ShardHeader], manifest: dict) -> None:
+    """Refuse shards of more than one run (plan id) or variant, and a shard read twice (one file
+    under two names, or one shard index twice), naming both files."""
+    first, by_file, by_index = headers[0], {}, {}
+    planned = manifest.get("plan_id")
+    if planned is not None and planned != first.plan_id:
+        raise DataError(
+            f"{manifest['path']} is of run (plan) {planned}, but {first.path} of plan {first.plan_id}: the folder "
+            "mixes two runs; keep one run's files per folder (or remove the stale manifest.json)"
+        )
+    for header in headers:
+        if header.plan_id != first.plan_id or header.variant != first.variant:
+            raise DataError(
+                f"{header.path} belongs to run (plan) {_run(header)}, {first.path} to plan {_run(first)}: the "
+                "folder mixes shards of two runs, whose episodes would be joined into windows; keep one run's shards "
+                "per folder"
+            )
+        twin = by_file.setdefault(header.file_id, header.path)
+        if twin != header.path:
+            raise DataError(f"{header.path} is the same file as {twin} (a link): remove it, or it counts twice")
+        twin = by_index.setdefault(header.index, header.path)
+        if twin != header.path:
+            raise DataError(f"{header.path} repeats shard {header.index} of its run ({twin}): remove the copy")
+
+
+def _run(header: ShardHeader) -> str:
+    return header.plan_id + (f" (variant {header.variant!r})" if header.variant else "")
 
 
 def normalise(energyscape: torch.Tensor, floor_db: float | torch.Tensor) -> torch.Tensor:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
+from numbers import Integral
 
 import torch
 import torch.nn.functional as F
@@ -46,8 +47,14 @@ class ModelConfig:
     row_contrast: bool = False
 
     def __post_init__(self) -> None:
-        if self.name not in MODEL_NAMES:
+        if not isinstance(self.name, str) or self.name not in MODEL_NAMES:
             raise ValueError(f"model name must be one of {MODEL_NAMES}, got {self.name!r}")
+        for name in ("frames", "width"):
+            value = getattr(self, name)
+            if not isinstance(value, Integral) or isinstance(value, bool):
+                raise ValueError(f"{name} must be an integer, got {value!r}")
+        if not isinstance(self.row_contrast, bool):
+            raise ValueError(f"row_contrast must be true or false, got {self.row_contrast!r}")
         if self.frames < 1:
             raise ValueError(f"frames must be >= 1, got {self.frames}")
         if self.name == "paper" and self.frames % 2 == 0:
@@ -255,8 +262,26 @@ MODEL_NAMES = tuple(MODELS)
 
 
 def build_model(config: ModelConfig) -> nn.Module:
-    """The network named by `config`, freshly initialised (seed torch for reproducible weights)."""
+    """The network named by `config`, freshly initialised (seed torch for reproducible weights);
+    refused before any weight is allocated where they would not fit in memory (`check_model_size`)."""
+    check_model_size(config)
     return MODELS[config.name](config)
+
+
+def check_model_size(config: ModelConfig) -> int:
+    """The float32 bytes of `config`'s weights (and batch-norm buffers), counted on torch's meta
+    device (nothing allocated); ValueError (`learn.inputs.TooLarge`) where they exceed the memory
+    available, naming the figure."""
+    from .inputs import check_fits
+
+    with torch.device("meta"):
+        model = MODELS[config.name](config)
+    count = sum(t.numel() for t in (*model.parameters(), *model.buffers()))
+    size = 4 * count
+    what = f"model {config.name} (frames {config.frames}, width {config.width}: {count:,} weights)"
+    advice = "use a smaller width or fewer frames (the shipped model: width 16, 5 frames)"
+    check_fits(size, what, advice)
+    return size
 
 
 def parameter_count(model: nn.Module) -> int:

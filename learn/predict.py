@@ -19,27 +19,55 @@ import torch
 from .checkpoint import load_checkpoint
 from .data import DataConfig, Frames, Windows, load_frames, recorded_path
 from .evaluate import check_grid, model_predictor, return_threshold
+from .inputs import check_fits, npy_header
 from .scan import first_return_ranges
 
 
+def read_input(source: Path, ckpt: dict) -> Frames:
+    """The frames `predict` runs on: a dataset folder's, or the energyscapes of a `.npy` file."""
+    if source.suffix == ".npy":
+        return _frames_from_array(source, ckpt)
+    if source.suffix == ".npz" or source.is_file():
+        raise ValueError(
+            f"--input {source} is a file, not a .npy: give a dataset folder, or energyscapes (N, R, A) saved with "
+            "numpy.save as a .npy"
+        )
+    return load_frames(source)
+
+
 def _frames_from_array(path: Path, ckpt: dict) -> Frames:
-    energyscape = np.load(path)  # allow_pickle stays False: an object array is refused, not unpickled
-    if not (np.issubdtype(energyscape.dtype, np.floating) or np.issubdtype(energyscape.dtype, np.integer)):
-        raise ValueError(f"{path}: energyscapes must be real numbers, got dtype {energyscape.dtype}")
-    shape = (len(ckpt["range_m"]), len(ckpt["azimuth_rad"]))
-    if energyscape.ndim != 3 or energyscape.shape[1:] != shape:
-        raise ValueError(f"{path}: expected energyscapes (N, {shape[0]}, {shape[1]}), got {energyscape.shape}")
-    if not np.isfinite(energyscape).all():
-        raise ValueError(f"{path}: energyscapes contain NaN or inf")
-    n = len(energyscape)
+    """Energyscapes (N, R, A) of a `.npy`, held as float32: each is normalised to its own peak
+    (`learn.data.normalise`), so any scale is right, and float32 holds any that float16 cannot
+    (above 65,504). Header, size and values are checked before and after reading."""
+    shape, dtype = npy_header(path, "--input")  # a regular file whose header fits its size
+    if dtype.kind not in "fiu":
+        raise ValueError(f"--input {path}: energyscapes must be real numbers, got dtype {dtype}")
+    grid = (len(ckpt["range_m"]), len(ckpt["azimuth_rad"]))
+    if len(shape) != 3 or shape[1:] != grid:
+        raise ValueError(f"--input {path}: expected energyscapes (N, {grid[0]}, {grid[1]}), got {shape}")
+    n = shape[0]
+    check_fits(
+        n * grid[0] * grid[1] * (4 + 1 + 4),  # float32 frames, uint8 labels, one batch's worth at most again
+        f"--input {path} ({n:,} energyscapes of {grid[0]} x {grid[1]})",
+        "predict a shorter stretch at a time (split the array)",
+    )
+    with np.errstate(over="ignore", invalid="ignore"):  # beyond float32's range becomes inf: refused below
+        energyscape = np.array(np.load(path, mmap_mode="r"), dtype=np.float32)  # a copy; no pickles: objects refused
+    bad = int(np.count_nonzero(~np.isfinite(energyscape)))
+    if bad:
+        hint = {
+            np.dtype(np.float16): "float16 overflows to inf above 65,504: save energyscapes as float32",
+            np.dtype(np.float64): "values beyond float32's 3.4e38 count too: scale the energyscapes down",
+        }.get(dtype, "pass finite energyscapes")
+        raise ValueError(f"--input {path}: {bad:,} of its values are NaN or inf: {hint}")
     return Frames(
-        energyscape=energyscape.astype(np.float16),
-        label=np.zeros((n, *shape), np.uint8),
+        energyscape=energyscape,
+        label=np.zeros((n, *grid), np.uint8),
         episode=np.zeros(n, np.int64),
         scenario=np.zeros(n, np.int64),
         scenarios=["recorded"],
-        range_m=np.asarray(ckpt["range_m"]),
-        azimuth_rad=np.asarray(ckpt["azimuth_rad"]),
+        range_m=np.asarray(ckpt["range_m"], dtype=np.float64),
+        azimuth_rad=np.asarray(ckpt["azimuth_rad"], dtype=np.float64),
         info={"folder": recorded_path(path)},
     )
 
@@ -63,7 +91,7 @@ def predict(
     model, ckpt = load_checkpoint(checkpoint, device)
     threshold = return_threshold(ckpt, threshold)
     source = Path(source)
-    frames = _frames_from_array(source, ckpt) if source.suffix == ".npy" else load_frames(source)
+    frames = read_input(source, ckpt)
     check_grid(frames, ckpt)
     config = DataConfig(**ckpt["data_config"])
     windows = Windows(frames, config, device)

@@ -33,7 +33,7 @@ CASES = [
     ("ckpt-not-torch", "learn", "predict --checkpoint {text} --input {data} --out {pred}", "can read safely"),
     ("ckpt-pickle", "learn", "export --checkpoint {evil} --out {tmp}/m.onnx", "can read safely"),
     ("ckpt-misfit", "learn", "predict --checkpoint {misfit} --input {data} --out {pred}", "do not fit the model"),
-    ("ckpt-folder", "learn", "evaluate --checkpoint {tmp} --data {data} --out {tmp}/e", "does not exist"),
+    ("ckpt-folder", "learn", "evaluate --checkpoint {tmp} --data {data} --out {tmp}/e", "is a folder"),
     ("init-from-missing", "learn", "train --data {data} --out {tmp}/t1 --init-from {tmp}/none.pt", "does not exist"),
     # learn: devices
     ("learn-cuda", "learn", "evaluate --checkpoint {ckpt} --data {data} --out {tmp}/e --device cuda", "no CUDA GPU"),

@@ -1,0 +1,304 @@
+"""One dataset shard as the learner reads it, checked before and after its arrays are read.
+
+A shard is an HDF5 file of `acoustic_sim.datasets.shards` (the one interface between simulation
+and learning), and the learner trusts nothing in it. Before any array is read: the file is a
+regular file; it holds no link, external or virtual dataset (those read other files, anywhere on
+the machine); the datasets read are stored under HDF5's Fletcher-32 checksum, which our writer
+sets on every dataset, so damage is found on read; their types and shapes are the writer's; the
+attributes that identify the shard (plan id, variant, shard index) are there. After: energyscapes
+are finite and fit float16 (the type the learner holds them in), labels are 0 or 1, scenario
+indices name one of the shard's scenarios and every episode is one contiguous run of frames.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from .inputs import regular_file
+
+FORMAT = "sonar2lidar-dataset"  # written by acoustic_sim.datasets.shards; the file format is the interface
+FORMAT_VERSION = 1
+FLOAT16_MAX = float(np.finfo(np.float16).max)  # 65,504
+# The datasets read and their dtype kinds (numpy: f float, i/u integer, b bool)
+READ = {
+    "energyscape": "fiu",
+    "lidar/image": "fiub",
+    "episode": "iu",
+    "scenario": "iu",
+    "range_m": "f",
+    "azimuth_rad": "f",
+}
+ALSO_READ = {"time": "f"}  # frame times, read by learn.ros for `predict --mcap`
+REDO = "regenerate it with `python -m acoustic_sim generate`, or move it out of the folder"
+
+
+class DataError(ValueError):
+    """A dataset that cannot be read as asked (missing, foreign, other version, inconsistent)."""
+
+
+@dataclass(frozen=True)
+class ShardHeader:
+    """What a shard says of itself, read without its arrays.
+
+    Attributes:
+        path: The shard.
+        plan_id, variant, index: The run (plan), physics variant and shard number that wrote it.
+        frames, range_count, azimuth_count: Energyscape shape (T, R, A).
+        scenarios: Scenario names the `scenario` dataset indexes.
+        config: The settings it was simulated with.
+        file_id: (device, inode): two names of one file (a link) share it.
+        read_bytes: Bytes of its energyscapes and labels as stored (read whole, then converted).
+    """
+
+    path: Path
+    plan_id: str
+    variant: str
+    index: int
+    frames: int
+    range_count: int
+    azimuth_count: int
+    scenarios: list[str]
+    config: dict
+    file_id: tuple[int, int]
+    read_bytes: int
+
+
+@dataclass
+class ShardArrays:
+    """A shard's arrays as the learner holds them: energyscape (T, R, A) float16, label (T, R, A)
+    uint8, episode and scenario (T,) int64, range_m (R,) [m], azimuth_rad (A,) [rad]."""
+
+    energyscape: np.ndarray
+    label: np.ndarray
+    episode: np.ndarray
+    scenario: np.ndarray
+    range_m: np.ndarray
+    azimuth_rad: np.ndarray
+
+
+def open_shard(path: Path) -> h5py.File:
+    """The shard open for reading (a regular file: a FIFO would block h5py forever)."""
+    regular_file(path, "shard")
+    try:
+        return h5py.File(path, "r")
+    except OSError as err:
+        first = str(err).strip().splitlines()[0]
+        raise DataError(f"{path} is not a readable HDF5 file ({first}): {REDO}") from None
+
+
+def read_header(path: Path) -> ShardHeader:
+    """The shard's identity and shapes; refuses a foreign, linked or unchecksummed layout."""
+    path = Path(path)
+    with open_shard(path) as f:
+        try:
+            return _header(f, path)
+        except OSError as err:  # an unreadable attribute or object header
+            first = str(err).strip().splitlines()[0]
+            raise DataError(f"{path} is damaged ({first}): {REDO}") from None
+
+
+def _header(f: h5py.File, path: Path) -> ShardHeader:
+    fmt = _text(f.attrs.get("format"))
+    if fmt != FORMAT:
+        raise DataError(f"{path} is not a {FORMAT} shard (its format attribute is {fmt!r})")
+    raw = f.attrs.get("format_version")
+    version = _integer(raw)
+    if version != FORMAT_VERSION:
+        found = version if version is not None else repr(raw)
+        raise DataError(f"{path} has format_version {found}; this learner reads {FORMAT_VERSION}")
+    _refuse_foreign_storage(f, path)
+    sets = {name: _dataset(f, name, path) for name in READ}
+    for name in ALSO_READ:
+        if name in f:
+            _dataset(f, name, path)
+    plan_id, variant, index = _text(f.attrs.get("plan_id")), _text(f.attrs.get("variant")), f.attrs.get("shard")
+    if not plan_id or variant is None or _integer(index) is None:
+        raise DataError(f"{path} lacks the plan_id, variant or shard attribute that says which run wrote it: {REDO}")
+    scenarios = _json_attr(f, "scenarios", path, list)
+    if not scenarios or not all(isinstance(s, str) for s in scenarios):
+        raise DataError(f"{path}: the scenarios attribute is not a list of scenario names: {REDO}")
+    energyscape, label = sets["energyscape"], sets["lidar/image"]
+    frames_shape = (len(energyscape),) if energyscape.ndim else ()
+    shapes = {
+        "energyscape": (energyscape.ndim == 3, "(frame, range, azimuth)"),
+        "lidar/image": (label.shape == energyscape.shape, f"{energyscape.shape}, as energyscape"),
+        "episode": (sets["episode"].shape == frames_shape, f"{frames_shape}, one per frame"),
+        "scenario": (sets["scenario"].shape == frames_shape, f"{frames_shape}, one per frame"),
+        "range_m": (sets["range_m"].shape == energyscape.shape[1:2], f"{energyscape.shape[1:2]}, energyscape's ranges"),
+        "azimuth_rad": (sets["azimuth_rad"].shape == energyscape.shape[2:], f"{energyscape.shape[2:]}, its azimuths"),
+    }
+    for name, (fits, expected) in shapes.items():
+        if not fits:
+            raise DataError(f"{path}: {name} has shape {sets[name].shape}, expected {expected}: {REDO}")
+    stat = os.stat(path)
+    return ShardHeader(
+        path=path,
+        plan_id=plan_id,
+        variant=variant,
+        index=_integer(index),
+        frames=energyscape.shape[0],
+        range_count=energyscape.shape[1],
+        azimuth_count=energyscape.shape[2],
+        scenarios=scenarios,
+        config=_json_attr(f, "config", path, dict),
+        file_id=(stat.st_dev, stat.st_ino),
+        read_bytes=energyscape.size * energyscape.dtype.itemsize + label.size * label.dtype.itemsize,
+    )
+
+
+def _refuse_foreign_storage(f: h5py.File, path: Path) -> None:
+    """Refuse links (soft ones name other objects, external ones other files) and external or
+    virtual datasets anywhere in the file: an HDF5 file may read any file on the machine."""
+    links: list[tuple[str, int]] = []
+    f.id.links.visit(lambda name, info: links.append((name.decode(errors="replace"), info.type)) and None, info=True)
+    for name, kind in links:
+        if kind != h5py.h5l.TYPE_HARD:
+            link = f.get(name, getlink=True)
+            external = isinstance(link, h5py.ExternalLink)
+            target = f"{link.filename}:{link.path}" if external else getattr(link, "path", "?")
+            raise DataError(
+                f"{path}: {name} is a link to {target}, not data stored in the shard; links are refused (they can "
+                f"read any file): {REDO}"
+            )
+    foreign: list[str] = []
+
+    def visit(name: str, item) -> None:
+        if isinstance(item, h5py.Dataset) and not foreign:
+            if item.external:
+                foreign.append(f"{name} is an HDF5 external dataset reading {', '.join(e[0] for e in item.external)}")
+            elif item.is_virtual:
+                sources = sorted({s.file_name for s in item.virtual_sources()})
+                foreign.append(f"{name} is an HDF5 virtual dataset reading {', '.join(sources)}")
+
+    f.visititems(visit)
+    if foreign:
+        raise DataError(f"{path}: {foreign[0]}; such datasets are refused (they can read any file): {REDO}")
+
+
+def _dataset(f: h5py.File, name: str, path: Path) -> h5py.Dataset:
+    """The dataset `name`: present, numeric, under the Fletcher-32 checksum."""
+    item = f.get(name)
+    if not isinstance(item, h5py.Dataset):
+        what = "is a group" if item is not None else "is missing"
+        raise DataError(f"{path}: the {name} dataset {what} (an incomplete or foreign shard): {REDO}")
+    if item.dtype.kind not in {**READ, **ALSO_READ}[name]:
+        raise DataError(f"{path}: {name} has dtype {item.dtype}, not the numbers the writer stores: {REDO}")
+    if not item.fletcher32:
+        raise DataError(
+            f"{path}: {name} is stored without the Fletcher-32 checksum our writer sets, so damage could not be "
+            f"found: {REDO}"
+        )
+    return item
+
+
+def read_arrays(header: ShardHeader, seen_episodes: dict[int, Path]) -> ShardArrays:
+    """The shard's arrays, their values checked (see the module docstring); `seen_episodes` maps
+    the episodes of shards read before to their shard (an episode lies in one shard) and gains
+    this shard's."""
+    path = header.path
+    with open_shard(path) as f:
+        arrays = {}
+        for name in READ:
+            try:
+                arrays[name] = f[name][()]
+            except OSError as err:  # a checksum or decompression failure
+                first = str(err).strip().splitlines()[0]
+                raise DataError(f"{path}: {name} is damaged ({first}): {REDO}") from None
+    for name in ("range_m", "azimuth_rad"):
+        axis = arrays[name]
+        if not (np.isfinite(axis).all() and (np.diff(axis) > 0).all()):
+            raise DataError(f"{path}: {name} is not a finite, increasing axis: {REDO}")
+    return ShardArrays(
+        energyscape=as_float16(arrays["energyscape"], f"{path}: energyscape", REDO),
+        label=_labels(arrays["lidar/image"], path),
+        episode=_episodes(arrays["episode"], path, seen_episodes),
+        scenario=_scenarios(arrays["scenario"], header),
+        range_m=arrays["range_m"].astype(np.float64),
+        azimuth_rad=arrays["azimuth_rad"].astype(np.float64),
+    )
+
+
+def as_float16(values: np.ndarray, what: str, advice: str) -> np.ndarray:
+    """`values` as float16, refused (with the figure) where they are not finite or beyond
+    float16's range (65,504), which the cast would turn into inf."""
+    if values.dtype.kind == "f":
+        bad = int(np.count_nonzero(~np.isfinite(values)))
+        if bad:
+            raise DataError(f"{what} holds {bad:,} NaN or inf values: {advice}")
+    peak = max(float(values.max()), -float(values.min())) if values.size else 0.0
+    if peak > FLOAT16_MAX:
+        raise DataError(f"{what} holds values above float16's {FLOAT16_MAX:,.0f} (max {peak:.3g}): {advice}")
+    return values.astype(np.float16, copy=False)
+
+
+def _labels(label: np.ndarray, path: Path) -> np.ndarray:
+    outside = ~((label == 0) | (label == 1))  # NaN is neither
+    if outside.any():
+        frame = int(np.argwhere(outside)[0][0])
+        value = label[frame][outside[frame]][0].item()
+        raise DataError(
+            f"{path}: lidar/image holds {value!r} at frame {frame} ({int(outside.sum()):,} of its cells are outside "
+            f"{{0, 1}} or NaN); the label is a 0/1 image: {REDO}"
+        )
+    return label.astype(np.uint8, copy=False)
+
+
+def _episodes(episode: np.ndarray, path: Path, seen: dict[int, Path]) -> np.ndarray:
+    episode = episode.astype(np.int64)
+    starts = np.flatnonzero(np.r_[True, episode[1:] != episode[:-1]])
+    runs = episode[starts]
+    if len(np.unique(runs)) != len(runs):
+        raise DataError(f"{path}: an episode's frames are split in two runs (episode ids {runs.tolist()[:8]}): {REDO}")
+    shared = sorted(seen.keys() & set(runs.tolist()))
+    if shared:
+        raise DataError(
+            f"{path}: episode {shared[0]} is also in {seen[shared[0]]}; a drive lies in one shard, so the folder mixes "
+            "shards of different runs, or copies: keep one run's shards per folder"
+        )
+    seen.update(dict.fromkeys(runs.tolist(), path))
+    return episode
+
+
+def _scenarios(scenario: np.ndarray, header: ShardHeader) -> np.ndarray:
+    scenario = scenario.astype(np.int64)
+    outside = (scenario < 0) | (scenario >= len(header.scenarios))
+    if outside.any():
+        frame, count = int(np.argmax(outside)), len(header.scenarios)
+        raise DataError(
+            f"{header.path}: scenario holds index {scenario[frame].item()} at frame {frame}, outside "
+            f"0..{count - 1} (its scenarios attribute names {count}): {REDO}"
+        )
+    return scenario
+
+
+def _text(value) -> str | None:
+    """A string attribute (h5py may give str, bytes or a numpy string), else None."""
+    if isinstance(value, bytes | np.bytes_):
+        return value.decode(errors="replace")
+    return str(value) if isinstance(value, str) else None
+
+
+def _integer(value) -> int | None:
+    """An integer attribute (int or numpy integer), else None."""
+    return int(value) if isinstance(value, int | np.integer) and not isinstance(value, bool) else None
+
+
+def _json_attr(f: h5py.File, key: str, path: Path, kind: type):
+    text = _text(f.attrs.get(key))
+    if text is None:
+        raise DataError(f"{path} has no {key} attribute (an incomplete or foreign shard): {REDO}")
+    try:
+        value = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise DataError(
+            f"{path}: its {key} attribute is not valid JSON (line {err.lineno}, column {err.colno}: {err.msg}): {REDO}"
+        ) from None
+    if not isinstance(value, kind):
+        raise DataError(f"{path}: its {key} attribute is a JSON {type(value).__name__}, not a {kind.__name__}: {REDO}")
+    return value
