@@ -428,7 +428,7 @@ def test_ctrl_c_or_a_file_that_appears_meanwhile_leaves_no_trace(tmp_path):
     assert out.read_text() == "theirs" and list(tmp_path.iterdir()) == [out]
 
 
-@pytest.mark.parametrize("name", ["../x", "../../escape", "/tmp/x", "a/b", ".hidden", "", "."])
+@pytest.mark.parametrize("name", ["../x", "../../escape", "/abs/x", "a/b", ".hidden", "", "."])
 def test_names_that_leave_the_output_folder_are_refused(name):
     with pytest.raises(ValueError, match="must be letters"):
         check_name(name, "--test name")
