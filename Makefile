@@ -32,12 +32,12 @@ system-deps:
 	fi
 
 demo: $(VENV)/.installed
-	$(PY) -m acoustic_sim render --scene office --seed 0 --frames 150 --frame 60 --device $(DEVICE) --out $(OUT)/office.png
-	$(PY) -m acoustic_sim render --sonar --scene office --seed 0 --frames 40 --frame 30 --device $(DEVICE) --out $(OUT)/sonar_office.png
+	$(PY) -m acoustic_sim render --scene office --seed 0 --frames 150 --frame 60 --device $(DEVICE) --out $(OUT)/office.png --overwrite
+	$(PY) -m acoustic_sim render --sonar --scene office --seed 0 --frames 40 --frame 30 --device $(DEVICE) --out $(OUT)/sonar_office.png --overwrite
 	$(PY) -m acoustic_sim generate --suite paper --frames $(DEMO_FRAMES) --workers 2 --device $(DEVICE) --quiet --out $(OUT)/data
 	$(PY) -m acoustic_sim generate --suite paper --frames $(DEMO_DRIVE_FRAMES) --seed 2026 --shards 2 --workers 2 --device $(DEVICE) --quiet --out $(OUT)/drive
 	$(PY) -m learn train --data $(OUT)/data --out $(OUT)/run --model polar_unet $(DEMO_TRAIN) --device $(DEVICE)
-	$(PY) -m learn evaluate --checkpoint pretrained=$(PRETRAINED) --checkpoint "smoke run=$(OUT)/run/best.pt" --data $(OUT)/drive --out $(OUT)/report --device $(DEVICE)
+	$(PY) -m learn evaluate --checkpoint pretrained=$(PRETRAINED) --checkpoint "smoke run=$(OUT)/run/best.pt" --data $(OUT)/drive --out $(OUT)/report --device $(DEVICE) --overwrite
 	@echo "report: $(OUT)/report/report.md (examples.png: the pretrained model on the fresh drive);"
 	@echo "smoke run curves: $(OUT)/run/curves.png; dataset card: $(OUT)/data/README.md; scene pictures: $(OUT)/*.png"
 

@@ -9,6 +9,8 @@ import sys
 import time
 from pathlib import Path
 
+from clitools.outputs import OVERWRITE_HELP, atomic_folder
+
 from .extras import MissingExtra  # no heavy imports: a plain exception class
 
 
@@ -32,6 +34,17 @@ def _scene_from_args(args):
 
 
 def _render(args) -> int:
+    out = Path(args.out)
+    inputs = [p for p in (args.svg, args.mesh) if p]
+    names = [out.name, out.with_suffix(".json").name]  # the picture and its settings, published together
+    with atomic_folder(out.parent, overwrite=args.overwrite, inputs=inputs, expected=names) as stage:
+        done = _render_into(args, stage / out.name)
+    print(done)
+    return 0
+
+
+def _render_into(args, picture: Path) -> str:
+    """Draw the picture and its settings file at `picture`; returns the line to print."""
     import warp as wp
 
     from .devices import check_device, quiet_warp
@@ -59,16 +72,13 @@ def _render(args) -> int:
     grid = rig.processing.grid
     if args.sonar:
         label = lidar_image(ranges[args.frame], config, grid)[0]
-        return _render_sonar(args, rig, scene, poses[args.frame], label, t0)
-    out = render_lidar(
-        scene, poses, ranges, config, lidar_image(ranges, config, grid), grid, args.out, frame=args.frame
-    )
+        return _render_sonar(args, rig, scene, poses[args.frame], label, t0, picture)
+    out = render_lidar(scene, poses, ranges, config, lidar_image(ranges, config, grid), grid, picture, frame=args.frame)
     _write_render_config(out, rig, args)
-    print(
+    return (
         f"{scene!r}: {len(poses)} poses, {ranges.size} LiDAR rays on {args.device}; "
-        f"wrote {out} and its settings in {Path(out).with_suffix('.json').name} in {time.perf_counter() - t0:.1f} s"
+        f"wrote {args.out} and its settings in {out.with_suffix('.json').name} in {time.perf_counter() - t0:.1f} s"
     )
-    return 0
 
 
 def _write_render_config(picture, rig, args) -> None:
@@ -79,7 +89,7 @@ def _write_render_config(picture, rig, args) -> None:
     Path(picture).with_suffix(".json").write_text(text)
 
 
-def _render_sonar(args, rig, scene, pose, lidar, t0) -> int:
+def _render_sonar(args, rig, scene, pose, lidar, t0, picture: Path) -> str:
     """The sonar picture: the same ping simulated with max_bounces 0 and with --max-bounces."""
     from .engine.sonar import Sonar
     from .render import render_sonar
@@ -91,13 +101,12 @@ def _render_sonar(args, rig, scene, pose, lidar, t0) -> int:
         arrivals = sonar.trace(scene, pose)
         signals = sonar.record(arrivals, pose_count=1, noise="gaussian", seed=args.seed)
         results.append((f"max_bounces={bounces}", arrivals.for_pose(0), sonar.energyscape(signals, rig.processing)[0]))
-    out = render_sonar(scene, pose, results, lidar, rig.processing.grid, args.out)
+    out = render_sonar(scene, pose, results, lidar, rig.processing.grid, picture)
     _write_render_config(out, dataclasses.replace(rig, tracer=tracer), args)
-    print(
+    return (
         f"{scene!r}: sonar ping at frame {args.frame} with max_bounces {[r[0] for r in results]}; "
-        f"wrote {out} and its settings in {Path(out).with_suffix('.json').name} in {time.perf_counter() - t0:.1f} s"
+        f"wrote {args.out} and its settings in {out.with_suffix('.json').name} in {time.perf_counter() - t0:.1f} s"
     )
-    return 0
 
 
 def _generate(args) -> int:
@@ -185,19 +194,22 @@ def _import(args) -> int:
         return _import_chirp(args, rig)
     from .formats.recordings import import_pdm
 
-    done = import_pdm(
-        args.recordings,
-        args.out,
-        rig,
-        channels=args.channels,
-        pdm_rate_hz=args.pdm_rate,
-        bit_order=args.bit_order,
-        samples_per_ping=args.samples_per_ping,
-        device=args.device,
-    )
+    out = Path(args.out)
+    written = [out.name, out.with_suffix(".png").name, out.with_suffix(".json").name]
+    with atomic_folder(out.parent, overwrite=args.overwrite, inputs=args.recordings, expected=written) as stage:
+        done = import_pdm(
+            args.recordings,
+            stage / out.name,
+            rig,
+            channels=args.channels,
+            pdm_rate_hz=args.pdm_rate,
+            bit_order=args.bit_order,
+            samples_per_ping=args.samples_per_ping,
+            device=args.device,
+        )
     print(
-        f"{done['pings']} pings -> {done['out']} (energyscapes), {done['picture']} in {done['seconds']:.1f} s; "
-        f"next: python -m learn predict --checkpoint MODEL.pt --input {done['out']} --out pred.npz --png pred.png"
+        f"{done['pings']} pings -> {out} (energyscapes), {out.with_suffix('.png')} in {done['seconds']:.1f} s; "
+        f"next: python -m learn predict --checkpoint MODEL.pt --input {out} --out pred.npz --png pred.png"
     )
     return 0
 
@@ -207,6 +219,11 @@ def _import_chirp(args, rig) -> int:
 
     if len(args.recordings) != 1:
         raise ValueError(f"--format chirp imports one recording (.h5) at a time, got {len(args.recordings)} files")
+    if args.overwrite:
+        raise ValueError(
+            "--overwrite is for --format pdm: a CHIRP import makes a new dataset folder and never writes into one "
+            "that holds files (two imports would mix); give a new --out"
+        )
     done = import_chirp(
         args.recordings[0],
         args.out,
@@ -228,7 +245,7 @@ def _export(args) -> int:
     if args.format == "chirp":
         from .formats.chirp import export_chirp
 
-        done = export_chirp(args.dataset, args.out)
+        done = export_chirp(args.dataset, args.out, overwrite=args.overwrite)
         print(
             f"{done['frames']} frames of {args.dataset} -> {done['out']} (CHIRP: microphone signals, "
             f"{done['points']:,} LiDAR points, poses)"
@@ -236,7 +253,7 @@ def _export(args) -> int:
         return 0
     from .formats.mcap_export import export_mcap
 
-    done = export_mcap(args.dataset, args.out)
+    done = export_mcap(args.dataset, args.out, overwrite=args.overwrite)
     print(f"{done['frames']} frames of {args.dataset} -> {done['out']} (/scan, /sonar/energyscape, /tf)")
     return 0
 
@@ -295,7 +312,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     render.add_argument("--set", action="append", metavar="SECTION.FIELD=VALUE", help=SET_HELP)
     render.add_argument("--device", default="cpu", help="Warp device: cpu, cuda:0, ...")
-    render.add_argument("--out", default="scene.png", help="PNG to write")
+    render.add_argument("--out", default="scene.png", help="PNG to write (and its settings, .json, beside it)")
+    render.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     render.add_argument("--verbose", action="store_true", help="show Warp's compile messages")
     render.set_defaults(handler=_render)
 
@@ -354,6 +372,7 @@ def build_parser() -> argparse.ArgumentParser:
     imp.add_argument("recordings", nargs="+", help="raw PDM files in time order, or one CHIRP file")
     imp.add_argument("--format", required=True, choices=["pdm", "chirp"], help="what the files hold")
     imp.add_argument("--out", required=True, help="pdm: energyscapes file to write (.npy); chirp: dataset folder")
+    imp.add_argument("--overwrite", action="store_true", help="pdm: " + OVERWRITE_HELP)
     imp.add_argument("--channels", type=int, default=32, help="microphones in the stream (bits per word)")
     imp.add_argument("--pdm-rate", type=float, default=4.5e6, help="PDM sample rate [Hz]")
     imp.add_argument("--bit-order", choices=["lsb", "msb"], default="lsb", help="lsb: bit i of a word is channel i")
@@ -390,6 +409,7 @@ def build_parser() -> argparse.ArgumentParser:
     exp.add_argument("dataset", help="dataset folder (shard-*.h5)")
     exp.add_argument("--format", required=True, choices=["mcap", "chirp"], help="what to write")
     exp.add_argument("--out", required=True, help="file to write (.mcap or .h5)")
+    exp.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     exp.set_defaults(handler=_export)
     return parser
 

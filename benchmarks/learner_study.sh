@@ -26,5 +26,5 @@ python -m learn sim2real --ablation $D/ablation --reality $D/reality --out $W/ru
   --frames 5 --epochs 20 --patience 4 --lr 1e-3 --max-train-windows 3000 --max-minutes 1.2 "${C[@]}" > $L/sim2real.log 2>&1 &
 wait
 for m in paper_k5 unet_k5; do
-  python -m learn evaluate --checkpoint $W/runs/$m/best.pt --data $D/paper --out $W/runs/$m/eval --device cuda
+  python -m learn evaluate --checkpoint $W/runs/$m/best.pt --data $D/paper --out $W/runs/$m/eval --device cuda --overwrite
 done

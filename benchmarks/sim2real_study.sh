@@ -81,7 +81,7 @@ score)
     runs+=("$run")
   done
   if [ ${#runs[@]} -ge 2 ]; then
-    python -m learn sim2real-summary "${runs[@]}" --out "$W/runs/sim2real_${suite}${STUDY}_summary"
+    python -m learn sim2real-summary "${runs[@]}" --out "$W/runs/sim2real_${suite}${STUDY}_summary" --overwrite
   fi
   ;;
 *)

@@ -1,7 +1,8 @@
 """What both command lines (`python -m acoustic_sim`, `python -m learn`) share, in the standard
 library alone so that the learner needs nothing of the simulator.
 
-`settings`: one grammar for `--set section.field=value`.
+`settings`: one grammar for `--set section.field=value`. `outputs`: how every output is written
+(never over an input, never over an existing file without `--overwrite`, whole or not at all).
 
 A setting names a field of a tree of frozen dataclasses by its path from the root
 (`tracer.max_bounces=1`, `processing.grid.range_max_m=4`, `train.lr=3e-4`) and gives its value as

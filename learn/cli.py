@@ -7,6 +7,8 @@ import dataclasses
 import json
 import sys
 
+from clitools.outputs import OVERWRITE_HELP, atomic_folder
+
 from . import MissingExtra
 
 
@@ -72,15 +74,17 @@ def _train(args) -> int:
 def _evaluate(args) -> int:
     from .evaluate import evaluate
 
-    report = evaluate(
-        args.checkpoint,
-        args.data,
-        args.out,
-        device=args.device,
-        split=args.split,
-        threshold=args.threshold,
-        progress=not args.quiet,
-    )
+    inputs = [*(c.partition("=")[2] or c for c in args.checkpoint), args.data]  # --checkpoint NAME=PATH or PATH
+    with atomic_folder(args.out, overwrite=args.overwrite, inputs=inputs, expected=["metrics.json"]) as stage:
+        report = evaluate(
+            args.checkpoint,
+            args.data,
+            stage,
+            device=args.device,
+            split=args.split,
+            threshold=args.threshold,
+            progress=not args.quiet,
+        )
     print(f"{report['windows']:,} windows ({report['split']} split) of {report['data']}:")
     for name, r in report["results"].items():
         m = r["all"]
@@ -103,6 +107,7 @@ def _predict(args) -> int:
         png=args.png,
         threshold=args.threshold,
         mcap=args.mcap,
+        overwrite=args.overwrite,
     )
     print(f"wrote {out}" + (f" and {args.mcap} (/scan_pred)" if args.mcap else ""))
     return 0
@@ -121,6 +126,8 @@ def _export(args) -> int:
         azimuth_count=len(ckpt["azimuth_rad"]),
         threshold=args.threshold if args.threshold is not None else ckpt.get("threshold"),
         verbose=args.verbose,
+        overwrite=args.overwrite,
+        inputs=(args.checkpoint,),
     )
     print(json.dumps(info))
     return 0
@@ -170,11 +177,8 @@ def named_folder(text: str) -> tuple[str, str]:
 def _named_folders(items: list[str]) -> dict:
     named = {}
     for item in items:
-        try:
-            name, folder = named_folder(item)
-        except ValueError:
-            name = folder = ""
-        if not name or name in named or name == "reality":
+        name, _, folder = item.partition("=")  # as named_folder reads it
+        if not (name and folder) or name in named or name == "reality":
             raise ValueError(f"--test wants NAME=FOLDER with a new name (not reality), got {item!r}")
         named[name] = folder
     return named
@@ -183,7 +187,7 @@ def _named_folders(items: list[str]) -> dict:
 def _sim2real_summary(args) -> int:
     from .studies import sim2real_summary
 
-    sim2real_summary(args.runs, args.out)
+    sim2real_summary(args.runs, args.out, overwrite=args.overwrite)
     print(f"wrote {args.out}/sim2real.md")
     return 0
 
@@ -191,7 +195,7 @@ def _sim2real_summary(args) -> int:
 def _table2_summary(args) -> int:
     from .studies import table2_summary
 
-    table2_summary(args.runs, args.out)
+    table2_summary(args.runs, args.out, overwrite=args.overwrite)
     print(f"wrote {args.out}/table2.md")
     return 0
 
@@ -199,7 +203,7 @@ def _table2_summary(args) -> int:
 def _seeds_summary(args) -> int:
     from .studies import seeds_summary
 
-    seeds_summary(args.reports, args.out)
+    seeds_summary(args.reports, args.out, overwrite=args.overwrite)
     print(f"wrote {args.out}/summary.md")
     return 0
 
@@ -315,6 +319,7 @@ def build_parser(base=None) -> argparse.ArgumentParser:
     )
     p.add_argument("--data", required=True, help="dataset folder")
     p.add_argument("--out", required=True, help="report folder")
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     p.add_argument("--split", default="auto", choices=["auto", "val", "all"], help="auto: val on the training data")
     p.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -330,12 +335,14 @@ def build_parser(base=None) -> argparse.ArgumentParser:
     p.add_argument(
         "--mcap", default=None, help="also write the scans as ROS 2 LaserScans on /scan_pred (.mcap; extra ros)"
     )
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     p.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
     _threshold_option(p)
     p.set_defaults(handler=_predict)
     p = sub.add_parser("export", help="write ONNX, checked against torch", formatter_class=fmt, parents=[common])
     p.add_argument("--checkpoint", required=True)
     p.add_argument("--out", required=True, help=".onnx to write")
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     p.add_argument("--verbose", action="store_true", help="show torch's exporter warnings")
     _threshold_option(p)
     p.set_defaults(handler=_export)
@@ -379,6 +386,7 @@ def build_parser(base=None) -> argparse.ArgumentParser:
     )
     p.add_argument("runs", nargs="+", help="sim2real output folders (e.g. one per seed)")
     p.add_argument("--out", required=True)
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     p.set_defaults(handler=_sim2real_summary)
     p = sub.add_parser(
         "table2-summary",
@@ -388,12 +396,14 @@ def build_parser(base=None) -> argparse.ArgumentParser:
     )
     p.add_argument("runs", nargs="+", help="table2 output folders (e.g. one per seed)")
     p.add_argument("--out", required=True)
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     p.set_defaults(handler=_table2_summary)
     p = sub.add_parser(
         "seeds-summary", help="mean and std over repeated evaluations", formatter_class=fmt, parents=[common]
     )
     p.add_argument("reports", nargs="+", help="evaluate output folders (metrics.json), e.g. one per seed")
     p.add_argument("--out", required=True)
+    p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     p.set_defaults(handler=_seeds_summary)
     return parser
 

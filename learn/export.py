@@ -20,6 +20,8 @@ import numpy as np
 import torch
 from torch import nn
 
+from clitools.outputs import atomic_output, check_output
+
 from . import MissingExtra
 
 OPSET = 18  # the lowest opset the torch.export-based exporter writes natively
@@ -49,6 +51,8 @@ def export_onnx(
     check: bool = True,
     threshold: float | None = None,
     verbose: bool = False,
+    overwrite: bool = False,
+    inputs: tuple = (),
 ) -> dict:
     """Write `model` (in eval mode) as ONNX with a dynamic batch and, if `check`, compare with torch.
 
@@ -67,6 +71,9 @@ def export_onnx(
             one), written to the metadata; None writes none.
         verbose: Let torch's exporter log its warnings (e.g. that torchvision, which we do not
             use, is missing).
+        overwrite: Replace an existing `path`. The file is written under a temporary name and
+            renamed only once checked (`clitools.outputs`), so a failed export leaves nothing.
+        inputs: Files the model came from (its checkpoint): `path` never replaces one of them.
 
     Returns:
         {"path", "max_abs_diff" (None without a check), "tolerance", "opset", "return_threshold"}.
@@ -75,9 +82,20 @@ def export_onnx(
         ImportError: onnx, onnxruntime or onnxscript is not installed.
         RuntimeError: onnxruntime and torch differ by more than the tolerance.
     """
+    _import_onnx()  # a missing extra is refused first
+    path = check_output(path, overwrite=overwrite, inputs=inputs)
+    if threshold is not None and not 0 < threshold <= 1:
+        raise ValueError(f"the return threshold must lie in (0, 1], got {threshold}")
+    shape = (frames, range_count, azimuth_count)
+    with atomic_output(path, overwrite=overwrite, inputs=inputs) as tmp:
+        info = _export_checked(model, tmp, shape, check=check, threshold=threshold, verbose=verbose)
+    return info | {"path": str(path)}
+
+
+def _export_checked(model: nn.Module, path: Path, shape: tuple, *, check: bool, threshold, verbose: bool) -> dict:
+    """`export_onnx` into `path` (its temporary file); `shape` is (K, R, A)."""
     onnx, onnxruntime = _import_onnx()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    frames, range_count, azimuth_count = shape
     device = next(model.parameters()).device
     x = torch.rand(2, 1, frames, range_count, azimuth_count, generator=torch.Generator().manual_seed(0))
 
@@ -111,8 +129,6 @@ def export_onnx(
         exporter_log.setLevel(level)
     metadata = {"output_kind": getattr(model, "output", "image")}
     if threshold is not None:
-        if not 0 < threshold <= 1:
-            raise ValueError(f"the return threshold must lie in (0, 1], got {threshold}")
         metadata["return_threshold"] = f"{threshold:g}"
     proto = onnx.load(str(path))
     onnx.helper.set_model_props(proto, metadata)

@@ -11,10 +11,14 @@ grid as training, one ping per frame at the training frame rate) and save the re
 
 from __future__ import annotations
 
+import contextlib
+import os
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from clitools.outputs import atomic_output, check_output
 
 from .checkpoint import load_checkpoint
 from .data import DataConfig, Frames, Windows, load_frames, recorded_path
@@ -82,12 +86,19 @@ def predict(
     png: str | None = None,
     threshold: float | None = None,
     mcap: str | None = None,
+    overwrite: bool = False,
 ) -> Path:
     """Predictions of every window, saved as .npz (the suffix is added if `out` lacks it; the path
     written is returned): "prediction" (windows, R, A) float16 images,
     "ranges" (windows, A) float32 scans [m] (inf = no return), "threshold", "frame" (the label
     frame of each window), "range_m", "azimuth_rad". `threshold` overrides the checkpoint's.
-    `mcap`: also write the scans as ROS 2 LaserScans on /scan_pred (see `learn.ros`)."""
+    `mcap`: also write the scans as ROS 2 LaserScans on /scan_pred (see `learn.ros`).
+    Each file is written under a temporary name and renamed when whole (`clitools.outputs`): an
+    existing one is replaced only with `overwrite`, an input never (both refused before any work)."""
+    out = Path(out)
+    out = out if out.suffix == ".npz" else out.with_name(out.name + ".npz")  # numpy appends it anyway
+    inputs = [checkpoint, source]
+    _check_outputs(out, png, mcap, overwrite=overwrite, inputs=inputs)
     model, ckpt = load_checkpoint(checkpoint, device)
     threshold = return_threshold(ckpt, threshold)
     source = Path(source)
@@ -104,39 +115,64 @@ def predict(
             ranges.append(first_return_ranges(image.float(), frames.range_m, threshold=threshold).float().cpu().numpy())
             preds.append(image.cpu().numpy())
     labelled = windows.starts + config.label_offset  # the frame each prediction is for
-    if mcap:
-        from .ros import FRAME_S, dataset_stamps, drive_stamps, write_scans
+    images, ranges = np.concatenate(preds), np.concatenate(ranges)
+    with contextlib.ExitStack() as files:  # all written before any is renamed: a failure leaves none
 
-        if source.suffix == ".npy":  # one drive at the training frame rate
-            stamps = drive_stamps(frames.episode, np.arange(len(frames.episode)) * FRAME_S)
-        else:
-            stamps = dataset_stamps(source)
-        write_scans(mcap, np.concatenate(ranges), stamps[labelled], frames.range_m, frames.azimuth_rad)
-    out = Path(out)
-    out = out if out.suffix == ".npz" else out.with_name(out.name + ".npz")  # numpy appends it anyway
-    out.parent.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(
-        out,
-        prediction=np.concatenate(preds),
-        ranges=np.concatenate(ranges),
-        threshold=threshold,
-        frame=labelled,
-        range_m=frames.range_m,
-        azimuth_rad=frames.azimuth_rad,
-    )
-    if png:
-        from .plots import plot_examples
+        def temporary(path) -> Path:
+            return files.enter_context(atomic_output(path, overwrite=overwrite, inputs=inputs))
 
-        images, rows = np.concatenate(preds), []
-        for i in np.unique(np.linspace(0, len(windows) - 1, 4).round().astype(int)):  # spread over the drive
-            x, y = windows.batch([i])
-            rows.append(
-                {
-                    "title": f"frame {windows.starts[i] + config.label_offset}",
-                    "sonar": x[0, 0, config.label_offset].cpu().numpy(),
-                    "truth": y[0, 0].cpu().numpy(),
-                    "pred": images[i].astype(np.float32),
-                }
-            )
-        plot_examples(rows, frames.range_m, frames.azimuth_rad, png, threshold=threshold)
+        if mcap:
+            _write_scans(temporary(mcap), source, frames, ranges, labelled)
+        np.savez_compressed(
+            temporary(out),
+            prediction=images,
+            ranges=ranges,
+            threshold=threshold,
+            frame=labelled,
+            range_m=frames.range_m,
+            azimuth_rad=frames.azimuth_rad,
+        )
+        if png:
+            _plot(temporary(png), windows, images, threshold)
     return out
+
+
+def _write_scans(path: Path, source: Path, frames: Frames, ranges: np.ndarray, labelled: np.ndarray) -> None:
+    """The scans as ROS 2 LaserScans, stamped as the dataset's frames (or the drive of a .npy)."""
+    from .ros import FRAME_S, dataset_stamps, drive_stamps, write_scans
+
+    if source.suffix == ".npy":  # one drive at the training frame rate
+        stamps = drive_stamps(frames.episode, np.arange(len(frames.episode)) * FRAME_S)
+    else:
+        stamps = dataset_stamps(source)
+    write_scans(path, ranges, stamps[labelled], frames.range_m, frames.azimuth_rad)
+
+
+def _plot(path: Path, windows: Windows, images: np.ndarray, threshold: float) -> None:
+    """Four predictions spread over the drive, beside their sonar input and truth."""
+    from .plots import plot_examples
+
+    rows, offset = [], windows.config.label_offset
+    for i in np.unique(np.linspace(0, len(windows) - 1, 4).round().astype(int)):
+        x, y = windows.batch([i])
+        rows.append(
+            {
+                "title": f"frame {windows.starts[i] + offset}",
+                "sonar": x[0, 0, offset].cpu().numpy(),
+                "truth": y[0, 0].cpu().numpy(),
+                "pred": images[i].astype(np.float32),
+            }
+        )
+    plot_examples(rows, windows.frames.range_m, windows.frames.azimuth_rad, path, threshold=threshold)
+
+
+def _check_outputs(out: Path, png, mcap, *, overwrite: bool, inputs: list) -> None:
+    """Refuse, before any work, outputs that name one file twice, a picture without a suffix
+    (its format), an existing file without `overwrite`, or an input."""
+    given = [Path(p) for p in (out, png, mcap) if p]
+    if len({os.path.realpath(p) for p in given}) < len(given):
+        raise ValueError(f"--out, --png and --mcap name one file twice ({', '.join(map(str, given))})")
+    if png and not Path(png).suffix:
+        raise ValueError(f"--png {png} needs a suffix that names the picture's format (.png, .pdf, .svg)")
+    for path in given:
+        check_output(path, overwrite=overwrite, inputs=inputs)

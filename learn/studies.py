@@ -13,11 +13,14 @@ from __future__ import annotations
 import csv
 import dataclasses
 import json
+import os
 import warnings
 from pathlib import Path
 
 import numpy as np
 import torch
+
+from clitools.outputs import atomic_folder, atomic_output, check_name
 
 from .checkpoint import load_checkpoint
 from .config import LearnConfig
@@ -38,6 +41,19 @@ def _variant_folder(root: Path, name: str) -> Path:
     folder = root / name
     shard_paths(folder)  # clear error if missing
     return folder
+
+
+def _paths(*items) -> list[Path]:
+    """The items that name files or folders (the inputs an output must never replace)."""
+    return [Path(p) for p in items if isinstance(p, str | Path)]
+
+
+def _check_study_out(out: Path, inputs: list[Path]) -> None:
+    """A study trains and scores into `out`: never an input folder, nor a folder inside one."""
+    target = Path(os.path.realpath(out))
+    for folder in inputs:
+        if target.is_relative_to(os.path.realpath(folder)):
+            raise ValueError(f"--out {out} is or lies inside the input folder {folder}: choose a folder of its own")
 
 
 def _spread(values: list[float]) -> dict:
@@ -64,6 +80,7 @@ def table2(
     read). Mean / std over windows.
     `config` gives the settings other than K (network and width, label frame, input floor, recipe)."""
     out, test_root = Path(out), Path(test_data)
+    _check_study_out(out, _paths(train_data, test_data))
     frames = load_frames(train_data)
     cases = {c: load_frames(_variant_folder(test_root, c)) for c in TABLE2_CASES}
     runs = {}
@@ -105,8 +122,9 @@ def table2(
     lines += [f"| {r} | " + " | ".join(_cell(v[c], "scan_f1") for c in TABLE2_CASES) + " |" for r, v in rows.items()]
     lines += ["", "MSE (the paper's metric):", "", "| input | " + " | ".join(TABLE2_CASES) + " |", "|---|---|---|---|"]
     lines += [f"| {r} | " + " | ".join(_cell(v[c], "mse") for c in TABLE2_CASES) + " |" for r, v in rows.items()]
-    (out / "table2.md").write_text("\n".join(lines) + "\n")
-    (out / "table2.json").write_text(json.dumps(rows, indent=1))
+    with atomic_folder(out, overwrite=True, inputs=_paths(train_data, test_data)) as stage:  # a rerun resumes
+        (stage / "table2.md").write_text("\n".join(lines) + "\n")
+        (stage / "table2.json").write_text(json.dumps(rows, indent=1))
     return rows
 
 
@@ -131,6 +149,7 @@ def sim2real(
     by `learn train` on a GPU, as benchmarks/sim2real_study.sh does), whose checkpoints name their
     own model and settings. `variants` limits it to those named (all of `ablation`'s by default)."""
     out, root = Path(out), Path(ablation)
+    _check_study_out(out, _paths(ablation, *([reality] if isinstance(reality, str | Path) else reality.values())))
     present = sorted(p.name for p in root.iterdir() if p.is_dir() and any(p.glob("shard-*.h5")))
     if not present:
         raise ValueError(f"{root} holds no variant folders with shards (expected bounces_0, bounces_1, ...)")
@@ -140,6 +159,8 @@ def sim2real(
     tests = {"reality": reality} if isinstance(reality, str | Path) else dict(reality)
     if not tests or "in_domain" in tests or any(name.endswith(ECHO_PEAK) for name in tests):
         raise ValueError(f"name the test sets (not in_domain or ...{ECHO_PEAK}), got {list(tests)}")
+    for name in tests:  # each names a folder and a picture under `out`
+        check_name(name, "test set name")
     test_frames = {name: load_frames(folder) for name, folder in tests.items()}
     table, model_config = {}, config.model
     for v in variants:
@@ -155,17 +176,16 @@ def sim2real(
         for name, test in test_frames.items():
             far = evaluate(run / "best.pt", test, run / name, device=device, split="all", timing=False)
             table[v] |= {name: far["results"]["model"]["all"], name + ECHO_PEAK: far["results"]["echo peak"]["all"]}
-    for name, test in test_frames.items():
-        typical_windows({v: out / v for v in variants}, name, test, out / f"examples_{name}.png", device=device)
     sets = ", ".join(f"{name} `{recorded_path(folder)}`" for name, folder in tests.items())
     header = f"Training data `{recorded_path(ablation)}`; test sets: {sets}. Mean over windows (std in metrics.json)."
-    _write_sim2real(
-        table,
-        out,
+    title = (
         f"Sim-to-real: {model_config.name} (K = {model_config.frames}) trained per multipath setting, "
-        f"scored on {', '.join(tests)}",
-        header,
+        f"scored on {', '.join(tests)}"
     )
+    with atomic_folder(out, overwrite=True, inputs=_paths(ablation, *tests.values())) as stage:  # a rerun resumes
+        for name, test in test_frames.items():
+            typical_windows({v: out / v for v in variants}, name, test, stage / f"examples_{name}.png", device=device)
+        _write_sim2real(table, stage, title, header)
     return table
 
 
@@ -197,7 +217,9 @@ def typical_windows(runs: dict[str, Path], test: str, frames, out: Path, *, devi
                 "threshold": return_threshold(ckpt),
             }
         )
-    return plot_examples(rows, frames.range_m, frames.azimuth_rad, out)
+    with atomic_output(out, overwrite=True, inputs=list(runs.values())) as tmp:
+        plot_examples(rows, frames.range_m, frames.azimuth_rad, tmp)
+    return Path(out)
 
 
 def _trained_model(run: Path) -> ModelConfig:
@@ -221,10 +243,19 @@ def _test_sets(table: dict) -> list[str]:
     return [k for k in first if k != "in_domain" and not k.endswith(ECHO_PEAK)]
 
 
-def sim2real_summary(runs: list[str | Path], out: str | Path) -> dict:
+SIM2REAL_FILES = ("sim2real.md", "sim2real.json", "sim2real.png")
+
+
+def sim2real_summary(runs: list[str | Path], out: str | Path, *, overwrite: bool = False) -> dict:
     """Mean and std across repeated sim2real runs (e.g. seeds), from their sim2real.json files:
     each cell is the spread of the runs' window means, so it shows how much a conclusion
-    depends on the draw of scenes and the training seed."""
+    depends on the draw of scenes and the training seed. Files already in `out` are replaced
+    only with `overwrite`, files of `runs` never (`clitools.outputs`)."""
+    with atomic_folder(out, overwrite=overwrite, inputs=_paths(*runs), expected=SIM2REAL_FILES) as stage:
+        return _sim2real_summary(runs, stage)
+
+
+def _sim2real_summary(runs: list[str | Path], out: Path) -> dict:
     tables = [json.loads((Path(r) / "sim2real.json").read_text()) for r in runs]
     if len(tables) < 2:
         raise ValueError("give at least two sim2real run folders to summarise")
@@ -238,11 +269,8 @@ def sim2real_summary(runs: list[str | Path], out: str | Path) -> dict:
     tests = _test_sets(tables[0])
     wheres = ("in_domain", *tests, *(t + ECHO_PEAK for t in tests))
     summary = {v: {w: {k: across(v, w, k) for k, _ in SIM2REAL_KEYS} for w in wheres} for v in variants}
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     names = ", ".join(f"`{Path(r).name}`" for r in runs)
     header = f"Mean and std over {len(runs)} runs ({names}); each run's value is its mean over windows."
-    _write_sim2real(summary, out, f"Sim-to-real over {len(runs)} runs", header, errorbars=True)
     run_names = " | ".join(Path(r).name for r in runs)
     per_run = []
     for test in tests:
@@ -256,12 +284,15 @@ def sim2real_summary(runs: list[str | Path], out: str | Path) -> dict:
             f"| {v} minus {first} | " + " | ".join(f"{x:+.4f}" for x in scores[v] - scores[first]) + " |"
             for v in variants[1:]
         ]
-    with open(out / "sim2real.md", "a") as f:
-        f.write("\n".join(per_run) + "\n")
+    _write_sim2real(summary, out, f"Sim-to-real over {len(runs)} runs", header, errorbars=True, more=per_run)
     return summary
 
 
-def _write_sim2real(table: dict, out: Path, title: str, header: str, errorbars: bool = False) -> None:
+def _write_sim2real(
+    table: dict, out: Path, title: str, header: str, errorbars: bool = False, more: list[str] = ()
+) -> None:
+    """sim2real.md (the table, then the lines `more`), sim2real.json and sim2real.png into `out`."""
+
     def cell(stats: dict) -> str:
         return f"{stats['mean']:.3f} ± {stats['std']:.3f}" if errorbars else f"{stats['mean']:.4f}"
 
@@ -281,7 +312,7 @@ def _write_sim2real(table: dict, out: Path, title: str, header: str, errorbars: 
     first = next(iter(table.values()))
     baseline = [("-" if w == "in_domain" else cell(first[w + ECHO_PEAK][k])) for k, w in columns]
     lines.append("| echo-peak baseline | " + " | ".join(baseline) + " |")
-    (out / "sim2real.md").write_text("\n".join(lines) + "\n")
+    (out / "sim2real.md").write_text("\n".join([*lines, *more]) + "\n")
     (out / "sim2real.json").write_text(json.dumps(table, indent=1))
     _plot_sim2real(table, out / "sim2real.png", errorbars)
 
@@ -312,11 +343,18 @@ def _plot_sim2real(table: dict, path: Path, errorbars: bool) -> None:
     plt.close(fig)
 
 
-def seeds_summary(reports: list[str | Path], out: str | Path) -> dict:
+def seeds_summary(reports: list[str | Path], out: str | Path, *, overwrite: bool = False) -> dict:
     """Mean and std across repeated evaluations (e.g. one per training seed) of every predictor:
     reads each folder's metrics.json (written by `evaluate`), writes summary.md and summary.json.
     Each cell is the spread of the runs' window means, so it shows how much a result depends on
-    the seed rather than on the windows."""
+    the seed rather than on the windows. Files already in `out` are replaced only with
+    `overwrite`, files of `reports` never (`clitools.outputs`)."""
+    names = ("summary.md", "summary.json")
+    with atomic_folder(out, overwrite=overwrite, inputs=_paths(*reports), expected=names) as stage:
+        return _seeds_summary(reports, stage)
+
+
+def _seeds_summary(reports: list[str | Path], out: Path) -> dict:
     runs = [json.loads((Path(r) / "metrics.json").read_text()) for r in reports]
     if len(runs) < 2:
         raise ValueError("give at least two evaluation folders to summarise")
@@ -328,8 +366,6 @@ def seeds_summary(reports: list[str | Path], out: str | Path) -> dict:
         summary[name] = {}
         for key, _, _ in METRICS:
             summary[name][key] = _spread([r["results"][name]["all"][key]["mean"] for r in runs])
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     lines = [
         f"# {len(runs)} runs on `{runs[0]['data']}` ({runs[0]['split']} split, {runs[0]['windows']:,} windows each)",
         "",
@@ -349,11 +385,18 @@ def seeds_summary(reports: list[str | Path], out: str | Path) -> dict:
     return summary
 
 
-def table2_summary(runs: list[str | Path], out: str | Path) -> dict:
+def table2_summary(runs: list[str | Path], out: str | Path, *, overwrite: bool = False) -> dict:
     """Table 2 over repeated runs (e.g. seeds), from their table2.json and the K = 5 row's reports:
     scan F1 mean ± std of the runs' window means per row and case, the echo-peak baseline on the
     same windows, and per-run paired differences (each run scores all its rows on the same validation
-    episodes, so the episodes' difficulty cancels out of a difference)."""
+    episodes, so the episodes' difficulty cancels out of a difference). Files already in `out`
+    are replaced only with `overwrite`, files of `runs` never (`clitools.outputs`)."""
+    names = ("table2.md", "table2.json")
+    with atomic_folder(out, overwrite=overwrite, inputs=_paths(*runs), expected=names) as stage:
+        return _table2_summary(runs, stage)
+
+
+def _table2_summary(runs: list[str | Path], out: Path) -> dict:
     tables = [json.loads((Path(r) / "table2.json").read_text()) for r in runs]
     if len(tables) < 2:
         raise ValueError("give at least two table2 run folders to summarise")
@@ -391,8 +434,6 @@ def table2_summary(runs: list[str | Path], out: str | Path) -> dict:
     for b, a in pairs:
         for c in TABLE2_CASES:
             lines.append(f"| {b} minus {a} | {c} | " + " | ".join(f"{d:+.3f}" for d in f1[b][c] - f1[a][c]) + " |")
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     (out / "table2.md").write_text("\n".join(lines) + "\n")
     summary = {r: {c: _spread(v.tolist()) for c, v in f1[r].items()} for r in rows}
     summary["echo peak"] = {c: _spread(v.tolist()) for c, v in peak.items()}

@@ -30,6 +30,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from clitools.outputs import KeptErrorFile
+
 FORMAT = "sonar2lidar-dataset"
 FORMAT_VERSION = 1
 CHECKSUM = {"fletcher32": True}  # an HDF5 built-in filter: h5py and MATLAB verify it on every read
@@ -65,14 +67,16 @@ def write_shard(path: Path, frames: ShardFrames, *, attrs: dict, range_m: np.nda
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     try:
-        _write(tmp, frames, attrs=attrs, range_m=range_m, azimuth_rad=azimuth_rad)
+        with KeptErrorFile(tmp) as sink:  # HDF5 crashes after a failed write: it never sees one
+            _write(sink, frames, attrs=attrs, range_m=range_m, azimuth_rad=azimuth_rad)
+        sink.raise_kept(path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
     os.replace(tmp, path)
 
 
-def _write(tmp: Path, frames: ShardFrames, *, attrs: dict, range_m: np.ndarray, azimuth_rad: np.ndarray) -> None:
+def _write(tmp: Path | KeptErrorFile, frames: ShardFrames, *, attrs: dict, range_m, azimuth_rad) -> None:
     cat = np.concatenate
     with h5py.File(tmp, "w") as f:
         f.attrs["format"] = FORMAT

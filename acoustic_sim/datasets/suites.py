@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 import scenes
+from clitools.outputs import check_name
 from scenes.surfaces import SURFACE_CLASSES
 
 from ..config import check_finite
@@ -112,13 +113,8 @@ class Suite:
         if not self.variants or ("" in self.variants and len(self.variants) > 1):
             raise ValueError(f"suite {self.name!r}: variants need names when there are several")
         for variant in self.variants:  # a variant is a folder under --out: never a path that leaves it
-            if variant and not (
-                variant.replace("_", "").replace("-", "").replace(".", "").isalnum() and variant[0] != "."
-            ):
-                raise ValueError(
-                    f"suite {self.name!r}: variant name {variant!r} must be letters, digits, '_', '-' or '.' "
-                    "(not starting with '.'): it names a folder under --out"
-                )
+            if variant:
+                check_name(variant, f"suite {self.name!r}: variant name")
         if self.frames < 1 or self.episode_frames < 1 or not self.dt_s > 0:
             raise ValueError(f"suite {self.name!r}: frames, episode_frames >= 1, dt_s > 0")
         for name, low in (("speed_m_s", 0.0), ("sensor_height_m", 0.0), ("turn_rate_rad_s", 1e-3)):

@@ -46,6 +46,8 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from clitools.outputs import KeptErrorFile, atomic_folder, atomic_output, check_output
+
 from ..config import ChirpConfig, LidarConfig, SonarConfig
 from ..datasets.shards import COMPRESSION
 from ..engine.lidar import lidar_image, ranges_to_points
@@ -120,17 +122,11 @@ def _points(ranges: np.ndarray, lidar: LidarConfig) -> tuple[np.ndarray, np.ndar
     return cloud, counts
 
 
-def export_chirp(dataset: str | Path, out: str | Path) -> dict:
-    """Write every frame of a dataset folder generated with `--signals` as one CHIRP file."""
+def _write_chirp(f: h5py.File, shards: list[Path], drive: dict, *, source: str, check_disk) -> int:
+    """The CHIRP file's content into the open file `f`; `check_disk()` (raising on a failed write)
+    is called after each block of signals. Returns the number of LiDAR points."""
     from scipy.spatial.transform import Rotation
 
-    from .. import __version__
-
-    folder, out = Path(dataset), Path(out)
-    shards = sorted(folder.glob("shard-*.h5"))
-    if not shards:
-        raise ValueError(f"{folder} holds no shard-*.h5 files")
-    drive = _read_drive(shards)
     sonar, n = drive["sim"]["sonar"], len(drive["time"])
     stamps = frame_stamps(drive["episode"], drive["time"]) / 1e9  # Unix seconds, float64 (0.24 us steps)
     cloud, counts = _points(drive["ranges"], LidarConfig(**drive["sim"]["lidar"]))
@@ -138,50 +134,72 @@ def export_chirp(dataset: str | Path, out: str | Path) -> dict:
     rate, samples = float(sonar["chirp"]["sample_rate_hz"]), int(sonar["record_samples"])
     emitter = np.eye(4)
     emitter[:3, 3] = sonar["emitter_m"]
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp")
-    try:
-        with h5py.File(tmp, "w") as f:
-            f.attrs.update(format=FORMAT, format_version=FORMAT_VERSION, reference_sensor=ACOUSTIC)
-            f.attrs.update(n_reference_captures=n, source=f"sonar2lidar {__version__} simulation of {folder}")
-            acoustic = _sensor(f, ACOUSTIC, "acoustic_sensor", np.eye(4), stamps, sample_rate_hz=rate)
-            acoustic.attrs["num_channels"] = len(mics)
-            acoustic.create_dataset("calibration/receiver_relative_translations", data=mics)
-            signals = acoustic.create_dataset(
-                "data/signals", (n, samples, len(mics)), np.float32, chunks=(1, samples, len(mics)), **COMPRESSION
-            )
-            done = 0
-            for path in shards:
-                with h5py.File(path, "r") as shard:
-                    for first in range(0, len(shard["signals"]), BLOCK):  # (ping, mic, sample) -> (ping, sample, mic)
-                        block = shard["signals"][first : first + BLOCK].astype(np.float32).transpose(0, 2, 1)
-                        signals[done : done + len(block)] = block
-                        done += len(block)
-            call = ChirpConfig(**sonar["chirp"]).samples().astype(np.float32)
-            _sensor(f, TRANSMITTER, "acoustic_transmitter", emitter, stamps, sample_rate_hz=rate).create_dataset(
-                "data/signals", data=call
-            )
-            lidar = _sensor(f, LIDAR, "lidar", np.eye(4), stamps, max_points=cloud.shape[1])
-            lidar.create_dataset("data/points", data=cloud, chunks=(1, *cloud.shape[1:]), **COMPRESSION)
-            lidar.create_dataset("data/point_counts", data=counts)
-            odometry = _sensor(f, ODOMETRY, "odometry", np.eye(4), stamps, source="simulation")
-            unknown = np.full((n, 3), np.nan)  # velocities are not simulated
-            for key, value in {
-                "position": poses[:, :3, 3],
-                "orientation": Rotation.from_matrix(poses[:, :3, :3]).as_quat(),  # x, y, z, w
-                "yaw": np.arctan2(poses[:, 1, 0], poses[:, 0, 0]),
-                "linear_velocity": unknown,
-                "angular_velocity": unknown,
-                "pose_covariance": np.zeros((n, 6, 6)),  # the simulated pose is exact
-                "twist_covariance": np.full((n, 6, 6), np.nan),
-            }.items():
-                odometry.create_dataset(f"data/{key}", data=value)
-            f.create_dataset("transforms/base_link_to_origin", data=np.eye(4))  # the robot is the sensor
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    tmp.replace(out)
-    return {"out": str(out), "frames": n, "shards": len(shards), "points": int(counts.sum())}
+    f.attrs.update(format=FORMAT, format_version=FORMAT_VERSION, reference_sensor=ACOUSTIC)
+    f.attrs.update(n_reference_captures=n, source=source)
+    acoustic = _sensor(f, ACOUSTIC, "acoustic_sensor", np.eye(4), stamps, sample_rate_hz=rate)
+    acoustic.attrs["num_channels"] = len(mics)
+    acoustic.create_dataset("calibration/receiver_relative_translations", data=mics)
+    signals = acoustic.create_dataset(
+        "data/signals", (n, samples, len(mics)), np.float32, chunks=(1, samples, len(mics)), **COMPRESSION
+    )
+    done = 0
+    for path in shards:
+        with h5py.File(path, "r") as shard:
+            for first in range(0, len(shard["signals"]), BLOCK):  # (ping, mic, sample) -> (ping, sample, mic)
+                block = shard["signals"][first : first + BLOCK].astype(np.float32).transpose(0, 2, 1)
+                signals[done : done + len(block)] = block
+                done += len(block)
+                check_disk()
+    call = ChirpConfig(**sonar["chirp"]).samples().astype(np.float32)
+    _sensor(f, TRANSMITTER, "acoustic_transmitter", emitter, stamps, sample_rate_hz=rate).create_dataset(
+        "data/signals", data=call
+    )
+    lidar = _sensor(f, LIDAR, "lidar", np.eye(4), stamps, max_points=cloud.shape[1])
+    lidar.create_dataset("data/points", data=cloud, chunks=(1, *cloud.shape[1:]), **COMPRESSION)
+    lidar.create_dataset("data/point_counts", data=counts)
+    odometry = _sensor(f, ODOMETRY, "odometry", np.eye(4), stamps, source="simulation")
+    unknown = np.full((n, 3), np.nan)  # velocities are not simulated
+    for key, value in {
+        "position": poses[:, :3, 3],
+        "orientation": Rotation.from_matrix(poses[:, :3, :3]).as_quat(),  # x, y, z, w
+        "yaw": np.arctan2(poses[:, 1, 0], poses[:, 0, 0]),
+        "linear_velocity": unknown,
+        "angular_velocity": unknown,
+        "pose_covariance": np.zeros((n, 6, 6)),  # the simulated pose is exact
+        "twist_covariance": np.full((n, 6, 6), np.nan),
+    }.items():
+        odometry.create_dataset(f"data/{key}", data=value)
+    f.create_dataset("transforms/base_link_to_origin", data=np.eye(4))  # the robot is the sensor
+    return int(counts.sum())
+
+
+def export_chirp(dataset: str | Path, out: str | Path, *, overwrite: bool = False) -> dict:
+    """Write every frame of a dataset folder generated with `--signals` as one CHIRP file.
+
+    `out` is written under a temporary name and renamed when whole (`clitools.outputs`): an
+    existing file is replaced only with `overwrite`, a file of the dataset never. A failed write
+    (a full disk) is one OSError naming `out`, and leaves nothing behind."""
+    from .. import __version__
+
+    folder, out = Path(dataset), Path(out)
+    shards = sorted(folder.glob("shard-*.h5"))
+    if not shards:
+        raise ValueError(f"{folder} holds no shard-*.h5 files")
+    check_output(out, overwrite=overwrite, inputs=[folder])  # refused before any reading
+    drive = _read_drive(shards)
+    source = f"sonar2lidar {__version__} simulation of {folder}"
+    with atomic_output(out, overwrite=overwrite, inputs=[folder]) as tmp:
+        # A failed write inside HDF5 makes its close fail half way, and the objects left behind
+        # crash the process when freed; so HDF5 writes through a file that keeps the first error
+        # and drops the rest, closes cleanly, and the error is raised after.
+        sink = KeptErrorFile(tmp)
+        try:
+            with h5py.File(sink, "w") as f:
+                points = _write_chirp(f, shards, drive, source=source, check_disk=lambda: sink.raise_kept(out))
+        finally:
+            sink.close()
+        sink.raise_kept(out)
+    return {"out": str(out), "frames": len(drive["time"]), "shards": len(shards), "points": points}
 
 
 # ---------------------------------------------------------------------------------------- import
@@ -279,7 +297,9 @@ def _check_chirp(path: Path) -> None:
 def _check_import(path: Path, out: Path, rig) -> None:
     """Refuse, before reading any ping, an --out that is not empty, more than one elevation and a
     file that is not CHIRP."""
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"--out {out} is a file; give a new folder for the dataset")
+    if out.exists() and any(out.iterdir()):
         raise ValueError(f"--out {out} is not an empty folder; choose a new one")
     if np.ndim(rig.processing.elevation_deg):
         raise ValueError("import writes one energyscape per ping: set processing.elevation_deg to one angle")
@@ -404,10 +424,10 @@ def import_chirp(
     pings = ImportedPings(
         stamps, energy, ranges, lidar_image(ranges, planar, grid), poses, episodes_of(stamps, episode_gap_s)
     )
-    out.mkdir(parents=True, exist_ok=True)
-    entries = write_shards(out, pings, grid, config, plan_id=plan_id, scenario=scenario)
-    write_manifest(out, entries, config, plan_id=plan_id, scenario=scenario, lidar=lidar_name)
-    write_card(out, pings, grid, config, lidar=lidar_name, microphones=len(mics), rate_hz=rate)
+    with atomic_folder(out, overwrite=False, inputs=[path]) as stage:  # nothing under `out` until all is written
+        entries = write_shards(stage, pings, grid, config, plan_id=plan_id, scenario=scenario)
+        write_manifest(stage, entries, config, plan_id=plan_id, scenario=scenario, lidar=lidar_name)
+        write_card(stage, pings, grid, config, lidar=lidar_name, microphones=len(mics), rate_hz=rate)
     return {
         "out": str(out),
         "pings": len(stamps),

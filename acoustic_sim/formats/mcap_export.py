@@ -17,6 +17,8 @@ from pathlib import Path
 
 import numpy as np
 
+from clitools.outputs import atomic_output, check_output
+
 from ..extras import MissingExtra
 
 STAMP_START_S = 1_700_000_000
@@ -77,8 +79,10 @@ def frame_stamps(episode: np.ndarray, time_s: np.ndarray) -> np.ndarray:
     return stamps
 
 
-def export_mcap(dataset: str | Path, out: str | Path) -> dict:
-    """Write every frame of a dataset folder (shard-*.h5 in order) as ROS 2 messages to `out`."""
+def export_mcap(dataset: str | Path, out: str | Path, *, overwrite: bool = False) -> dict:
+    """Write every frame of a dataset folder (shard-*.h5 in order) as ROS 2 messages to `out`,
+    under a temporary name renamed when whole (`clitools.outputs`): an existing file is replaced
+    only with `overwrite`, a file of the dataset never."""
     try:
         from mcap_ros2.writer import Writer
     except ImportError:
@@ -90,15 +94,15 @@ def export_mcap(dataset: str | Path, out: str | Path) -> dict:
     shards = sorted(folder.glob("shard-*.h5"))
     if not shards:
         raise ValueError(f"{folder} holds no shard-*.h5 files")
+    check_output(out, overwrite=overwrite, inputs=[folder])  # refused before any reading
     drive = []  # (shard, episode) and time of every frame, for the stamps
     for i, path in enumerate(shards):
         with h5py.File(path, "r") as f:
             drive += [((i, int(e)), float(t)) for e, t in zip(f["episode"][:], f["time"][:], strict=True)]
     keys = {key: n for n, key in enumerate(dict.fromkeys(k for k, _ in drive))}
     stamps = frame_stamps(np.array([keys[k] for k, _ in drive]), np.array([t for _, t in drive]))
-    out.parent.mkdir(parents=True, exist_ok=True)
     frames = 0
-    with open(out, "wb") as stream:
+    with atomic_output(out, overwrite=overwrite, inputs=[folder]) as tmp, open(tmp, "wb") as stream:
         writer = Writer(stream)
         schemas = {
             name: writer.register_msgdef(name, text)
