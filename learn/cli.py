@@ -62,6 +62,7 @@ def _train(args) -> int:
         init_from=args.init_from,
         overwrite=args.overwrite,
         tensorboard=args.tensorboard,
+        inputs=(args.config,),
     )
     if summary:
         from .progress import summary_line

@@ -37,9 +37,10 @@ RUN_FILES = ("config.json", "last.pt", "best.pt", "history.csv", "curves.png", "
 
 
 @contextlib.contextmanager
-def run_folder(out: Path, *, resume: bool, overwrite: bool) -> Iterator[Path]:
+def run_folder(out: Path, *, resume: bool, overwrite: bool, inputs=()) -> Iterator[Path]:
     """Hold the run folder `out` for one run: create it, lock it (rank 0 of a torchrun; the other
-    ranks only check), refuse what the run must not touch, clear a run that `overwrite` replaces.
+    ranks only check), refuse what the run must not touch, clear a run that `overwrite` replaces
+    (never one of the run's `inputs`: an --init-from checkpoint or a --config file in it).
     A folder this call created and the run left empty (a refused run) is removed again."""
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -50,6 +51,8 @@ def run_folder(out: Path, *, resume: bool, overwrite: bool) -> Iterator[Path]:
     try:
         with folder_lock(out, LOCK_FILE, command="learn train") if main else contextlib.nullcontext():
             check_run_folder(out, resume=resume, overwrite=overwrite)
+            if overwrite:
+                check_inputs_survive(out, inputs)
             if main:
                 clear_run(out, keep_run=not overwrite)
             yield out
@@ -75,6 +78,18 @@ def check_run_folder(out: Path, *, resume: bool, overwrite: bool) -> None:
                     f"fine-tune the kept model into a new folder with --init-from {best}, or replace the run "
                     "with --overwrite"
                 )
+
+
+def check_inputs_survive(out: Path, inputs) -> None:
+    """Refuse to replace the run in `out` when one of this run's input files lies in it: clearing
+    the old run would delete the checkpoint it starts from or the config it was read from."""
+    inside = out.resolve()
+    for given in inputs:
+        if given is not None and Path(given).resolve().is_relative_to(inside):
+            raise ValueError(
+                f"--overwrite would delete {given}, an input of this run, with the run in --out {out}: "
+                "copy it out of that folder first, or train into another --out"
+            )
 
 
 def clear_run(out: Path, *, keep_run: bool = False) -> None:

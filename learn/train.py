@@ -133,6 +133,7 @@ def train(
     init_from: str | Path | None = None,
     overwrite: bool = False,
     tensorboard: bool = False,
+    inputs: tuple = (),
 ) -> dict:
     """Train a model (or `folds` models) on a dataset folder; returns the summary of the run.
 
@@ -144,13 +145,15 @@ def train(
     epoch comes from (seed, epoch)) or replaced (`overwrite`), never silently overwritten; one
     run at a time writes it (`learn.runs`). Ctrl-C raises RunInterrupted, whose message says
     what the folder keeps.
-    `tensorboard` also logs every epoch under out/tensorboard (`learn.tensorboard`).
+    `tensorboard` also logs every epoch under out/tensorboard (`learn.tensorboard`). `inputs`:
+    other files the run read (a --config file), which `overwrite` refuses to delete with the old run.
     """
     if tensorboard:
         summary_writer()  # a missing extra is refused before anything is written
     if init_from is not None and not Path(init_from).is_file():
         raise FileNotFoundError(f"--init-from checkpoint {init_from} does not exist")
-    with run_folder(Path(out), resume=resume, overwrite=overwrite):  # locked: one run writes it at a time
+    protected = (init_from, *inputs)  # what --overwrite must not delete with the old run
+    with run_folder(Path(out), resume=resume, overwrite=overwrite, inputs=protected):  # one run at a time
         each = {"resume": resume, "progress": progress, "init_from": init_from, "tensorboard": tensorboard}
         return _train_in(data, Path(out), config, device=device, folds=folds, **each)
 

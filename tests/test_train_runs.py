@@ -214,6 +214,18 @@ def test_overwrite_clears_the_old_run_only(reference, tmp_path):
     assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
 
 
+def test_overwrite_never_deletes_an_input_of_the_run(coarse, reference, tmp_path, capsys):
+    """--overwrite with --init-from or --config inside --out would delete the checkpoint the run
+    starts from or the config it was read from: refused, the folder untouched."""
+    out = tmp_path / "own"
+    shutil.copytree(reference[0], out)
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()}
+    for given in (["--init-from", out / "best.pt"], ["--config", out / "config.json"]):
+        line = cli_error(capsys, "train", "--data", coarse, "--out", out, *TRAIN, *given, "--overwrite")
+        assert f"--overwrite would delete {given[1]}, an input of this run" in line, line
+        assert {p.name: p.read_bytes() for p in out.iterdir() if p.is_file()} == before
+
+
 def test_full_disk_while_saving_a_checkpoint(coarse, tmp_path, capsys, monkeypatch):
     """ENOSPC while epoch 2's last.pt is written (after part of it): one error line naming the
     file and what to do, no *.tmp left, last.pt still epoch 1's whole checkpoint, the lock freed."""
