@@ -8,7 +8,7 @@ import dataclasses
 import json
 import sys
 
-from clitools import HelpFormatter, run_command
+from clitools import HelpFormatter, counted, run_command
 
 from . import MissingExtra
 from .cli_text import COMMANDS, DESCRIPTION, EXAMPLES
@@ -90,7 +90,7 @@ def _evaluate(args) -> int:
         threshold=args.threshold,
         progress=not args.quiet,
     )
-    print(f"{report['windows']:,} windows ({report['split']} split) of {report['data']}:")
+    print(f"{counted(report['windows'], 'window')} ({report['split']} split) of {report['data']}:")
     for name, r in report["results"].items():
         m = r["all"]
         print(
