@@ -7,6 +7,7 @@ import argparse
 import dataclasses
 import json
 import sys
+import time
 
 from clitools import HelpFormatter, counted, run_command
 
@@ -102,8 +103,9 @@ def _evaluate(args) -> int:
 
 
 def _predict(args) -> int:
-    from .predict import predict
+    from .predict import predict, prediction_summary
 
+    t0 = time.perf_counter()
     out = predict(
         args.checkpoint,
         args.input,
@@ -112,8 +114,10 @@ def _predict(args) -> int:
         png=args.png,
         threshold=args.threshold,
         mcap=args.mcap,
+        progress=not args.quiet,
     )
-    print(f"wrote {out}" + (f" and {args.mcap} (/scan_pred)" if args.mcap else ""))
+    summary = prediction_summary(out, args.input, time.perf_counter() - t0)
+    print(summary + (f"; and {args.mcap} (/scan_pred)" if args.mcap else ""))
     return 0
 
 
@@ -340,6 +344,7 @@ def build_parser(base=None) -> argparse.ArgumentParser:
         "--mcap", default=None, help="also write the scans as ROS 2 LaserScans on /scan_pred (.mcap; extra ros)"
     )
     p.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
+    p.add_argument("--quiet", action="store_true", help="no progress bar (the summary line stays)")
     _threshold_option(p)
     p.set_defaults(handler=_predict)
     p = sub.add_parser("export", formatter_class=fmt, parents=[common], **COMMANDS["export"])

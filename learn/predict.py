@@ -15,6 +15,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
+
+from clitools import counted
 
 from .checkpoint import load_checkpoint
 from .data import DataConfig, Frames, Windows, load_frames, recorded_path
@@ -54,12 +57,14 @@ def predict(
     png: str | None = None,
     threshold: float | None = None,
     mcap: str | None = None,
+    progress: bool = False,
 ) -> Path:
     """Predictions of every window, saved as .npz (the suffix is added if `out` lacks it; the path
     written is returned): "prediction" (windows, R, A) float16 images,
     "ranges" (windows, A) float32 scans [m] (inf = no return), "threshold", "frame" (the label
     frame of each window), "range_m", "azimuth_rad". `threshold` overrides the checkpoint's.
-    `mcap`: also write the scans as ROS 2 LaserScans on /scan_pred (see `learn.ros`)."""
+    `mcap`: also write the scans as ROS 2 LaserScans on /scan_pred (see `learn.ros`). `progress`:
+    a progress bar over the windows."""
     model, ckpt = load_checkpoint(checkpoint, device)
     threshold = return_threshold(ckpt, threshold)
     source = Path(source)
@@ -69,9 +74,11 @@ def predict(
     windows = Windows(frames, config, device)
     run = model_predictor(model)
     preds, ranges = [], []
-    with torch.no_grad():
+    bar = tqdm(total=len(windows), desc="predicting", unit="win", disable=not progress, leave=False)
+    with torch.no_grad(), bar:
         for start in range(0, len(windows), batch_size):
             x, _ = windows.batch(np.arange(start, min(start + batch_size, len(windows))))
+            bar.update(len(x))
             image = run(x).float().clamp(0, 1)[:, 0].half()  # as saved: the scans read the saved images
             ranges.append(first_return_ranges(image.float(), frames.range_m, threshold=threshold).float().cpu().numpy())
             preds.append(image.cpu().numpy())
@@ -112,3 +119,15 @@ def predict(
             )
         plot_examples(rows, frames.range_m, frames.azimuth_rad, png, threshold=threshold)
     return out
+
+
+def prediction_summary(out: str | Path, source: str | Path, seconds: float) -> str:
+    """One line on what `predict` wrote to `out` (.npz): how many frames of `source` it predicted,
+    which, on how many beams, at which threshold, and how long it took [s]."""
+    with np.load(out) as saved:
+        frame, beams, threshold = saved["frame"], len(saved["azimuth_rad"]), float(saved["threshold"])
+    which = f"label frames {frame.min()}..{frame.max()}; " if len(frame) else ""
+    return (
+        f"wrote {out}: LiDAR images and scans for {counted(len(frame), 'frame')} of {source} "
+        f"({which}{beams} beams, return threshold {threshold:.2f}) in {seconds:.1f} s"
+    )

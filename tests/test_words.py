@@ -73,3 +73,26 @@ def test_example_rows_run_from_poor_to_good():
     rows = _example_rows(predictors, "model", "model", per_window, windows, np.arange(10), frames, 4)
     shown = [float(f1[int(row["title"].rpartition("window ")[2])]) for row in rows]
     assert shown == [0.1, 0.3, 0.6, 0.8], shown
+
+
+def test_predict_shows_a_bar_and_says_what_it_wrote(tiny_dataset, tmp_path):
+    """`learn predict` on the tiny dataset (two 8-frame drives; K = 5: 4 windows each) draws a
+    progress bar on stderr and ends with one line: the frames predicted, of what, where, on how
+    many beams, at which threshold; --quiet keeps the line and drops the bar."""
+    import subprocess
+    import sys
+
+    import learn
+
+    out = tmp_path / "pred.npz"
+    command = [sys.executable, "-m", "learn", "predict", "--checkpoint", str(learn.PRETRAINED_CHECKPOINT)]
+    command += ["--input", str(tiny_dataset)]
+    done = subprocess.run([*command, "--out", str(out)], capture_output=True, text=True, timeout=300, check=True)
+    saved = np.load(out)
+    frames = sorted(saved["frame"].tolist())
+    assert len(frames) == 8 and "predicting:" in done.stderr and "/8 [" in done.stderr, done.stderr  # the bar
+    assert done.stdout.strip().startswith(f"wrote {out}: LiDAR images and scans for 8 frames of {tiny_dataset} ")
+    assert f"(label frames {frames[0]}..{frames[-1]}; 181 beams, return threshold " in done.stdout, done.stdout
+    quiet = [*command, "--out", str(tmp_path / "quiet.npz"), "--quiet"]
+    quiet = subprocess.run(quiet, capture_output=True, text=True, timeout=300, check=True)
+    assert quiet.stderr == "" and quiet.stdout.startswith(f"wrote {tmp_path / 'quiet.npz'}: "), quiet.stderr
