@@ -1,10 +1,11 @@
 """Many command lines of our two CLIs, each run as `python -m PACKAGE ARGV` in a process of its own,
 without paying the interpreter's start and the heavy imports (torch, Warp, scenes) once per command.
 
-`run_commands` starts one fresh interpreter (this file), which imports the packages once and then
+`run_commands` starts a fresh interpreter (this file) per package, which imports that package's
+command line once (learn's: torch; acoustic_sim's: Warp, scenes; neither the other's) and then
 forks a child per command; the child runs the package's `__main__` as `python -m` does (runpy,
 sys.argv set) with its stdout and stderr in files, and exits as the interpreter would: SystemExit's
-code, or the trace and status 1 for any other exception, after the exit handlers. The parent starts
+code, or the trace and status 1 for any other exception, after the exit handlers. The parents start
 nothing of Warp or CUDA, so each command starts them itself, as a user's would. What a command
 prints, writes and returns is the same as in a fresh interpreter; only the imports are shared.
 """
@@ -22,22 +23,28 @@ from pathlib import Path
 def run_commands(
     commands: dict[str, tuple[str, list[str]]], *, env: dict[str, str], parallel: int, timeout: float = 300.0
 ) -> dict[str, subprocess.CompletedProcess]:
-    """Run each {name: (package, argv)} (package `learn` or `acoustic_sim`) at most `parallel` at a
-    time; {name: CompletedProcess} with its returncode, stdout and stderr (a command past `timeout`
-    seconds is killed: returncode -9)."""
-    request = json.dumps({"commands": commands, "parallel": parallel, "timeout": timeout})
-    done = subprocess.run(
-        [sys.executable, str(Path(__file__).resolve())],
-        input=request,
-        capture_output=True,
-        text=True,
-        env=env,
-        timeout=timeout * max(1, len(commands)),
-        check=False,
-    )
-    if done.returncode != 0:
-        raise RuntimeError(f"the command runner failed:\n{done.stderr[-3000:]}")
-    results = json.loads(done.stdout)
+    """Run each {name: (package, argv)} (package `learn` or `acoustic_sim`), the packages side by
+    side and each at most `parallel` // 2 commands at a time; {name: CompletedProcess} with its
+    returncode, stdout and stderr (a command past `timeout` seconds is killed: returncode -9)."""
+    runners = {}
+    for package in sorted({package for package, _ in commands.values()}):
+        mine = {name: c for name, c in commands.items() if c[0] == package}
+        request = {"package": package, "commands": mine, "parallel": max(1, parallel // 2), "timeout": timeout}
+        runner = subprocess.Popen(
+            [sys.executable, str(Path(__file__).resolve())],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            env=env,
+        )
+        runners[runner] = json.dumps(request)
+    results = {}
+    for runner, request in runners.items():
+        stdout, stderr = runner.communicate(request, timeout=timeout * max(1, len(commands)))
+        if runner.returncode != 0:
+            raise RuntimeError(f"the command runner failed:\n{stderr[-3000:]}")
+        results |= json.loads(stdout)
     return {
         name: subprocess.CompletedProcess([sys.executable, "-m", *commands[name][:1], *commands[name][1]], **r)
         for name, r in results.items()
@@ -48,13 +55,10 @@ def _serve() -> None:
     """The runner process: read the request on stdin, fork a child per command, answer on stdout."""
     request = json.loads(sys.stdin.read())
     sys.path[0] = os.getcwd()  # as `python -m` has it (this file's folder is no package root)
-    import torch  # noqa: F401  (the heavy imports, once; nothing here starts Warp or CUDA)
+    import importlib
 
-    import acoustic_sim.cli
-    import learn.cli
-
-    acoustic_sim.cli.build_parser()  # imports scenes, suites and formats
-    learn.cli.build_parser()
+    cli = importlib.import_module(f"{request['package']}.cli")  # the heavy imports, once: nothing starts
+    cli.build_parser()  # imports what --help needs (learn: torch, models; acoustic_sim: scenes, suites, formats)
     import shutil
     import tempfile
 
