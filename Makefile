@@ -1,5 +1,6 @@
-# Set-up and the two main commands. `make demo` runs the main job on a small CPU default;
-# `make test` runs the test suite. Both create the virtualenv on first use.
+# Set-up and the two main commands. `make demo` runs the main job on a small CPU default, each long
+# step with a progress bar (generate, train and evaluate; `--quiet` is for logs); `make test` runs
+# the test suite and lists its 15 slowest tests. Both create the virtualenv on first use.
 VENV ?= .venv
 PY := $(VENV)/bin/python
 # CPU build of torch (the learn extra), installed first so that the extra finds it; on a GPU
@@ -12,16 +13,19 @@ DEVICE ?= cpu
 # the smoke run are scored side by side.
 DEMO_FRAMES ?= 300
 DEMO_DRIVE_FRAMES ?= 200
-DEMO_TRAIN ?= --epochs 4 --lr 2e-3 --loss bce --val-fraction 0.34 --quiet --overwrite
+DEMO_TRAIN ?= --epochs 4 --lr 2e-3 --loss bce --val-fraction 0.34 --overwrite
 PRETRAINED ?= learn/pretrained/polar_unet_k5.pt
 
 .PHONY: demo test lint system-deps clean
 
+# Set-up says what it installs, and pip shows each package and download as it goes.
 $(VENV)/.installed: pyproject.toml
 	@$(MAKE) --no-print-directory system-deps
+	@echo "set-up (once): a virtualenv in $(VENV), then PyTorch ($(TORCH_SPEC)), then this project with its learn"
+	@echo "and test extras (Warp, h5py, matplotlib, trimesh; Open3D, pyroomacoustics, onnxruntime, mcap for the tests)"
 	python3 -m venv $(VENV)
-	$(PY) -m pip install -q "$(TORCH_SPEC)"
-	$(PY) -m pip install -q -e ".[learn,test]"
+	$(PY) -m pip install --progress-bar on "$(TORCH_SPEC)"
+	$(PY) -m pip install --progress-bar on -e ".[learn,test]"
 	touch $@
 
 # Open3D (a test-only reference) needs libusb at import time.
@@ -34,16 +38,16 @@ system-deps:
 demo: $(VENV)/.installed
 	$(PY) -m acoustic_sim render --scene office --seed 0 --frames 150 --frame 60 --device $(DEVICE) --out $(OUT)/office.png --overwrite
 	$(PY) -m acoustic_sim render --sonar --scene office --seed 0 --frames 40 --frame 30 --device $(DEVICE) --out $(OUT)/sonar_office.png --overwrite
-	$(PY) -m acoustic_sim generate --suite paper --frames $(DEMO_FRAMES) --workers 2 --device $(DEVICE) --quiet --out $(OUT)/data
-	$(PY) -m acoustic_sim generate --suite paper --frames $(DEMO_DRIVE_FRAMES) --seed 2026 --shards 2 --workers 2 --device $(DEVICE) --quiet --out $(OUT)/drive
+	$(PY) -m acoustic_sim generate --suite paper --frames $(DEMO_FRAMES) --workers 2 --device $(DEVICE) --out $(OUT)/data
+	$(PY) -m acoustic_sim generate --suite paper --frames $(DEMO_DRIVE_FRAMES) --seed 2026 --shards 2 --workers 2 --device $(DEVICE) --out $(OUT)/drive
 	$(PY) -m learn train --data $(OUT)/data --out $(OUT)/run --model polar_unet $(DEMO_TRAIN) --device $(DEVICE)
 	$(PY) -m learn evaluate --checkpoint pretrained=$(PRETRAINED) --checkpoint "smoke run=$(OUT)/run/best.pt" --data $(OUT)/drive --out $(OUT)/report --device $(DEVICE) --overwrite
-	@echo "report: $(OUT)/report/report.md (examples.png: the pretrained model on the fresh drive);"
-	@echo "smoke run curves: $(OUT)/run/curves.png; dataset card: $(OUT)/data/README.md; scene pictures: $(OUT)/*.png"
+	@echo "beside the report: $(OUT)/report/examples.png (the pretrained model on the fresh drive), the smoke run's"
+	@echo "curves $(OUT)/run/curves.png, the dataset card $(OUT)/data/README.md and the scene pictures $(OUT)/*.png"
 
 test: $(VENV)/.installed
 	$(VENV)/bin/ruff check .
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q --durations=15
 
 lint: $(VENV)/.installed
 	$(VENV)/bin/ruff check .

@@ -1,4 +1,5 @@
-"""Command line: `python -m acoustic_sim render ...`. Heavy modules are imported inside handlers."""
+"""Command line: `python -m acoustic_sim render|generate|import|export ...` (the words of its help in
+cli_text.py); handlers import the heavy modules (Warp, scenes, h5py) themselves."""
 
 from __future__ import annotations
 
@@ -9,8 +10,10 @@ import sys
 import time
 from pathlib import Path
 
+from clitools import HelpFormatter, counted, run_command
 from clitools.outputs import OVERWRITE_HELP, atomic_folder
 
+from .cli_text import COMMANDS, DESCRIPTION, EXAMPLES, SET_HELP, VERBOSE_HELP
 from .extras import MissingExtra  # no heavy imports: a plain exception class
 
 
@@ -76,7 +79,7 @@ def _render_into(args, picture: Path) -> str:
     out = render_lidar(scene, poses, ranges, config, lidar_image(ranges, config, grid), grid, picture, frame=args.frame)
     _write_render_config(out, rig, args)
     return (
-        f"{scene!r}: {len(poses)} poses, {ranges.size} LiDAR rays on {args.device}; "
+        f"{scene!r}: {counted(len(poses), 'pose')}, {counted(ranges.size, 'LiDAR ray')} on {args.device}; "
         f"wrote {args.out} and its settings in {out.with_suffix('.json').name} in {time.perf_counter() - t0:.1f} s"
     )
 
@@ -96,15 +99,16 @@ def _render_sonar(args, rig, scene, pose, lidar, t0, picture: Path) -> str:
 
     tracer = rig.tracer if args.rays is None else dataclasses.replace(rig.tracer, ray_count=args.rays)
     results = []
-    for bounces in sorted({0, rig.tracer.max_bounces if args.max_bounces is None else args.max_bounces}):
-        sonar = Sonar(rig.sonar, tracer, max_bounces=bounces, device=args.device)
+    bounces = sorted({0, rig.tracer.max_bounces if args.max_bounces is None else args.max_bounces})
+    for order in bounces:
+        sonar = Sonar(rig.sonar, tracer, max_bounces=order, device=args.device)
         arrivals = sonar.trace(scene, pose)
         signals = sonar.record(arrivals, pose_count=1, noise="gaussian", seed=args.seed)
-        results.append((f"max_bounces={bounces}", arrivals.for_pose(0), sonar.energyscape(signals, rig.processing)[0]))
+        results.append((f"max_bounces={order}", arrivals.for_pose(0), sonar.energyscape(signals, rig.processing)[0]))
     out = render_sonar(scene, pose, results, lidar, rig.processing.grid, picture)
     _write_render_config(out, dataclasses.replace(rig, tracer=tracer), args)
     return (
-        f"{scene!r}: sonar ping at frame {args.frame} with max_bounces {[r[0] for r in results]}; "
+        f"{scene!r}: sonar ping at frame {args.frame} with max_bounces {' and '.join(str(b) for b in bounces)}; "
         f"wrote {args.out} and its settings in {out.with_suffix('.json').name} in {time.perf_counter() - t0:.1f} s"
     )
 
@@ -150,7 +154,8 @@ def _generate(args) -> int:
 
 def _report(summary: dict) -> int:
     print(
-        f"{summary['suite']}: {summary['frames']:,} frames in {summary['shards']} shards under {summary['out']} "
+        f"{summary['suite']}: {counted(summary['frames'], 'frame')} in {counted(summary['shards'], 'shard')} "
+        f"under {summary['out']} "
         f"({summary['shards_written']} written, {summary['shards_skipped']} already complete) in "
         f"{summary['seconds']:.1f} s, {summary['frames_per_s']:,.1f} frames/s on {', '.join(summary['devices'])}"
     )
@@ -208,7 +213,8 @@ def _import(args) -> int:
             device=args.device,
         )
     print(
-        f"{done['pings']} pings -> {out} (energyscapes), {out.with_suffix('.png')} in {done['seconds']:.1f} s; "
+        f"{counted(done['pings'], 'ping')} -> {out} (energyscapes), {out.with_suffix('.png')} "
+        f"in {done['seconds']:.1f} s; "
         f"next: python -m learn predict --checkpoint MODEL.pt --input {out} --out pred.npz --png pred.png"
     )
     return 0
@@ -234,7 +240,7 @@ def _import_chirp(args, rig) -> int:
     )
     lidar = f"labels from {done['lidar']}" if done["lidar"] else "no LiDAR, empty labels"
     print(
-        f"{done['pings']} pings -> {done['out']} ({done['episodes']} episodes; {lidar}, "
+        f"{counted(done['pings'], 'ping')} -> {done['out']} ({counted(done['episodes'], 'episode')}; {lidar}, "
         f"{done['returns_per_scan']:.0f} returns per scan; poses: {done['poses']}) in {done['seconds']:.1f} s; "
         f"next: python -m learn evaluate --checkpoint MODEL.pt --data {done['out']} --out EVAL"
     )
@@ -258,12 +264,6 @@ def _export(args) -> int:
     return 0
 
 
-SET_HELP = (
-    "change the rig: lidar.*, sonar.*, tracer.*, processing.* (repeatable; e.g. tracer.max_bounces=1, "
-    "processing.grid.range_max_m=4, sonar.atmosphere.temperature_c=30, lidar=multibeam_64x1024 for a preset)"
-)
-
-
 def build_parser() -> argparse.ArgumentParser:
     import scenes
 
@@ -271,14 +271,12 @@ def build_parser() -> argparse.ArgumentParser:
 
     tracer = TracerConfig()
 
-    parser = argparse.ArgumentParser(prog="python -m acoustic_sim", description=__doc__)
-    parser.add_argument("--debug", action="store_true", help="show the full trace of an error (anywhere on the line)")
-    sub = parser.add_subparsers(dest="command", required=True)
-    render = sub.add_parser(
-        "render",
-        help="draw a scene from above with its trajectory and a LiDAR scan",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    parser = argparse.ArgumentParser(
+        prog="python -m acoustic_sim", description=DESCRIPTION, formatter_class=HelpFormatter, epilog=EXAMPLES
     )
+    parser.add_argument("--debug", action="store_true", help="show the full trace of an error (anywhere on the line)")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    render = sub.add_parser("render", formatter_class=HelpFormatter, **COMMANDS["render"])
     source = render.add_mutually_exclusive_group()
     source.add_argument("--scene", choices=sorted(scenes.BUILDERS), default="office", help="scene builder")
     source.add_argument("--svg", help="SVG floor plan to extrude instead of a builder")
@@ -314,22 +312,17 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--device", default="cpu", help="Warp device: cpu, cuda:0, ...")
     render.add_argument("--out", default="scene.png", help="PNG to write (and its settings, .json, beside it)")
     render.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
-    render.add_argument("--verbose", action="store_true", help="show Warp's compile messages")
+    render.add_argument("--verbose", action="store_true", help=VERBOSE_HELP)
     render.set_defaults(handler=_render)
 
     from .datasets.suites import SUITES
 
-    gen = sub.add_parser(
-        "generate",
-        help="simulate a dataset suite into HDF5 shards (resumable)",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-        description="Simulate a suite of scenarios (scenes, robot drives, LiDAR and sonar) into HDF5 shards, "
-        "with manifest.json and a dataset card (README.md, card.png) per dataset. Rerunning the same command "
-        "skips finished shards. Suites: "
-        + "; ".join(f"{name}: {suite.description}" for name, suite in SUITES.items())
-        + "; crossengine: a test set from another engine (pyroomacoustics' image sources in empty L, T, U, "
-        "junction and hall rooms; 1,000 frames by default; scoring only).",
-    )
+    text = COMMANDS["generate"] | {
+        "description": COMMANDS["generate"]["description"].format(
+            suites="; ".join(f"{name}: {suite.description.rstrip('.')}" for name, suite in SUITES.items())
+        )
+    }
+    gen = sub.add_parser("generate", formatter_class=HelpFormatter, **text)
     gen.add_argument(
         "--suite", required=True, help=f"one of {sorted(SUITES)}, crossengine, or a suite file (.toml/.json)"
     )
@@ -349,26 +342,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     gen.add_argument("--signals", action="store_true", help="also store the raw microphone signals (float16)")
     gen.add_argument("--arrivals", action="store_true", help="also store every traced echo (slow on a GPU)")
-    gen.add_argument("--quiet", action="store_true", help="no progress bar")
-    gen.add_argument("--verbose", action="store_true", help="show Warp's compile messages")
+    gen.add_argument("--quiet", action="store_true", help="no progress bar (for logs; the summary lines stay)")
+    gen.add_argument("--verbose", action="store_true", help=VERBOSE_HELP)
     gen.set_defaults(handler=_generate)
 
     from .formats.chirp import EPISODE_GAP_S, PLANE_TOLERANCE_M
 
-    imp = sub.add_parser(
-        "import",
-        help="turn a real sensor's recording into energyscapes (raw eRTIS PDM) or a dataset (CHIRP)",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-        description="pdm: decode raw 1-bit PDM microphone streams (one word of channel bits per PDM sample; one "
-        "file per ping unless --samples-per-ping splits them) to PCM, and process them with the rig's array, "
-        "call and grid into energyscapes, as the simulator's pings are. Writes OUT (.npy), a picture (.png) "
-        "and the settings (.json) for `learn predict --input OUT`. "
-        "chirp: a CHIRP recording (.h5, read with cosys-chirppy: extra `chirp`, CC BY-NC-SA) into a dataset "
-        "folder OUT for `learn evaluate --data OUT` and `learn predict --input OUT`: the microphone signals "
-        "through our processing with the file's array and sample rate and the rig's call and grid; the LiDAR "
-        "points within --plane-tolerance of the sonar's plane as a 2D scan on the rig's LiDAR azimuths "
-        "(nearest point per beam), rasterised as the simulator's labels; poses from the odometry.",
-    )
+    imp = sub.add_parser("import", formatter_class=HelpFormatter, **COMMANDS["import"])
     imp.add_argument("recordings", nargs="+", help="raw PDM files in time order, or one CHIRP file")
     imp.add_argument("--format", required=True, choices=["pdm", "chirp"], help="what the files hold")
     imp.add_argument("--out", required=True, help="pdm: energyscapes file to write (.npy); chirp: dataset folder")
@@ -391,21 +371,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     imp.add_argument("--set", action="append", metavar="SECTION.FIELD=VALUE", help=SET_HELP)
     imp.add_argument("--device", default="cpu", help="Warp device for the processing")
-    imp.add_argument("--verbose", action="store_true", help="show Warp's compile messages")
+    imp.add_argument("--verbose", action="store_true", help=VERBOSE_HELP)
     imp.set_defaults(handler=_import)
 
-    exp = sub.add_parser(
-        "export",
-        help="write a dataset for robotics tools (MCAP of ROS 2 messages) or the eRTIS lab (CHIRP)",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-        description="mcap: every frame of a dataset folder as ROS 2 messages in an MCAP file, without a ROS "
-        "install (extra `ros`): sensor_msgs/LaserScan on /scan, sensor_msgs/Image (32FC1, range x azimuth) on "
-        "/sonar/energyscape, tf2_msgs/TFMessage world -> sensor on /tf, stamped with the drive's times. "
-        "Open it in Foxglove. chirp: a dataset generated with --signals as one CHIRP file (.h5, the eRTIS "
-        "lab's format; cosys-chirppy reads it): the microphone signals with the array's positions and "
-        "sample rate, the call, the LiDAR as x, y, z, intensity points, the poses as odometry, Unix times "
-        "of the drive.",
-    )
+    exp = sub.add_parser("export", formatter_class=HelpFormatter, **COMMANDS["export"])
     exp.add_argument("dataset", help="dataset folder (shard-*.h5)")
     exp.add_argument("--format", required=True, choices=["mcap", "chirp"], help="what to write")
     exp.add_argument("--out", required=True, help="file to write (.mcap or .h5)")
@@ -422,16 +391,12 @@ shows the trace. Any other ImportError is a bug and keeps its trace."""
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    debug = "--debug" in argv
-    args = build_parser().parse_args([a for a in argv if a != "--debug"])
-    try:
+
+    def command() -> int:
+        args = build_parser().parse_args([a for a in argv if a != "--debug"])  # --debug: anywhere on the line
         return args.handler(args)
-    except USER_ERRORS as err:
-        if debug:
-            raise
-        text = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        print(f"error: {text}", file=sys.stderr)
-        return 2
+
+    return run_command(command, argv, USER_ERRORS)
 
 
 if __name__ == "__main__":

@@ -48,24 +48,47 @@ def check_device(name: str, *, allow_auto: bool = False) -> str:
 
 _voice: bool | None = None  # quiet or not: the first quiet_warp call's choice
 
+VERBOSE_ENV = "SONAR2LIDAR_WARP_VERBOSE"
+"""Set to 1 to see Warp's own messages (start-up banner, module compiles and loads, a missing CUDA
+driver) from library code and every command; the package keeps them off otherwise."""
+
+
+def warp_messages_wanted() -> bool:
+    """Whether the environment asks for Warp's messages (SONAR2LIDAR_WARP_VERBOSE=1)."""
+    import os
+
+    return os.environ.get(VERBOSE_ENV, "").strip().lower() not in ("", "0", "false", "no")
+
 
 def quiet_warp(quiet: bool = True, *, start: bool = True) -> None:
     """Warp's start-up banner, per-module compile/load lines and missing-driver notice off
-    (warnings and errors stay); the one place the package sets Warp's logging. The first call in
-    a process decides, so a command's `--verbose` holds for the library code it runs. `start`
-    starts Warp now (with the driver notice caught); `start=False` only sets the voice, for a
-    parent that will fork worker processes and so must not start CUDA itself."""
+    (warnings and errors stay), unless SONAR2LIDAR_WARP_VERBOSE=1; the one place the package sets
+    Warp's logging. The first call in a process decides, so a command's `--verbose` holds for the
+    library code it runs; library code calls it (through `warp_device`) before it first touches
+    Warp, so the package is quiet by default. `start` starts Warp now (with the driver notice
+    caught); `start=False` only sets the voice, for a parent that will fork worker processes and
+    so must not start CUDA itself."""
     global _voice
     import warp as wp
 
     if _voice is None:
-        _voice = quiet
-        if quiet:
+        _voice = quiet and not warp_messages_wanted()
+        if _voice:
             wp.config.quiet = True
             wp.config.log_level = wp.LOG_WARNING
     runtime = _warp_runtime()
     if start and _voice and (runtime is None or runtime is _UNKNOWN):  # wp.init is idempotent; the catch is not free
         _init_without_driver_notice(wp)
+
+
+def warp_device(device=None):
+    """`wp.get_device(device)` (None: Warp's default device), with Warp started the package's way
+    first (quiet_warp): how library code reaches Warp, so that a script that only builds a Sonar
+    prints nothing of Warp's."""
+    import warp as wp
+
+    quiet_warp()
+    return wp.get_device(device)
 
 
 def warp_voice() -> bool:

@@ -11,6 +11,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 from matplotlib.collections import LineCollection
 
+from clitools import counted
 from scenes import Scene
 
 from .config import LidarConfig, PolarGrid
@@ -137,6 +138,17 @@ def render_lidar(
     return out
 
 
+MAX_ECHO_POINTS = 4000
+"""The strongest echoes drawn in a sonar picture's top view: more hide the scene."""
+
+
+def reflection_points_title(label: str, echo_count: int) -> str:
+    """The top view's title, saying how many of the ping's echoes it draws when not all."""
+    if echo_count > MAX_ECHO_POINTS:
+        return f"{label}: last reflection points of the {MAX_ECHO_POINTS:,} strongest of {echo_count:,} echoes"
+    return f"{label}: last reflection points of {counted(echo_count, 'echo', 'echoes')}"
+
+
 def render_sonar(
     scene: Scene,
     pose: np.ndarray,
@@ -163,7 +175,7 @@ def render_sonar(
     for (label, arrivals, image), (top, polar) in zip(results, axes, strict=True):
         draw_scene_top(top, scene, height=height)
         world = arrivals.point_m @ pose[:3, :3].T + pose[:3, 3]
-        strongest = np.argsort(arrivals.amplitude)[::-1][:4000]  # keep the plot readable
+        strongest = np.argsort(arrivals.amplitude)[::-1][:MAX_ECHO_POINTS]
         for order in range(1, max_order + 1):
             sel = strongest[arrivals.order[strongest] == order]
             if len(sel):
@@ -185,7 +197,7 @@ def render_sonar(
             arrowprops={"arrowstyle": "->", "color": "k", "lw": 1.5},
             zorder=4,
         )
-        top.set_title(f"{label}: last reflection points of {len(arrivals)} echoes")
+        top.set_title(reflection_points_title(label, len(arrivals)))
         top.legend(loc="upper right", fontsize=7, framealpha=0.9)
         title = f"{label}: energyscape with the LiDAR image"
         draw_energyscape(polar, image, lidar, grid, title=title, dynamic_range_db=dynamic_range_db)

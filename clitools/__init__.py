@@ -23,8 +23,25 @@ text, read as the field's type:
 A setting that cannot be applied raises SettingsError (a ValueError) naming the setting: an unknown
 section or field (listing those there are), a value not of the field's type (saying what it
 takes), or the config's own refusal of the value.
+
+`errors`: how a command ends on a user's mistake: one `error: ...` line, exit status 2 (`run_command`).
+`help`: how `--help` reads: each default said once, examples at the end (`HelpFormatter`, `examples`).
+`words`: how counts read in printed lines (`counted(1, "shard")` is `1 shard`).
 """
 
+from .errors import error_line, run_command
+from .help import HelpFormatter, example_commands, examples
 from .settings import SettingsError, apply_settings, read_value
+from .words import counted
 
-__all__ = ["SettingsError", "apply_settings", "read_value"]
+__all__ = [
+    "HelpFormatter",
+    "SettingsError",
+    "apply_settings",
+    "counted",
+    "error_line",
+    "example_commands",
+    "examples",
+    "read_value",
+    "run_command",
+]

@@ -1,4 +1,5 @@
-"""Command line: `python -m learn train|evaluate|predict|export|table2|sim2real|sim2real-summary|seeds-summary ...`."""
+"""Command line: `python -m learn COMMAND ...` (train, evaluate, predict, export, the studies and their
+summaries); handlers import the heavy modules themselves."""
 
 from __future__ import annotations
 
@@ -6,10 +7,13 @@ import argparse
 import dataclasses
 import json
 import sys
+import time
 
+from clitools import HelpFormatter, counted, run_command
 from clitools.outputs import OVERWRITE_HELP, atomic_folder
 
 from . import MissingExtra
+from .cli_text import COMMANDS, DESCRIPTION, EXAMPLES
 
 
 def _configs(args):
@@ -86,7 +90,7 @@ def _evaluate(args) -> int:
             threshold=args.threshold,
             progress=not args.quiet,
         )
-    print(f"{report['windows']:,} windows ({report['split']} split) of {report['data']}:")
+    print(f"{counted(report['windows'], 'window')} ({report['split']} split) of {report['data']}:")
     for name, r in report["results"].items():
         m = r["all"]
         print(
@@ -98,8 +102,9 @@ def _evaluate(args) -> int:
 
 
 def _predict(args) -> int:
-    from .predict import predict
+    from .predict import predict, prediction_summary
 
+    t0 = time.perf_counter()
     out = predict(
         args.checkpoint,
         args.input,
@@ -109,8 +114,10 @@ def _predict(args) -> int:
         threshold=args.threshold,
         mcap=args.mcap,
         overwrite=args.overwrite,
+        progress=not args.quiet,
     )
-    print(f"wrote {out}" + (f" and {args.mcap} (/scan_pred)" if args.mcap else ""))
+    summary = prediction_summary(out, args.input, time.perf_counter() - t0)
+    print(summary + (f"; and {args.mcap} (/scan_pred)" if args.mcap else ""))
     return 0
 
 
@@ -238,8 +245,10 @@ def _training_options(p, base) -> None:
         help="share of episodes held out for validation (early stopping and the threshold read them)",
     )
     p.add_argument("--split-by", default=train.split_by, choices=SPLITS, help="what validation holds out whole")
-    p.add_argument("--max-train-windows", type=int, default=train.max_train_windows, help="per epoch (None: all)")
-    p.add_argument("--max-val-windows", type=int, default=train.max_val_windows, help="validated per epoch")
+    p.add_argument(
+        "--max-train-windows", type=int, default=train.max_train_windows, help="windows per epoch (unset: all)"
+    )
+    p.add_argument("--max-val-windows", type=int, default=train.max_val_windows, help="windows validated per epoch")
     p.add_argument(
         "--max-minutes", type=float, default=train.max_minutes, help="time budget per model: no epoch starts after it"
     )
@@ -281,7 +290,7 @@ def _training_options(p, base) -> None:
 
 
 def _threshold_option(p) -> None:
-    help_ = "return threshold in (0, 1] (None: the checkpoint's calibrated one)"
+    help_ = "return threshold in (0, 1] (default: the checkpoint's calibrated one)"
     p.add_argument("--threshold", type=float, default=None, help=help_)
 
 
@@ -292,12 +301,14 @@ def build_parser(base=None) -> argparse.ArgumentParser:
         from .config import LearnConfig
 
         base = LearnConfig()
-    fmt = argparse.ArgumentDefaultsHelpFormatter
-    parser = argparse.ArgumentParser(prog="python -m learn", description=__doc__)
+    fmt = HelpFormatter
+    parser = argparse.ArgumentParser(
+        prog="python -m learn", description=DESCRIPTION, formatter_class=fmt, epilog=EXAMPLES
+    )
     common = argparse.ArgumentParser(add_help=False)
     common.add_argument("--debug", action="store_true", help="show the full trace of an error")
-    sub = parser.add_subparsers(dest="command", required=True)
-    p = sub.add_parser("train", help="train a model on a dataset folder", formatter_class=fmt, parents=[common])
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    p = sub.add_parser("train", formatter_class=fmt, parents=[common], **COMMANDS["train"])
     p.add_argument("--data", required=True, help="dataset folder (shard-*.h5)")
     p.add_argument("--out", required=True, help="run folder (checkpoints, history, curves)")
     p.add_argument("--folds", type=int, default=1, help="k-fold cross-validation over episodes")
@@ -309,9 +320,7 @@ def build_parser(base=None) -> argparse.ArgumentParser:
     )
     _training_options(p, base)
     p.set_defaults(handler=_train)
-    p = sub.add_parser(
-        "evaluate", help="metrics, baselines, examples and a report", formatter_class=fmt, parents=[common]
-    )
+    p = sub.add_parser("evaluate", formatter_class=fmt, parents=[common], **COMMANDS["evaluate"])
     p.add_argument(
         "--checkpoint",
         required=True,
@@ -326,41 +335,33 @@ def build_parser(base=None) -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     _threshold_option(p)
     p.set_defaults(handler=_evaluate)
-    p = sub.add_parser(
-        "predict", help="predict LiDAR images from shards or energyscapes (.npy)", formatter_class=fmt, parents=[common]
-    )
-    p.add_argument("--checkpoint", required=True)
+    p = sub.add_parser("predict", formatter_class=fmt, parents=[common], **COMMANDS["predict"])
+    p.add_argument("--checkpoint", required=True, help="the model (.pt) to run")
     p.add_argument("--input", required=True, help="dataset folder, or .npy of energyscapes (N, R, A) in time order")
     p.add_argument("--out", required=True, help=".npz to write")
-    p.add_argument("--png", default=None, help="also draw the first predictions here")
+    p.add_argument("--png", default=None, help="also draw four predictions spread over the input here (.png)")
     p.add_argument(
         "--mcap", default=None, help="also write the scans as ROS 2 LaserScans on /scan_pred (.mcap; extra ros)"
     )
     p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     p.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
+    p.add_argument("--quiet", action="store_true", help="no progress bar (the summary line stays)")
     _threshold_option(p)
     p.set_defaults(handler=_predict)
-    p = sub.add_parser("export", help="write ONNX, checked against torch", formatter_class=fmt, parents=[common])
-    p.add_argument("--checkpoint", required=True)
+    p = sub.add_parser("export", formatter_class=fmt, parents=[common], **COMMANDS["export"])
+    p.add_argument("--checkpoint", required=True, help="the model (.pt) to export")
     p.add_argument("--out", required=True, help=".onnx to write")
     p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     p.add_argument("--verbose", action="store_true", help="show torch's exporter warnings")
     _threshold_option(p)
     p.set_defaults(handler=_export)
-    p = sub.add_parser(
-        "table2", help="the paper's Table 2 layout on the table2 suite", formatter_class=fmt, parents=[common]
-    )
+    p = sub.add_parser("table2", formatter_class=fmt, parents=[common], **COMMANDS["table2"])
     p.add_argument("--train", required=True, help="training dataset (e.g. the paper suite)")
     p.add_argument("--test", required=True, help="table2 suite folder (minimal/, many/, noisy/)")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, help="folder for the runs, table2.md and table2.json")
     _training_options(p, base)
     p.set_defaults(handler=_table2)
-    p = sub.add_parser(
-        "sim2real",
-        help="train per bounce variant, score on reality and other test sets",
-        formatter_class=fmt,
-        parents=[common],
-    )
+    p = sub.add_parser("sim2real", formatter_class=fmt, parents=[common], **COMMANDS["sim2real"])
     p.add_argument(
         "--ablation",
         required=True,
@@ -379,31 +380,22 @@ def build_parser(base=None) -> argparse.ArgumentParser:
         help="train nothing: score the runs already in OUT/VARIANT (trained by `learn train`)",
     )
     p.add_argument("--variants", help="comma-separated variants to train or score (default: every one in --ablation)")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, help="folder for one run per variant, sim2real.md and sim2real.json")
     _training_options(p, base)
     p.set_defaults(handler=_sim2real)
-    p = sub.add_parser(
-        "sim2real-summary", help="mean and std over repeated sim2real runs", formatter_class=fmt, parents=[common]
-    )
+    p = sub.add_parser("sim2real-summary", formatter_class=fmt, parents=[common], **COMMANDS["sim2real-summary"])
     p.add_argument("runs", nargs="+", help="sim2real output folders (e.g. one per seed)")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, help="folder for sim2real.md and its picture")
     p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     p.set_defaults(handler=_sim2real_summary)
-    p = sub.add_parser(
-        "table2-summary",
-        help="Table 2 over repeated runs, with paired differences",
-        formatter_class=fmt,
-        parents=[common],
-    )
+    p = sub.add_parser("table2-summary", formatter_class=fmt, parents=[common], **COMMANDS["table2-summary"])
     p.add_argument("runs", nargs="+", help="table2 output folders (e.g. one per seed)")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, help="folder for table2.md")
     p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     p.set_defaults(handler=_table2_summary)
-    p = sub.add_parser(
-        "seeds-summary", help="mean and std over repeated evaluations", formatter_class=fmt, parents=[common]
-    )
+    p = sub.add_parser("seeds-summary", formatter_class=fmt, parents=[common], **COMMANDS["seeds-summary"])
     p.add_argument("reports", nargs="+", help="evaluate output folders (metrics.json), e.g. one per seed")
-    p.add_argument("--out", required=True)
+    p.add_argument("--out", required=True, help="folder for summary.md")
     p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     p.set_defaults(handler=_seeds_summary)
     return parser
@@ -416,20 +408,12 @@ USER_ERRORS = (ValueError, TypeError, KeyError, OSError, FloatingPointError, Mis
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
-    try:
-        args = build_parser(_recorded_config(argv)).parse_args(argv)
+
+    def command() -> int:
+        args = build_parser(_recorded_config(argv)).parse_args(argv)  # --config's file is read before parsing
         return args.handler(args)
-    except USER_ERRORS as err:
-        if "--debug" in argv:
-            raise
-        text = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        print(f"error: {text}", file=sys.stderr)
-        return 2
-    except KeyboardInterrupt as err:  # Ctrl-C: one line (what was kept, how to go on), the shell's 130
-        if "--debug" in argv:
-            raise
-        print(f"interrupted: {err}" if str(err) else "interrupted", file=sys.stderr)
-        return 130
+
+    return run_command(command, argv, USER_ERRORS)
 
 
 def _recorded_config(argv: list[str]):

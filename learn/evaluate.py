@@ -334,12 +334,13 @@ def _pick_windows(windows: Windows, ckpt: dict, frames: Frames, split: str, epis
 
 
 def _example_rows(predictors, name, picker, per_window, windows, indices, frames, count) -> list[dict]:
-    """Windows at evenly spaced quantiles of `picker`'s scan_f1 (poor to good, none cherry-picked)."""
+    """Windows at evenly spaced quantiles of `picker`'s scan_f1, in that order (poor to good, none
+    cherry-picked)."""
     f1 = per_window[name]["scan_f1"]
     rank = np.empty(len(f1), dtype=int)
     rank[np.argsort(f1, kind="stable")] = np.arange(len(f1))  # this model's rank of each window
     order = np.argsort(per_window[picker]["scan_f1"], kind="stable")
-    picks = sorted({int(order[round(q * (len(order) - 1))]) for q in np.linspace(0.1, 0.9, count)})
+    picks = list(dict.fromkeys(int(order[round(q * (len(order) - 1))]) for q in np.linspace(0.1, 0.9, count)))
     predict, _ = predictors[name]
     offset = windows.config.label_offset
     rows = []

@@ -17,7 +17,9 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from tqdm.auto import tqdm
 
+from clitools import counted
 from clitools.outputs import atomic_output, check_output
 
 from .checkpoint import load_checkpoint
@@ -87,14 +89,16 @@ def predict(
     threshold: float | None = None,
     mcap: str | None = None,
     overwrite: bool = False,
+    progress: bool = False,
 ) -> Path:
     """Predictions of every window, saved as .npz (the suffix is added if `out` lacks it; the path
     written is returned): "prediction" (windows, R, A) float16 images,
     "ranges" (windows, A) float32 scans [m] (inf = no return), "threshold", "frame" (the label
     frame of each window), "range_m", "azimuth_rad". `threshold` overrides the checkpoint's.
-    `mcap`: also write the scans as ROS 2 LaserScans on /scan_pred (see `learn.ros`).
-    Each file is written under a temporary name and renamed when whole (`clitools.outputs`): an
-    existing one is replaced only with `overwrite`, an input never (both refused before any work)."""
+    `mcap`: also write the scans as ROS 2 LaserScans on /scan_pred (see `learn.ros`). `progress`:
+    a progress bar over the windows. Each file is written under a temporary name and renamed when
+    whole (`clitools.outputs`): an existing one is replaced only with `overwrite`, an input never
+    (both refused before any work)."""
     out = Path(out)
     out = out if out.suffix == ".npz" else out.with_name(out.name + ".npz")  # numpy appends it anyway
     inputs = [checkpoint, source]
@@ -108,9 +112,11 @@ def predict(
     windows = Windows(frames, config, device)
     run = model_predictor(model)
     preds, ranges = [], []
-    with torch.no_grad():
+    bar = tqdm(total=len(windows), desc="predicting", unit="win", disable=not progress, leave=False)
+    with torch.no_grad(), bar:
         for start in range(0, len(windows), batch_size):
             x, _ = windows.batch(np.arange(start, min(start + batch_size, len(windows))))
+            bar.update(len(x))
             image = run(x).float().clamp(0, 1)[:, 0].half()  # as saved: the scans read the saved images
             ranges.append(first_return_ranges(image.float(), frames.range_m, threshold=threshold).float().cpu().numpy())
             preds.append(image.cpu().numpy())
@@ -176,3 +182,15 @@ def _check_outputs(out: Path, png, mcap, *, overwrite: bool, inputs: list) -> No
         raise ValueError(f"--png {png} needs a suffix that names the picture's format (.png, .pdf, .svg)")
     for path in given:
         check_output(path, overwrite=overwrite, inputs=inputs)
+
+
+def prediction_summary(out: str | Path, source: str | Path, seconds: float) -> str:
+    """One line on what `predict` wrote to `out` (.npz): how many frames of `source` it predicted,
+    which, on how many beams, at which threshold, and how long it took [s]."""
+    with np.load(out) as saved:
+        frame, beams, threshold = saved["frame"], len(saved["azimuth_rad"]), float(saved["threshold"])
+    which = f"label frames {frame.min()}..{frame.max()}; " if len(frame) else ""
+    return (
+        f"wrote {out}: LiDAR images and scans for {counted(len(frame), 'frame')} of {source} "
+        f"({which}{beams} beams, return threshold {threshold:.2f}) in {seconds:.1f} s"
+    )

@@ -58,8 +58,7 @@ def report_markdown(report: dict) -> str:
     checkpoints = report.get("checkpoints", {"model": report["checkpoint"]})
     thresholds = report.get("thresholds", {})
     lines = [
-        f"# Evaluation: {report['model']['name']} (K = {report['data_config']['frames']}) on "
-        f"{report['suite']}{' / ' + report['variant'] if report['variant'] else ''}",
+        f"# Evaluation: {report['model']['name']} (K = {report['data_config']['frames']}) on {_scored_on(report)}",
         "",
         f"{report['windows']:,} windows ({report['split']} split) of `{report['data']}`. Mean ± std over windows; "
         "a prediction is read as a LiDAR scan: per beam the nearest cell at or above the return threshold.",
@@ -87,8 +86,9 @@ def report_markdown(report: dict) -> str:
         ]
     lines += [
         "",
-        f"Examples: windows at evenly spaced quantiles of {first}'s scan F1 (poor to good, not picked by hand); "
-        "each row shows the sonar input, the LiDAR truth, the prediction and the scan read from it, from above.",
+        f"Examples: windows at evenly spaced quantiles of {first}'s scan F1, its poorest at the top and its best "
+        "at the bottom (not picked by hand); each row shows the sonar input, the LiDAR truth, the prediction and "
+        "the scan read from it, from above.",
     ]
     for name in checkpoints:
         path = example_file(name, first=name == first)
@@ -97,6 +97,15 @@ def report_markdown(report: dict) -> str:
         lines += ["", "`-`: no window defines it (the range MAE of true positives needs at least one true positive)."]
     lines.append("")
     return "\n".join(lines)
+
+
+def _scored_on(report: dict) -> str:
+    """What the evaluation scored: the suite's name read as a suite (`paper` is a suite, not the
+    paper), with its variant; the folder where the data names no suite (a recording)."""
+    if not report.get("suite"):
+        return f"`{report['data']}`"
+    variant = f", variant `{report['variant']}`" if report.get("variant") else ""
+    return f"the `{report['suite']}` suite{variant}"
 
 
 def write_per_window(path: Path, per_window: dict, indices: np.ndarray, windows: Windows) -> None:

@@ -14,6 +14,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from clitools import counted
 from tests.pictures import axes_frames, near, read_rgb
 
 GRID_SHAPE = (240, 181)
@@ -59,7 +60,7 @@ def check_render(args, cwd: Path, stdout: str) -> str:
     frames = axes_frames(image)
     if args.sonar:
         bounces = args.max_bounces if args.max_bounces is not None else written["sim"]["tracer"]["max_bounces"]
-        assert f"with max_bounces ['max_bounces=0', 'max_bounces={bounces}']" in stdout, stdout
+        assert f"with max_bounces 0 and {bounces};" in stdout, stdout
         assert len(frames) == 4, f"{picture.name}: {len(frames)} panels, not two rows of two"
         return f"{picture.name}: two rows of two panels (max_bounces 0, {bounces}); {sidecar.name}: the options"
     assert len(frames) == 2, f"{picture.name}: {len(frames)} panels, not the top view beside the polar image"
@@ -86,7 +87,8 @@ def check_generate(args, cwd: Path, stdout: str, frames: int) -> str:
     if args.signals:
         assert arrays["signals"].shape[:2] == (frames, 32)
     lines = stdout.strip().splitlines()
-    assert lines[0].startswith(f"{manifest['suite']}: {frames} frames in {len(shards(out))} shards"), lines[0]
+    counts = f"{counted(frames, 'frame')} in {counted(len(shards(out)), 'shard')}"
+    assert lines[0].startswith(f"{manifest['suite']}: {counts} under "), lines[0]
     assert lines[-1].startswith("time by part: "), lines[-1]
     return f"{args.out}: {frames} frames of {manifest['episodes']} episodes, arrays {', '.join(SHARD_ARRAYS + extra)}"
 

@@ -33,7 +33,8 @@ def test_generate_command_and_its_errors(tmp_path, device, capsys):
     suites, shard counts and a flag the suite cannot take exit with 2 and a message."""
     args = ["generate", "--suite", "tiny", "--frames", "3", "--out", str(tmp_path), "--device", device, "--quiet"]
     assert main(args) == 0
-    assert "3 frames in 1 shards" in capsys.readouterr().out and (tmp_path / "shard-00000.h5").exists()
+    assert "3 frames in 1 shard under" in capsys.readouterr().out and (tmp_path / "shard-00000.h5").exists()
+    assert "3 frames in 1 episode (robot drives), 1 shard," in (tmp_path / "README.md").read_text()  # the card
     assert main(args) == 0
     assert "0 written, 1 already complete" in capsys.readouterr().out
     assert main(["generate", "--suite", "nope", "--out", str(tmp_path)]) == 2

@@ -1,9 +1,9 @@
 """Every user error in both command lines ends the way a user can act on: exit code 2, one
 `error: ...` line that names the problem, no traceback (the trace only with --debug).
 
-Each case runs `python -m learn ...` or `python -m acoustic_sim ...` in its own subprocess, as a
-user would; the subprocesses start together (two at a time per core) in a module fixture, and
-each parametrised test reads its own result.
+Each case runs `python -m learn ...` or `python -m acoustic_sim ...` in a process of its own, as a
+user would (tests/cli_runner.py forks each from one interpreter that made the heavy imports once);
+they run two at a time per core in a module fixture, and each parametrised test reads its own result.
 """
 
 from __future__ import annotations
@@ -11,7 +11,6 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +19,7 @@ import torch
 
 import learn
 
+from .cli_runner import run_commands
 from .crafted import pickle_payload
 
 CKPT = Path(learn.PRETRAINED_CHECKPOINT)
@@ -192,14 +192,8 @@ def results(tiny_dataset, tmp_path_factory) -> dict[str, tuple[subprocess.Comple
     tmp = tmp_path_factory.mktemp("cli_errors")
     files = _inputs(tmp, tiny_dataset)
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "CUDA_VISIBLE_DEVICES": os.environ.get("CUDA_VISIBLE_DEVICES", "")}
-
-    def run(case):
-        name, package, argv, _ = case
-        command = [sys.executable, "-m", package, *argv.format(**files).split()]
-        return name, subprocess.run(command, capture_output=True, text=True, timeout=300, env=env)
-
-    with ThreadPoolExecutor(2 * (os.cpu_count() or 1)) as pool:
-        done = dict(pool.map(run, CASES))
+    commands = {name: (package, argv.format(**files).split()) for name, package, argv, _ in CASES}
+    done = run_commands(commands, env=env, parallel=2 * (os.cpu_count() or 1))
     return {"done": done, "tmp": tmp}
 
 

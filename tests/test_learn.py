@@ -326,6 +326,27 @@ def _same(a: dict, b: dict) -> bool:
     return json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
 
 
+@pytest.fixture
+def studies_draw_no_examples(monkeypatch):
+    """The studies' evaluations without their example pictures: these tests read the tables, and
+    evaluate's own tests draw and check the pictures (picking and drawing the examples took about
+    40 % of the sim2real test's time). The studies' other pictures are still drawn."""
+    import learn.evaluate
+    import learn.plots
+    import learn.studies
+
+    evaluate_and_draw = learn.studies.evaluate
+
+    def evaluate_without_examples(*args, **kwargs):
+        with monkeypatch.context() as inside:
+            inside.setattr(learn.evaluate, "_example_rows", lambda *a, **k: [])
+            inside.setattr(learn.plots, "plot_examples", lambda *a, **k: None)
+            return evaluate_and_draw(*args, **kwargs)
+
+    monkeypatch.setattr(learn.studies, "evaluate", evaluate_without_examples)
+
+
+@pytest.mark.usefixtures("studies_draw_no_examples")
 def test_sim2real_table_matches_its_reports_and_summarises_runs(tiny_dataset, tmp_path):
     """The study's table carries the numbers of each variant's evaluation report, and the summary
     over runs is their mean and spread with paired per-run differences. (Plumbing only: both
@@ -392,6 +413,7 @@ def test_sim2real_table_matches_its_reports_and_summarises_runs(tiny_dataset, tm
         )
 
 
+@pytest.mark.usefixtures("studies_draw_no_examples")
 def test_table2_scores_every_row_on_the_same_validation_episodes(tiny_dataset, tmp_path):
     """K = 1, 3, 5 models and the fine-tuned K = 5 rows are scored on each case's validation
     episodes (those the fine-tuning never saw), and the table carries the reports' numbers."""

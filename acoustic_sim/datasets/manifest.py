@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from clitools import counted
+
 from .plan import ShardTask
 from .shards import FORMAT, FORMAT_VERSION
 
@@ -98,11 +100,13 @@ def write_card(folder: Path, manifest: dict, tables: tuple[FactTable, ...] = ())
     title = manifest["suite"] + (f" / {manifest['variant']}" if manifest["variant"] else "")
     rows = "\n".join(f"| {name} | {count:,} |" for name, count in manifest["scenarios"].items())
     facts = "".join(_table_text(table) for table in tables)
+    counts = f"{counted(manifest['frames'], 'frame')} in {counted(manifest['episodes'], 'episode')} (robot drives), "
+    counts += counted(len(manifest["shards"]), "shard")
     text = f"""# Dataset: {title}
 
 {manifest["description"]}
 
-{manifest["frames"]:,} frames in {manifest["episodes"]} episodes (robot drives), {len(manifest["shards"])} shards,
+{counts},
 seed {manifest["seed"]}, {FORMAT} format version {FORMAT_VERSION}. Made by `python -m acoustic_sim generate`;
 rerunning the same command resumes or verifies it.
 

@@ -21,7 +21,7 @@ import warp as wp
 from scipy import signal as sps
 
 from ..config import ProcessingConfig, SonarConfig
-from ..devices import device_calls
+from ..devices import device_calls, warp_device
 from .kernels import beamform as kernels
 from .signals import tile_block_dim
 
@@ -46,7 +46,7 @@ class Beamformer:
         self.grid = processing.grid
         self.samples = int(samples)
         self.normalise = processing.normalise
-        self.device = wp.get_device(device)
+        self.device = warp_device(device)
         self.elevations_deg = np.atleast_1d(np.asarray(processing.elevation_deg, dtype=np.float64))
         self._scalar_elevation = np.ndim(processing.elevation_deg) == 0
         speed_of_sound, lowpass_hz = processing.speed_of_sound, processing.lowpass_hz
@@ -185,7 +185,7 @@ def beamformer(
     processing = processing or ProcessingConfig()
     if call is not None:
         return Beamformer(config, samples=samples, processing=processing, call=call, device=device)
-    device = str(wp.get_device(device))
+    device = str(warp_device(device))
     return _cached_beamformer(config, samples=samples, processing=processing, device=device)
 
 
@@ -243,7 +243,7 @@ def energyscape(
     call_samples = config.chirp.sample_count if call is None else len(np.asarray(call))
     if signals.shape[2] < call_samples:
         raise ValueError(f"signals hold {signals.shape[2]} samples, fewer than the call's {call_samples}")
-    device = wp.get_device(device)
+    device = warp_device(device)
     former = beamformer(config, samples=signals.shape[2], processing=processing, call=call, device=device)
     out = np.empty((len(signals), *former.output_shape), dtype=np.float32)
     with wp.ScopedDevice(device):

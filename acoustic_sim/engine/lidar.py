@@ -12,7 +12,7 @@ import warp as wp
 from scenes import Scene
 
 from ..config import NOISE_CODES, LidarConfig, PolarGrid
-from ..devices import cpu_cores
+from ..devices import cpu_cores, warp_device
 from .kernels import lidar as kernels
 from .poses import check_pose_results, check_poses
 from .scene import warp_scene
@@ -48,7 +48,7 @@ class Lidar:
 
     def __init__(self, config: LidarConfig, *, device=None, seed: int = 0, cpu_threads: int | None = None):
         self.config = config
-        self.device = wp.get_device(device)
+        self.device = warp_device(device)
         # Warp runs a CPU launch on one core; launches on disjoint slices of the poses from several
         # threads run side by side (Warp releases the GIL while a CPU kernel runs).
         if cpu_threads is not None and cpu_threads < 1:

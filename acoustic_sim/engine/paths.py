@@ -26,7 +26,7 @@ from scenes import Scene
 
 from ..array import piston_directivity
 from ..config import SonarConfig, TracerConfig
-from ..devices import cpu_cores, device_calls
+from ..devices import cpu_cores, device_calls, warp_device
 from .echoes import (
     KIND_SCATTERED,
     KIND_SPECULAR,
@@ -94,7 +94,7 @@ class PathTracer:
         self.sonar = sonar
         self.config = config
         self.edge_width_m = config.edge_width_for(sonar)
-        self.device = wp.get_device(device)
+        self.device = warp_device(device)
         centre_hz, c = sonar.chirp.centre_frequency_hz, sonar.atmosphere.speed_of_sound
         directions = hemisphere_directions(config.ray_count)
         # Each ray carries its share of the half-space (2 pi sr), weighted by the emitter's power

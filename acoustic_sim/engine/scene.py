@@ -10,6 +10,7 @@ import warp as wp
 
 from scenes import Scene
 
+from ..devices import warp_device
 from ..user_warning import warn_user
 
 
@@ -139,7 +140,7 @@ def warp_scene(scene: Scene, device=None) -> WarpScene:
     The cache is keyed on the Scene object and checked against a hash of its mesh data, so an
     edited mesh is rebuilt rather than silently reused.
     """
-    device = wp.get_device(device)
+    device = warp_device(device)
     per_device = _CACHE.setdefault(scene, {})
     mesh_hash = hash(scene.mesh)
     cached = per_device.get(device.alias)

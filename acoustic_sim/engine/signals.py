@@ -11,7 +11,7 @@ import warp as wp
 
 from ..air import air_absorption_db_per_m
 from ..config import NOISE_CODES, NOISE_KINDS
-from ..devices import device_calls
+from ..devices import device_calls, warp_device
 from .kernels import signals as kernels
 
 # Fractional-delay filter of a recorded echo: the fewest taps (of DELAY_TAPS_CHOICES) whose
@@ -130,7 +130,7 @@ class Recorder:
 
     def __init__(self, config, *, absorption: bool = True, device=None):
         self.config = config
-        self.device = wp.get_device(device)
+        self.device = warp_device(device)
         chirp_cfg, atm = config.chirp, config.atmosphere
         fs, c = chirp_cfg.sample_rate_hz, atm.speed_of_sound
         call = config.chirp.samples()
@@ -301,7 +301,7 @@ def record(
     count = int(pose_count if pose_count is not None else (arrivals.pose_index.max() + 1 if len(arrivals) else 1))
     if len(arrivals) and arrivals.pose_index.max() >= count:
         raise ValueError(f"arrivals refer to pose {arrivals.pose_index.max()}, but pose_count is {count}")
-    device = wp.get_device(device)
+    device = warp_device(device)
     rec = recorder(config, absorption, str(device))
     signals = rec(
         [echo_buffer(arrivals, count, device)], count, noise=noise, snr_db=snr_db, seeds=ping_seeds(seed, range(count))
