@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..datasets.shards import dataset_shards
 from ..extras import MissingExtra
 
 STAMP_START_S = 1_700_000_000
@@ -87,9 +88,7 @@ def export_mcap(dataset: str | Path, out: str | Path) -> dict:
     from scipy.spatial.transform import Rotation
 
     folder, out = Path(dataset), Path(out)
-    shards = sorted(folder.glob("shard-*.h5"))
-    if not shards:
-        raise ValueError(f"{folder} holds no shard-*.h5 files")
+    shards = dataset_shards(folder)  # each checked: a foreign or damaged file is refused naming it
     drive = []  # (shard, episode) and time of every frame, for the stamps
     for i, path in enumerate(shards):
         with h5py.File(path, "r") as f:
