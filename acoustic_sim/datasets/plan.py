@@ -111,15 +111,17 @@ def frame_bytes(sim: SimConfig, *, keep_signals: bool) -> tuple[float, float]:
 
 def check_size(suite: Suite, out: str | Path, frames: int, *, keep_signals: bool) -> None:
     """Refuse a run whose shards cannot fit on the disk of `out` (at their least compressed
-    size), before its episodes are planned: `--frames 1e9` is refused in a moment, with both
-    figures, instead of planning ten million episodes for a disk that holds a thousandth."""
+    size; the shards already there count as room), before its episodes are planned: `--frames
+    1e9` is refused in a moment, with both figures, instead of planning ten million episodes for
+    a disk that holds a thousandth."""
     rigs = [rig(p, suite.settings) for p in suite.variants.values()]
     per_frame = sum(frame_bytes(sim, keep_signals=keep_signals)[0] for sim in rigs)
     for sim in rigs:
         check_scan(min(frames, suite.episode_frames), sim, f"suite {suite.name!r}: an episode (episode_frames)")
+    written = sum(p.stat().st_size for p in Path(out).rglob("shard-*.h5")) if Path(out).is_dir() else 0
     check_fits(
         frames * per_frame,
-        available=free_disk_bytes(out),
+        available=free_disk_bytes(out) + written,  # a resumed run has its finished shards on disk already
         what=f"{frames:,} frames ({_count(len(suite.variants), 'variant')}, {per_frame / 1e3:,.0f} KB a frame or more)",
         room=f"free on the disk of {out}",
         advice="give fewer --frames (or a suite with fewer), or another --out",
