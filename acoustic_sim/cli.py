@@ -33,7 +33,11 @@ def _scene_from_args(args):
         return scenes.from_svg(args.svg, **kwargs)
     if args.mesh:
         return scenes.from_mesh(args.mesh, **kwargs)
-    return scenes.BUILDERS[args.scene](**({"seed": args.seed} | kwargs))
+    try:
+        return scenes.BUILDERS[args.scene](**({"seed": args.seed} | kwargs))
+    except (TypeError, ValueError) as err:  # SceneError names its field; a value of the wrong type may not
+        given = " ".join(f"--scene-arg {k}={json.dumps(v)}" for k, v in kwargs.items())
+        raise ValueError(f"--scene {args.scene} {given}: {err}; see help(scenes.{args.scene})") from None
 
 
 def _render(args) -> int:
@@ -56,17 +60,19 @@ def _render_into(args, picture: Path) -> str:
     import scenes
 
     from .config import SimConfig
+    from .datasets.plan import check_scan
     from .engine.lidar import Lidar, lidar_image
     from .render import render_lidar
     from .settings import apply_settings
 
     t0 = time.perf_counter()
     check_device(args.device)
+    rig = apply_settings(SimConfig(), args.set or ())
+    check_scan(args.frames, rig, "--frames: a drive")  # before the drive and its scan are made
     scene = _scene_from_args(args)
     poses = scenes.trajectory(scene, frames=args.frames, dt=args.dt, speed=args.speed, seed=args.seed)
     if not 0 <= args.frame < len(poses):
         raise ValueError(f"--frame must lie in 0..{len(poses) - 1}")
-    rig = apply_settings(SimConfig(), args.set or ())
     flags = {"noise": args.lidar_noise, "noise_m": args.lidar_noise_m}
     config = dataclasses.replace(rig.lidar, **{k: v for k, v in flags.items() if v is not None})
     rig = dataclasses.replace(rig, lidar=config)
@@ -114,6 +120,13 @@ def _render_sonar(args, rig, scene, pose, lidar, t0, picture: Path) -> str:
 
 
 def _generate(args) -> int:
+    try:
+        return _generate_dataset(args)
+    except KeyboardInterrupt:
+        return _interrupted(args.out)
+
+
+def _generate_dataset(args) -> int:
     from .devices import quiet_warp
 
     quiet_warp(not args.verbose, start=False)  # Warp starts in the worker processes (so they can be forked)
@@ -150,6 +163,17 @@ def _generate(args) -> int:
         progress=not args.quiet,
     )
     return _report(summary)
+
+
+def _interrupted(out: str) -> int:
+    """Ctrl-C in `generate`: the workers are stopped and the lock released by then; one line says
+    what was kept and how to go on (exit code 130, as a shell reports SIGINT)."""
+    done = sorted(Path(out).rglob("shard-*.h5")) if Path(out).is_dir() else []
+    if done:
+        print(f"interrupted: {out} keeps {len(done)} finished shard(s); the same command resumes it", file=sys.stderr)
+    else:
+        print(f"interrupted before any shard was finished: nothing is kept in {out}", file=sys.stderr)
+    return 130
 
 
 def _report(summary: dict) -> int:

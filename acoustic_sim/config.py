@@ -20,6 +20,8 @@ from typing import Literal
 
 import numpy as np
 
+from clitools.limits import check_memory
+
 from .air import chirp, speed_of_sound
 
 NoiseKind = Literal["none", "gaussian", "uniform"]
@@ -34,6 +36,16 @@ MAX_BOUNCES = 10
 
 class ConfigError(ValueError):
     """A configuration value that is missing, non-finite or out of range."""
+
+
+def check_memory_for(needed: float, what: str, advice: str) -> None:
+    """Refuse a config whose sizes need more memory than this machine has free (ConfigError with
+    both figures, before anything is allocated); `what` names the fields, `advice` says what to
+    give instead. Each class counts the bytes the simulator holds per unit of its sizes, at least."""
+    try:
+        check_memory(needed, what=what, advice=advice)
+    except ValueError as err:
+        raise ConfigError(str(err)) from None
 
 
 def check_finite(config) -> None:
@@ -76,6 +88,12 @@ class PolarGrid:
             raise ValueError("PolarGrid bin sizes must be positive")
         if not -180 <= self.azimuth_min_deg <= self.azimuth_max_deg <= 180:
             raise ValueError("PolarGrid needs -180 <= azimuth_min_deg <= azimuth_max_deg <= 180")
+        check_memory_for(  # a frame's float32 energyscape, its label and the beamformer's work: 16 B a cell
+            self.range_count * self.azimuth_count * 16,
+            f"PolarGrid of {self.range_count:,} x {self.azimuth_count:,} cells (range_bin_m {self.range_bin_m:g}, "
+            f"azimuth_step_deg {self.azimuth_step_deg:g}) for one frame",
+            "use larger bins (the default grid is 240 x 181)",
+        )
 
     @property
     def range_count(self) -> int:
@@ -138,6 +156,11 @@ class LidarConfig:
             raise ValueError("LidarConfig needs noise_m >= 0 and dropout_probability in [0, 1]")
         if self.rate_hz <= 0:
             raise ValueError("LidarConfig.rate_hz must be positive")
+        check_memory_for(  # a beam's direction (float64, then float32) and range: 64 B
+            self.beam_count * 64,
+            f"LidarConfig.azimuth_count x elevation_count {self.azimuth_count:,} x {self.elevation_count:,} (a scan)",
+            "use fewer beams (the Hokuyo has 1,081)",
+        )
 
     @classmethod
     def hokuyo_ust20lx(cls, **overrides) -> LidarConfig:
@@ -212,6 +235,12 @@ class ChirpConfig:
 
     def __post_init__(self) -> None:
         check_finite(self)
+        if self.duration_s > 0 and self.sample_rate_hz > 0:  # else chirp() says what is wrong
+            check_memory_for(  # the call's phase, taper and samples in float64: 48 B a sample
+                self.sample_count * 48,
+                f"ChirpConfig.duration_s {self.duration_s:g} ({self.sample_count:,} samples)",
+                "give a shorter call (the eRTIS calls for 2.5 ms)",
+            )
         chirp(**dataclasses.asdict(self))  # validates every field with a clear message
 
     @classmethod
@@ -283,6 +312,11 @@ class SonarConfig:
             raise ValueError("emitter_m must be a finite (x, y, z) position")
         if self.emitter_radius_m <= 0 or self.record_samples < self.chirp.sample_count:
             raise ValueError("emitter_radius_m must be positive and record_samples >= the call's length")
+        check_memory_for(  # int64 impulses and float32 signals per mic; absorption filters (complex128): 128 B
+            self.record_samples * (12 * len(mics) + 128),
+            f"SonarConfig.record_samples {self.record_samples:,} ({len(mics)} microphones) for one ping",
+            "record fewer samples (the eRTIS records 16,384: 36 ms, about 6 m of range)",
+        )
         for name in ("microphone_gain", "microphone_delay_s"):
             values = np.asarray(getattr(self, name), dtype=np.float64)
             if len(values) not in (0, len(mics)) or not np.isfinite(values).all():
@@ -345,6 +379,13 @@ class TracerConfig:
             raise ValueError("ray_count must be >= 1 and table_size a power of two >= 16")
         if self.edge_width_m is not None and not self.edge_width_m >= 0:
             raise ValueError(f"edge_width_m must be >= 0 (or None), got {self.edge_width_m}")
+        check_memory_for(  # a ray (direction, energy): 80 B, and 24 B per bounce for its scattered echo;
+            # a table slot (key, planes, image source, direction, point): 112 B
+            self.ray_count * (80 + 24 * (self.max_bounces + 1)) + self.table_size * 112,
+            f"TracerConfig.ray_count {self.ray_count:,} (max_bounces {self.max_bounces}) and table_size "
+            f"{self.table_size:,} for one ping",
+            "use fewer rays and a smaller table (the defaults are 20,000 and 32,768)",
+        )
 
     def edge_width_for(self, sonar: SonarConfig) -> float:
         """The edge band [m] for `sonar`'s call and air (None resolved to half a wavelength)."""

@@ -9,14 +9,20 @@ from collections.abc import Sequence
 import numpy as np
 import trimesh
 
+from clitools.limits import available_memory_bytes, format_bytes, input_file
+
 from .materials import Material
 from .scene import Scene, SceneError, assemble, box_mesh, cylinder_mesh, room_shell
 
 Part = tuple[trimesh.Trimesh, "str | Material"]
+MESH_MEMORY_PER_FILE_BYTE = 32  # trimesh's arrays and our copies per byte of mesh file (8-20 measured: OBJ, STL, PLY)
 
 
 def _check_size(size: Sequence[float], minimum: Sequence[float]) -> np.ndarray:
-    size = np.asarray(size, dtype=np.float64)
+    try:
+        size = np.asarray(size, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise SceneError(f"size must be three finite numbers (x, y, z) in metres, got {size!r}") from None
     if size.shape != (3,) or not np.isfinite(size).all():
         raise SceneError(f"size must be three finite numbers (x, y, z) in metres, got {size!r}")
     if (size < minimum).any():
@@ -47,16 +53,30 @@ class _Placer:
         self.skipped = 0
 
     def place(self, radius: float, *, wall_gap: float | None = None, passage: float | None = None, tries: int = 200):
-        """Return (x, y) of a free spot for a footprint of `radius` [m], or None (and count a skip)."""
+        """Return (x, y) of a free spot for a footprint of `radius` [m], or None (and count a skip).
+
+        Up to `tries` spots are drawn and the first free one is taken; they are drawn and checked
+        all at once (an object that does not fit costs one array operation, not 200 loops, so
+        thousands asked of a small room take seconds), and the generator is left where drawing
+        them one by one up to the first free spot would leave it: the scenes are the same."""
         passage = self.passage if passage is None else passage
         wall_gap = passage if wall_gap is None else wall_gap
         lo, hi = radius + wall_gap, self.size[:2] - radius - wall_gap
         if (hi > lo).all():
-            for _ in range(tries):
-                x, y = self.rng.uniform(lo, hi)
-                if all(np.hypot(x - px, y - py) > radius + pr + min(passage, pp) for px, py, pr, pp in self.placed):
-                    self.placed.append((x, y, radius, passage))
-                    return float(x), float(y)
+            start = self.rng.bit_generator.state
+            spots = self.rng.uniform(lo, hi, size=(tries, 2))  # the doubles `tries` calls would draw, in order
+            free = np.ones(tries, dtype=bool)
+            if self.placed:
+                px, py, pr, pp = np.array(self.placed).T
+                gap = radius + pr + np.minimum(passage, pp)
+                free = (np.hypot(spots[:, :1] - px, spots[:, 1:] - py) > gap).all(axis=1)
+            drawn = int(np.argmax(free)) + 1 if free.any() else tries
+            self.rng.bit_generator.state = start
+            self.rng.uniform(lo, hi, size=(drawn, 2))  # draw exactly what the one-by-one search drew
+            if free.any():
+                x, y = spots[drawn - 1]
+                self.placed.append((x, y, radius, passage))
+                return float(x), float(y)
         self.skipped += 1
         return None
 
@@ -298,10 +318,29 @@ def from_mesh(
     """
     source = os.fspath(mesh) if isinstance(mesh, (str, os.PathLike)) else None
     if source is not None:
+        _check_mesh_file(source)
         try:
             # process=False: trimesh's clean-up drops NaN vertices and their faces without a word;
             # clean_mesh refuses them instead (assemble merges duplicate vertices afterwards)
             mesh = trimesh.load(source, force="mesh", process=False)
         except Exception as err:
-            raise SceneError(f"could not load a mesh from {source!r}: {err}") from err
+            raise SceneError(
+                f"could not load a mesh from {source} (trimesh: {type(err).__name__}: {str(err).strip()}); give a "
+                "mesh file trimesh reads (.obj, .stl, .ply, .glb, .off, ...) whose suffix names its format"
+            ) from err
+        if isinstance(mesh, trimesh.Trimesh) and len(mesh.faces) == 0:
+            raise SceneError(f"mesh file {source} holds no faces (trimesh read {len(mesh.vertices)} vertices)")
     return assemble([(mesh, material)], name=name, params={"source": source})
+
+
+def _check_mesh_file(path: str) -> None:
+    """A regular file (a FIFO or /dev/urandom would never end) whose mesh this machine can hold."""
+    limit = available_memory_bytes() / MESH_MEMORY_PER_FILE_BYTE
+    free = format_bytes(limit * MESH_MEMORY_PER_FILE_BYTE)
+    why = f"loading a mesh takes up to {MESH_MEMORY_PER_FILE_BYTE} times its size in memory, and {free} are free"
+    try:
+        input_file(path, what="mesh file", max_bytes=limit, bound=why)
+    except FileNotFoundError:
+        raise SceneError(f"could not load a mesh from {path}: there is no such file") from None
+    except (OSError, ValueError) as err:
+        raise SceneError(str(err)) from None

@@ -8,6 +8,8 @@ import numpy as np
 from scipy import ndimage
 from skimage.graph import MCP_Geometric
 
+from clitools.limits import check_memory
+
 from .scene import Scene, SceneError
 
 
@@ -104,6 +106,14 @@ def free_space(
     # Rasterise every segment densely enough that no cell along it is skipped.
     a, b = segments[:, 0], segments[:, 1]
     steps = np.ceil(np.linalg.norm(b - a, axis=1) / (0.5 * cell)).astype(int) + 1
+    try:  # 48 bytes a point: its t, owner, position and cell (float64, int64)
+        check_memory(
+            float(steps.sum()) * 48,
+            what=f"{scene.name}: rasterising {len(segments):,} wall segments",
+            advice="give a scene with fewer walls",
+        )
+    except ValueError as err:
+        raise SceneError(str(err)) from None
     t = np.concatenate([np.linspace(0.0, 1.0, n) for n in steps])
     owner = np.repeat(np.arange(len(segments)), steps)
     pts = a[owner] + t[:, None] * (b[owner] - a[owner])

@@ -54,25 +54,46 @@ class PreparedEpisode:
     snr_db: float
 
 
+def build_scene(episode: Episode, suite_name: str):
+    """The episode's scene (`scenes.Scene`) from its scenario's builder; a builder's refusal
+    (SceneError, a wrong argument) names the suite, the scenario and the arguments it was given."""
+    import scenes
+
+    try:
+        return scenes.BUILDERS[episode.builder](**episode.scene_params)
+    except (TypeError, ValueError) as err:
+        given = {k: v for k, v in episode.scene_params.items() if k != "seed"}
+        raise ValueError(
+            f"suite {suite_name!r}, scenario {episode.scenario_name!r}: {episode.builder}({given}) refused: {err}; "
+            "fix the scenario's params or vary"
+        ) from None
+
+
 def prepare_episode(episode: Episode, physics: Physics, nominal: SimConfig, suite: dict) -> PreparedEpisode:
     """Everything of an episode that runs on the host: its scene, drive and drawn physics. Needs no
     device, so `generate` prepares the next episode while the GPU renders this one."""
     import scenes
 
-    scene = scenes.BUILDERS[episode.builder](**episode.scene_params)
+    scene = build_scene(episode, suite["name"])
     drive = episode_drive(suite, episode.seed)
     acoustics = physics.draw_surfaces(np.random.default_rng([episode.seed, 4]))
     if acoustics:
         scene = with_surfaces(scene, acoustics)
-    poses = scenes.trajectory(
-        scene,
-        frames=episode.frames,
-        dt=suite["dt_s"],
-        speed=drive["speed_m_s"],
-        sensor_height=drive["sensor_height_m"],
-        turn_rate=drive["turn_rate_rad_s"],
-        seed=episode.seed,
-    )
+    try:
+        poses = scenes.trajectory(
+            scene,
+            frames=episode.frames,
+            dt=suite["dt_s"],
+            speed=drive["speed_m_s"],
+            sensor_height=drive["sensor_height_m"],
+            turn_rate=drive["turn_rate_rad_s"],
+            seed=episode.seed,
+        )
+    except scenes.SceneError as err:
+        raise scenes.SceneError(
+            f"suite {suite['name']!r}, scenario {episode.scenario_name!r} (episode {episode.index}): no drive of "
+            f"{episode.frames} frames: {err}; give the scenario a larger scene or the suite other drive settings"
+        ) from None
     drawn, draws = physics.draw(nominal, np.random.default_rng([episode.seed, 3]))
     sonar_config, snr_db = episode_sonar_config(physics, drawn.sonar, np.random.default_rng([episode.seed, 2]))
     return PreparedEpisode(episode, scene, poses, drive, acoustics, drawn, draws, sonar_config, snr_db)

@@ -12,10 +12,13 @@ import socket
 import warnings
 from pathlib import Path
 
+from clitools.limits import input_file
+
 from .plan import ShardTask
 from .shards import FORMAT, FORMAT_VERSION, DatasetError, read_attrs, verify_shard
 
 PLAN_FILE = "plan.json"
+PLAN_MAX_BYTES = 16_000_000  # a plan.json holds the suite's JSON: kilobytes; anything this large is not one
 LOCK_FILE = ".generate.lock"  # "pid host" of the run writing the folder
 
 
@@ -23,13 +26,8 @@ def check_plan_file(out: Path, tasks: list[ShardTask], meta: dict) -> None:
     """Write out/plan.json (the plan id and `meta`), or check that an existing one describes the
     same run; a folder with other files and no plan.json is refused, untouched."""
     path = out / PLAN_FILE
-    if path.exists():
-        try:
-            old = json.loads(path.read_text())
-        except json.JSONDecodeError:
-            raise DatasetError(f"{path} is not valid JSON; is {out} a sonar2lidar dataset folder?") from None
-        if old.get("format") != FORMAT:
-            raise DatasetError(f"{path} is not a {FORMAT} plan; choose another --out")
+    if path.exists() or path.is_symlink():
+        old = read_plan(path)
         if old.get("plan_id") != tasks[0].plan_id:
             raise DatasetError(
                 f"{out} holds a run with other settings (plan {old.get('plan_id')}, suite {old.get('suite')!r}, "
@@ -50,6 +48,42 @@ def check_plan_file(out: Path, tasks: list[ShardTask], meta: dict) -> None:
         json.dumps({"format": FORMAT, "format_version": FORMAT_VERSION, "plan_id": tasks[0].plan_id} | meta, indent=1)
     )
     tmp.replace(path)
+
+
+def read_plan(path: Path) -> dict:
+    """A folder's plan.json, checked to be one: a regular file of a sane size holding a JSON
+    object of our format (a FIFO, a list or a truncated file is refused naming it)."""
+    advice = f"is {path.parent} a sonar2lidar dataset folder? Choose another --out"
+    try:
+        input_file(path, what="plan file", max_bytes=PLAN_MAX_BYTES, bound="a plan holds its suite in kilobytes")
+        plan = json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError, RecursionError) as err:
+        raise DatasetError(f"{path} is not valid JSON ({str(err) or type(err).__name__}); {advice}") from None
+    except (OSError, ValueError) as err:
+        raise DatasetError(f"{err}; {advice}") from None
+    if not isinstance(plan, dict):
+        raise DatasetError(f"{path} holds a JSON {type(plan).__name__}, not a plan (an object); {advice}")
+    if plan.get("format") != FORMAT:
+        raise DatasetError(f"{path} is not a {FORMAT} plan (format {plan.get('format')!r}); {advice}")
+    return plan
+
+
+def forget_plan(out: Path, tasks: list[ShardTask], *, made_folder: bool) -> None:
+    """Undo the plan.json a run wrote when it ended before finishing any shard (refused, failed or
+    interrupted), with the folders it made and left empty: a folder must not stay locked to
+    settings that never made a shard. A finished shard keeps its plan (the run resumes)."""
+    if any(Path(t.path).exists() for t in tasks):
+        return
+    (out / PLAN_FILE).unlink(missing_ok=True)
+    for folder in sorted({Path(t.path).parent for t in tasks} - {out}) + ([out] if made_folder else []):
+        with contextlib.suppress(OSError):  # not empty: something else is there, keep it
+            folder.rmdir()
+
+
+def remove_temporaries(tasks: list[ShardTask]) -> None:
+    """Remove the `.tmp` files of the tasks' shards that stopped workers leave (the lock is ours)."""
+    for task in tasks:
+        Path(task.path + ".tmp").unlink(missing_ok=True)
 
 
 @contextlib.contextmanager

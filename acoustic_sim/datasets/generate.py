@@ -16,6 +16,7 @@ import functools
 import os
 import sys
 import time
+import warnings
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -23,11 +24,12 @@ from tqdm.auto import tqdm
 
 from ..config import SimConfig
 from ..devices import check_device_name, resolve_device
-from .episode import prepare_episode, simulate_episode
-from .folder import check_plan_file, is_complete, output_lock
+from ..extras import MissingExtra
+from .episode import build_scene, prepare_episode, simulate_episode
+from .folder import PLAN_FILE, check_plan_file, forget_plan, is_complete, output_lock, remove_temporaries
 from .manifest import About, FactTable, rig_facts, write_manifest
 from .physics import Physics, rig
-from .plan import Episode, ShardTask, plan
+from .plan import Episode, ShardTask, check_shard_memory, plan
 from .runner import PARTS, Renderer, ShardHeader, run_task, run_tasks
 from .suites import Suite
 from .workers import LocalWorkers
@@ -118,6 +120,14 @@ def generate(
         keep_signals=keep_signals,
         keep_arrivals=keep_arrivals,
     )
+    check_shard_memory(tasks, 1 if ray_address else min(workers, len(tasks)))
+    first: dict[int, Episode] = {}
+    for episode in (e for t in tasks for e in t.episodes):
+        first.setdefault(episode.scenario, episode)
+    with warnings.catch_warnings():  # the run itself says what its scenes leave out
+        warnings.simplefilter("ignore")
+        for episode in first.values():  # a builder's refusal comes now, before any file is written
+            build_scene(episode, suite.name)
     frames = sum(t.frame_count for t in tasks) // len(suite.variants)
     meta = {"suite": suite.name, "frames": frames, "shards": len(tasks) // len(suite.variants), "seed": seed}
     meta |= {"variants": list(suite.variants), "suite_config": suite.to_json()}
@@ -162,7 +172,10 @@ def make_dataset(
     check_device_name(device, allow_auto=True)  # a typo fails here, before any process or Warp starts
     name = tasks[0].suite["name"]
     processes = 1 if ray_address else min(workers, len(tasks))
-    pool = None
+    if ray_address:
+        _ray()  # a missing extra is refused before any process starts or any file is written
+    pool, fresh, planned = None, not (out / PLAN_FILE).exists(), False
+    made_folder = not out.exists()
     try:
         if processes > 1:  # workers check the device themselves: this process must not start CUDA to fork them
             work = functools.partial(_worker_share, renderer=renderer, overlap=overlap)
@@ -171,6 +184,7 @@ def make_dataset(
         else:
             devices = [resolve_device(device)]
         check_plan_file(out, tasks, plan_meta)
+        planned = fresh  # this run wrote plan.json
         with output_lock(out):  # one writer per folder
             todo = [t for t in tasks if not is_complete(t)]
             done_frames = sum(t.frame_count for t in tasks) - sum(t.frame_count for t in todo)
@@ -186,12 +200,22 @@ def make_dataset(
                     parts = run_tasks(todo, renderer, devices[0], on_frames=bar.update, overlap=overlap)[1]
             finally:
                 if pool:  # inside the lock: no worker is writing once it is released
-                    pool.close(abort=sys.exc_info()[0] is not None)
+                    failed = sys.exc_info()[0]
+                    interrupted = failed is not None and issubclass(failed, KeyboardInterrupt)
+                    pool.close(abort=failed is not None, now=interrupted)  # Ctrl-C stops them at once
+                    if interrupted:
+                        remove_temporaries(todo)  # the shards the stopped workers were writing
             bar.close()
             seconds = time.perf_counter() - t0
             for variant in dict.fromkeys(t.variant for t in tasks):
                 mine = [t for t in tasks if t.variant == variant]
                 write_manifest(out / variant, mine, renderer.describe(mine))
+    except BaseException as error:
+        if pool:
+            pool.close(abort=True, now=isinstance(error, KeyboardInterrupt))
+        if planned:
+            forget_plan(out, tasks, made_folder=made_folder)  # unless a shard was finished under it
+        raise
     finally:
         if pool:
             pool.close(abort=True)  # a failure before the run (foreign folder, lock refused); else closed already
@@ -217,11 +241,16 @@ def _worker_share(tasks: Iterable[ShardTask], device: str, on_frames, *, rendere
     return run_tasks(tasks, renderer, device, on_frames, overlap=overlap)[1]
 
 
-def _run_on_ray(tasks: list[ShardTask], renderer: Renderer, address: str, gpu: bool, bar) -> None:
+def _ray():
     try:
         import ray
     except ImportError:
-        raise RuntimeError("--ray-address needs Ray: pip install 'sonar2lidar[ray]'") from None
+        raise MissingExtra("--ray-address needs Ray (the `ray` extra): pip install -e '.[ray]'") from None
+    return ray
+
+
+def _run_on_ray(tasks: list[ShardTask], renderer: Renderer, address: str, gpu: bool, bar) -> None:
+    ray = _ray()
     try:
         ray.init(address=address, ignore_reinit_error=True, log_to_driver=False)
     except ConnectionError as error:

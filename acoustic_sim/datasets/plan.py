@@ -14,11 +14,23 @@ from pathlib import Path
 import numpy as np
 
 import scenes
+from clitools.limits import check_fits, check_memory, free_disk_bytes
 
+from ..config import SimConfig
+from .physics import Physics, rig
 from .shards import FORMAT_VERSION
 from .suites import Suite
 
 FRAMES_PER_SHARD = 250  # default shard size: ~20 MB; enough shards to keep several workers busy
+DISK_SHARE = 0.5
+"""Least share of its arrays' bytes a frame takes on disk: gzip keeps 0.67 of the tiny suite's
+energyscapes and 0.70 of its LiDAR ranges (the labels, almost all zeros, shrink to nothing), so
+a run whose arrays need more than twice the free space can never fit."""
+BYTES_PER_EPISODE = 4096  # an Episode, its scene's arguments and its share of the shard tasks and plan.json
+MAX_SCAN_ELEMENTS = 2**31 - 1  # ranges of one episode's LiDAR scan (frames x beams): Warp indexes with int32
+SHARDS_IN_MEMORY = 3
+"""Copies of a shard's frames a process holds at once at most: the shard being filled, the
+arrays concatenated for writing, and the shard before it still being written."""
 
 
 @dataclass(frozen=True)
@@ -86,6 +98,77 @@ def plan_episodes(suite: Suite, frames: int, seed: int) -> list[Episode]:
     return episodes
 
 
+def frame_bytes(sim: SimConfig, *, keep_signals: bool) -> tuple[float, float]:
+    """Bytes of one frame of a dataset made with the rig `sim`: (on disk at the least, in memory
+    while its shard is filled), from the grid, the LiDAR's beams and, if kept, the signals."""
+    cells = sim.processing.grid.range_count * sim.processing.grid.azimuth_count * np.size(sim.processing.elevation_deg)
+    samples = sim.sonar.microphone_count * sim.sonar.record_samples if keep_signals else 0
+    fixed = 16 * 8 + 8 + 4 + 2  # pose, time, episode, scenario
+    disk = DISK_SHARE * (2 * cells + 4 * sim.lidar.beam_count + 2 * samples) + fixed  # float16, float32, float16
+    memory = 5 * cells + 4 * sim.lidar.beam_count + 4 * samples + fixed  # float32 energyscape, uint8 label, float32
+    return disk, memory
+
+
+def check_size(suite: Suite, out: str | Path, frames: int, *, keep_signals: bool) -> None:
+    """Refuse a run whose shards cannot fit on the disk of `out` (at their least compressed
+    size; the shards already there count as room), before its episodes are planned: `--frames
+    1e9` is refused in a moment, with both figures, instead of planning ten million episodes for
+    a disk that holds a thousandth."""
+    rigs = [rig(p, suite.settings) for p in suite.variants.values()]
+    per_frame = sum(frame_bytes(sim, keep_signals=keep_signals)[0] for sim in rigs)
+    for sim in rigs:
+        check_scan(min(frames, suite.episode_frames), sim, f"suite {suite.name!r}: an episode (episode_frames)")
+    written = sum(p.stat().st_size for p in Path(out).rglob("shard-*.h5")) if Path(out).is_dir() else 0
+    check_fits(
+        frames * per_frame,
+        available=free_disk_bytes(out) + written,  # a resumed run has its finished shards on disk already
+        what=f"{frames:,} frames ({_count(len(suite.variants), 'variant')}, {per_frame / 1e3:,.0f} KB a frame or more)",
+        room=f"free on the disk of {out}",
+        advice="give fewer --frames (or a suite with fewer), or another --out",
+    )
+    episodes = math.ceil(frames / suite.episode_frames)
+    check_memory(
+        episodes * BYTES_PER_EPISODE,
+        what=f"planning {episodes:,} episodes ({frames:,} frames of {suite.episode_frames:,})",
+        advice="give fewer --frames or longer episode_frames",
+    )
+
+
+def check_scan(frames: int, sim: SimConfig, what: str) -> None:
+    """Refuse a drive of `frames` poses whose LiDAR scan (one array of frames x beams ranges) and
+    labels Warp cannot index (int32) or this machine's memory cannot hold; `what` names it."""
+    beams = sim.lidar.beam_count
+    if frames * beams > MAX_SCAN_ELEMENTS:
+        raise ValueError(
+            f"{what} of {frames:,} frames x {beams:,} LiDAR beams exceeds the {MAX_SCAN_ELEMENTS:,} ranges a scan "
+            "array may hold (Warp indexes with int32); give fewer frames"
+        )
+    cells = sim.processing.grid.range_count * sim.processing.grid.azimuth_count
+    check_memory(
+        frames * (8 * beams + cells + 16 * 8),  # ranges (float32, twice), labels (uint8), poses (float64)
+        what=f"{what} of {frames:,} frames x {beams:,} LiDAR beams",
+        advice="give fewer frames",
+    )
+
+
+def check_shard_memory(tasks: list[ShardTask], processes: int) -> None:
+    """Refuse shards too large for this machine's memory: each of `processes` holds up to
+    SHARDS_IN_MEMORY copies of its largest shard's frames while it is filled and written."""
+    largest = max(tasks, key=lambda t: t.frame_count)
+    physics = Physics(**largest.physics)
+    per_frame = frame_bytes(rig(physics, tuple(largest.suite.get("settings", ()))), keep_signals=largest.keep_signals)
+    check_memory(
+        largest.frame_count * per_frame[1] * SHARDS_IN_MEMORY * processes,
+        what=f"{_count(processes, 'process', 'processes')} filling shards of up to {largest.frame_count:,} frames "
+        f"({per_frame[1] / 1e6:,.2f} MB a frame in memory)",
+        advice="give more --shards (smaller ones) or fewer --workers",
+    )
+
+
+def _count(n: int, one: str, many: str = "") -> str:
+    return f"{n:,} {one if n == 1 else many or one + 's'}"
+
+
 def plan(
     suite: Suite,
     out: str | Path,
@@ -102,6 +185,7 @@ def plan(
     frames = suite.frames if frames is None else int(frames)
     if frames < 1:
         raise ValueError(f"frames must be >= 1, got {frames}")
+    check_size(suite, out, frames, keep_signals=keep_signals)
     episodes = plan_episodes(suite, frames, seed)
     shards = min(math.ceil(frames / FRAMES_PER_SHARD), len(episodes)) if shards is None else shards
     if not 1 <= shards <= len(episodes):

@@ -23,6 +23,7 @@ Layout (all plain HDF5, readable with h5py or MATLAB's h5read):
 from __future__ import annotations
 
 import json
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,6 +31,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from clitools.limits import input_file
 from clitools.outputs import KeptErrorFile
 
 FORMAT = "sonar2lidar-dataset"
@@ -118,17 +120,26 @@ def _rows(f: h5py.File, name: str, array: np.ndarray) -> h5py.Dataset:
     return dataset
 
 
+REQUIRED = ("energyscape", "lidar/ranges", "lidar/image", "pose", "time", "episode", "scenario")
+"""The datasets every shard holds, one row per frame (and the axes `range_m`, `azimuth_rad`)."""
+
+
 def read_attrs(path: Path) -> dict:
-    """The root attributes of a shard (JSON ones decoded), after checking format and version."""
+    """The root attributes of a shard (JSON ones decoded), after checking that it is a regular
+    file of our format and version holding every dataset of the layout, one row per frame."""
     path = Path(path)
+    try:
+        input_file(path, what="shard", max_bytes=math.inf)  # a FIFO named like a shard would never open
+    except (OSError, ValueError) as err:
+        raise DatasetError(str(err)) from None
     try:
         f = h5py.File(path, "r")
     except OSError as err:
-        raise DatasetError(f"{path} is not a readable HDF5 file ({err})") from None
+        raise DatasetError(f"{path} is not a readable HDF5 file ({str(err).strip().splitlines()[0]})") from None
     with f:
         attrs = {k: v for k, v in f.attrs.items()}
-        missing = [k for k in ("energyscape", "lidar/image", "episode") if k not in f]
-        lengths = {len(f[k]) for k in ("energyscape", "lidar/image", "episode", "pose") if k in f}
+        missing = [k for k in (*REQUIRED, "range_m", "azimuth_rad") if k not in f]
+        lengths = {len(f[k]) for k in REQUIRED if k in f and f[k].ndim}
     if attrs.get("format") != FORMAT:
         raise DatasetError(f"{path} is not a {FORMAT} shard (format attribute {attrs.get('format')!r})")
     version = int(attrs.get("format_version", -1))
@@ -138,8 +149,29 @@ def read_attrs(path: Path) -> dict:
         raise DatasetError(f"{path} is incomplete or corrupt (missing {missing}, frame counts {sorted(lengths)})")
     for key in ("config", "episodes", "scenarios"):
         if key in attrs:
-            attrs[key] = json.loads(attrs[key])
+            try:
+                attrs[key] = json.loads(attrs[key])
+            except (TypeError, ValueError, RecursionError) as err:
+                raise DatasetError(
+                    f"{path}: its `{key}` attribute is not valid JSON ({err}); the shard is damaged"
+                ) from None
     return attrs
+
+
+def dataset_shards(folder: str | Path) -> list[Path]:
+    """The shards of a dataset folder, in order, each checked by `read_attrs` (a foreign, damaged
+    or partial file is refused naming it, before a reader trips over a missing dataset)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise DatasetError(f"{folder} is not a folder; give a dataset folder (with shard-*.h5 files)")
+    shards = sorted(folder.glob("shard-*.h5"))
+    if not shards:
+        raise DatasetError(f"{folder} holds no shard-*.h5 files")
+    for path in shards:
+        attrs = read_attrs(path)
+        if not isinstance(attrs.get("config"), dict):
+            raise DatasetError(f"{path} has no `config` attribute (its rig as JSON); the shard is damaged")
+    return shards
 
 
 def verify_shard(path: Path) -> None:

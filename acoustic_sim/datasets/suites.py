@@ -9,8 +9,6 @@ dataclasses; `load_suite` reads one from a TOML or JSON file that may start from
 from __future__ import annotations
 
 import dataclasses
-import json
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -22,6 +20,7 @@ from scenes.surfaces import SURFACE_CLASSES
 
 from ..config import check_finite
 from .physics import Physics, draw_value, rig
+from .suite_file import read_suite_file
 
 DRIVE = {"speed_m_s": 0.3, "sensor_height_m": 0.3, "turn_rate_rad_s": 1.0}
 """A suite's drive settings and their defaults."""
@@ -317,24 +316,29 @@ def load_suite(name_or_path: str | Path) -> Suite:
     path = Path(text)
     if not path.suffix:
         raise ValueError(f"unknown suite {text!r}; named suites are {sorted(SUITES)}, or give a .toml/.json file")
-    if not path.is_file():
-        raise FileNotFoundError(f"suite file {path} does not exist")
-    try:
-        data = tomllib.loads(path.read_text()) if path.suffix == ".toml" else json.loads(path.read_text())
-    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as err:
-        raise ValueError(f"suite file {path} is not valid {path.suffix[1:].upper()}: {err}") from None
-    base = SUITES.get(data.pop("base", None)) if "base" in data else None
+    data = read_suite_file(path, sorted(SUITES))  # every key known, every value of its type, or refused by name
+    base = SUITES[data.pop("base")] if "base" in data else None
     if base is None and "scenarios" not in data:
         raise ValueError(f"{path}: give `scenarios` or a `base` suite (one of {sorted(SUITES)})")
-    fields = {f.name for f in dataclasses.fields(Suite)} | {"physics"}
-    if unknown := set(data) - fields:
-        raise ValueError(f"{path}: unknown keys {sorted(unknown)}; allowed: {sorted(fields)}")
+    for key in ("frames", "episode_frames"):  # whole numbers, also when written 1e4
+        if key in data:
+            data[key] = int(data[key])
     values = dataclasses.asdict(base) if base else {}
-    values["scenarios"] = [Scenario(**s) for s in data.pop("scenarios", values.get("scenarios", []))]
+    scenarios = data.pop("scenarios", None)
+    if scenarios is None:
+        values["scenarios"] = [Scenario(**s) for s in values.get("scenarios", [])]
+    else:
+        values["scenarios"] = [
+            _built(Scenario, s, f"{path}: scenarios[{i}] ({s['name']!r})") for i, s in enumerate(scenarios)
+        ]
     variants = data.pop("variants", None) or values.get("variants") or {"": {}}
     physics = data.pop("physics", {})
     values["variants"] = {
-        name: Physics(**{**(dataclasses.asdict(p) if isinstance(p, Physics) else p), **physics})
+        name: _built(
+            Physics,
+            {**(dataclasses.asdict(p) if isinstance(p, Physics) else p), **physics},
+            f"{path}: {_variant_where(name, physics)}",
+        )
         for name, p in variants.items()
     }
     if base and "description" not in data:  # the base's prose may name settings this file changes
@@ -345,4 +349,20 @@ def load_suite(name_or_path: str | Path) -> Suite:
     values.setdefault("name", path.stem)
     values.setdefault("description", f"custom suite from {path.name}")
     values["scenarios"] = tuple(values["scenarios"])
-    return Suite(**values)
+    return _built(Suite, values, str(path))
+
+
+def _variant_where(name: str, physics: dict) -> str:
+    """Where a variant's physics comes from, for a message: its table, and [physics] on top."""
+    table = f"variants.{name}" if name else "the suite's variant"
+    return f"{table} with [physics]" if physics else table
+
+
+def _built(cls, fields: dict, where: str):
+    """`cls(**fields)`, its refusal prefixed with `where` (the file and the table it came from)."""
+    try:
+        return cls(**fields)
+    except TypeError as err:  # a required field missing, or a value its checks cannot compare
+        raise ValueError(f"{where}: {err}") from None
+    except ValueError as err:
+        raise type(err)(f"{where}: {err}") from None

@@ -15,6 +15,7 @@ from __future__ import annotations
 import multiprocessing
 import os
 import queue
+import signal
 import sys
 import threading
 import time
@@ -45,8 +46,10 @@ class LocalWorkers:
     `wait_ready()` blocks until each has Warp and its device up, raising a worker's error (a GPU
     this machine lacks, say); `run(tasks, bar)` hands them the tasks and returns the seconds by
     part summed over them, with each worker's "start-up" (launch to device ready). `close()` ends
-    them: after their queued tasks, or with `abort=True` after the task each is on (call it
-    before releasing what the tasks write under, such as the output lock)."""
+    them: after their queued tasks, with `abort=True` after the task each is on, or with `now=True`
+    too at once, wherever each is (Ctrl-C: a shard being written stays a `.tmp` for the caller to
+    remove); call it before releasing what the tasks write under, such as the output lock. Workers
+    ignore Ctrl-C: the parent takes it and stops them."""
 
     def __init__(self, device: str, count: int, work: Work):
         self.count = count
@@ -102,13 +105,17 @@ class LocalWorkers:
             reader.join(timeout=5)
         return parts
 
-    def close(self, *, abort: bool = False) -> None:
+    def close(self, *, abort: bool = False, now: bool = False) -> None:
         if self._closed:
             return
         self._closed = True
         if abort:
             self._abort.set()
             self._tasks.cancel_join_thread()  # tasks left in the pipe must not block this process's exit
+        if abort and now:  # not after the shard each is on (minutes on a CPU): a rerun does those again
+            running = getattr(self._pool, "_processes", None) or {}  # pid -> Process (CPython's executor)
+            for process in list(running.values()):
+                process.terminate()
         self._end_tasks()
         self._pool.shutdown(wait=True, cancel_futures=True)
 
@@ -131,6 +138,7 @@ def _init_worker(claimed, tasks, ready, progress, abort, parent, cpu_threads, qu
         _INDEX = claimed.value
         claimed.value += 1
     _TASKS, _READY, _PROGRESS, _ABORT, _START, _LAUNCHED = tasks, ready, progress, abort, start, launched
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole process group: the parent stops us
     quiet_warp(quiet, start=False)  # the parent's voice (a spawned worker would start with the default)
     os.environ["SONAR2LIDAR_CPU_THREADS"] = str(cpu_threads)  # the workers share the cores (devices.cpu_cores)
     threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()

@@ -49,9 +49,10 @@ import numpy as np
 from clitools.outputs import KeptErrorFile, atomic_folder, atomic_output, check_output
 
 from ..config import ChirpConfig, LidarConfig, SonarConfig
-from ..datasets.shards import COMPRESSION
+from ..datasets.shards import COMPRESSION, dataset_shards
 from ..engine.lidar import lidar_image, ranges_to_points
 from ..extras import MissingExtra
+from . import chirp_input
 from .chirp_dataset import ImportedPings, write_card, write_manifest, write_shards
 from .mcap_export import frame_stamps
 
@@ -182,10 +183,8 @@ def export_chirp(dataset: str | Path, out: str | Path, *, overwrite: bool = Fals
     from .. import __version__
 
     folder, out = Path(dataset), Path(out)
-    shards = sorted(folder.glob("shard-*.h5"))
-    if not shards:
-        raise ValueError(f"{folder} holds no shard-*.h5 files")
     check_output(out, overwrite=overwrite, inputs=[folder])  # refused before any reading
+    shards = dataset_shards(folder)  # each checked: a foreign or damaged file is refused naming it
     drive = _read_drive(shards)
     source = f"sonar2lidar {__version__} simulation of {folder}"
     with atomic_output(out, overwrite=overwrite, inputs=[folder]) as tmp:
@@ -283,61 +282,16 @@ def _recorded_poses(data, acoustic, count: int) -> tuple[np.ndarray, str]:
     return poses, f"{odometry.name} (base_link in its odom frame)"
 
 
-def _check_chirp(path: Path) -> None:
-    try:
-        with h5py.File(path, "r") as f:
-            kind = f.attrs.get("format")
-            kind = kind.decode() if isinstance(kind, bytes) else kind
-    except OSError as err:
-        raise ValueError(f"{path} is not a readable HDF5 file ({str(err).splitlines()[0]})") from None
-    if kind != FORMAT:
-        raise ValueError(f"{path} is not a CHIRP file (its format attribute is {kind!r}, not {FORMAT!r})")
-
-
 def _check_import(path: Path, out: Path, rig) -> None:
     """Refuse, before reading any ping, an --out that is not empty, more than one elevation and a
-    file that is not CHIRP."""
+    file that is not CHIRP or does not hold its own data (`chirp_input.check_file`)."""
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file; give a new folder for the dataset")
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"--out {out} is not an empty folder; choose a new one")
     if np.ndim(rig.processing.elevation_deg):
         raise ValueError("import writes one energyscape per ping: set processing.elevation_deg to one angle")
-    _check_chirp(path)
-
-
-def _microphones(data, call_rate_hz: float, path: Path) -> tuple[object, np.ndarray, float]:
-    """The file's reference sensor (else its first acoustic sensor), checked to hold signals, one
-    position per channel and our call's sample rate; returns it, the microphone positions
-    (channels, 3) [m] and the sample rate [Hz]."""
-    # Sensors are tested against None: chirppy's sensors have a length, so an empty one is falsy.
-    acoustic = data.sensors.get(str(data.reference_sensor))
-    if acoustic is None:
-        acoustic = next(iter(data.get_sensors_by_type("acoustic_sensor")), None)
-    if acoustic is None or acoustic.signals is None or acoustic.get_receiver_positions() is None:
-        raise ValueError(
-            f"{path} holds no microphone data (an acoustic_sensor with data/signals and "
-            "calibration/receiver_relative_translations)"
-        )
-    _, _, channels = acoustic.signals.shape
-    mics = np.asarray(acoustic.get_receiver_positions(), dtype=np.float64)
-    rate = float(acoustic.sample_rates)
-    if mics.shape != (channels, 3):
-        raise ValueError(f"{path}: {channels} microphone channels but positions of shape {mics.shape}")
-    if abs(rate - call_rate_hz) > 1e-6 * call_rate_hz:
-        raise ValueError(
-            f"{path}: the microphones were sampled at {rate:g} Hz, but our call is sampled at {call_rate_hz:g} Hz; "
-            f"give the recorded call with --set sonar.chirp.sample_rate_hz={rate:g} (and its frequencies)"
-        )
-    return acoustic, mics, rate
-
-
-def _ping_stamps(acoustic, path: Path) -> np.ndarray:
-    """Unix time of each ping [s], float64 (pings,), checked to increase."""
-    stamps = np.asarray(acoustic.get_timestamps(), dtype=np.float64)
-    if len(stamps) != acoustic.signals.shape[0] or not np.all(np.diff(stamps) > 0):
-        raise ValueError(f"{path}: {acoustic.name}'s timestamps are not one increasing time per ping")
-    return stamps
+    chirp_input.check_file(path)
 
 
 def _recorded_sonar(sonar: SonarConfig, mics: np.ndarray, samples: int) -> SonarConfig:
@@ -370,14 +324,27 @@ def _lidar_truth(
     scanner = next(iter(data.get_sensors_by_type("lidar")), None)
     if scanner is None:
         return ranges, None
-    move = data.get_transform(scanner.name, acoustic.name)  # LiDAR frame -> sonar frame
+    try:
+        move = data.get_transform(scanner.name, acoustic.name)  # LiDAR frame -> sonar frame
+    except (ValueError, KeyError) as err:  # numpy's LinAlgError is a ValueError
+        raise ValueError(f"{path}: no transform from {scanner.name} to {acoustic.name} ({err})") from None
+    if not (np.isfinite(move).all() and abs(np.linalg.det(move[:3, :3])) > 1e-9):
+        raise ValueError(
+            f"{path}: the transform from {scanner.name} to {acoustic.name} (their calibration/to_origin) is not a "
+            f"finite rigid transform ({np.array2string(move[:3, :3].ravel(), precision=3)}); fix the file's "
+            "calibration"
+        )
+    found = 0  # points of any height
     for i in range(count):
         xyz = np.asarray(scanner.at_reference_capture(i)["points"], dtype=np.float64)[:, :3]
+        found += int(np.isfinite(xyz).all(axis=1).sum())
         ranges[i] = planar_scan(xyz @ move[:3, :3].T + move[:3, 3], planar, plane_tolerance_m=plane_tolerance_m)
+    if not found:
+        raise ValueError(f"{path}: {scanner.name} holds no points in its {count} captures; it cannot label the pings")
     if not np.isfinite(ranges).any():
         raise ValueError(
-            f"{path}: no point of {scanner.name} lies within {plane_tolerance_m:g} m of the sonar's plane; "
-            "widen --plane-tolerance"
+            f"{path}: none of the {found:,} points of {scanner.name} lies within {plane_tolerance_m:g} m of the "
+            "sonar's plane (and the LiDAR's range limits); widen --plane-tolerance if the LiDAR is mounted higher"
         )
     return ranges, scanner.name
 
@@ -406,15 +373,25 @@ def import_chirp(
     t0, path, out = time.perf_counter(), Path(path), Path(out)
     _check_import(path, out, rig)
     chirppy = _chirppy()
-    with chirppy.CHIRPDataset(path) as data:
-        acoustic, mics, rate = _microphones(data, rig.sonar.chirp.sample_rate_hz, path)
-        _warn_if_other_call(data, rig.sonar.chirp, path)
-        stamps = _ping_stamps(acoustic, path)
-        sonar = _recorded_sonar(rig.sonar, mics, acoustic.signals.shape[1])
-        energy = _energyscapes(acoustic, sonar, rig.processing, device=device)
-        planar = dataclasses.replace(rig.lidar, elevation_min_deg=0.0, elevation_max_deg=0.0, elevation_count=1)
-        ranges, lidar_name = _lidar_truth(data, acoustic, planar, len(stamps), plane_tolerance_m, path)
-        poses, pose_source = _recorded_poses(data, acoustic, len(stamps))
+    planar = dataclasses.replace(rig.lidar, elevation_min_deg=0.0, elevation_max_deg=0.0, elevation_count=1)
+    try:
+        data = chirppy.CHIRPDataset(path)
+    except (KeyError, ValueError, OSError) as err:
+        raise ValueError(f"{path}: the CHIRP reader cannot open it ({type(err).__name__}: {err})") from None
+    with data:
+        try:
+            acoustic, mics, rate = chirp_input.microphones(data, rig.sonar.chirp.sample_rate_hz, path)
+            chirp_input.check_room(
+                acoustic.signals.shape, dataclasses.replace(rig, lidar=planar), out, path, block=BLOCK
+            )
+            _warn_if_other_call(data, rig.sonar.chirp, path)
+            stamps = chirp_input.ping_stamps(acoustic, path)
+            sonar = _recorded_sonar(rig.sonar, mics, acoustic.signals.shape[1])
+            energy = _energyscapes(acoustic, sonar, rig.processing, device=device)
+            ranges, lidar_name = _lidar_truth(data, acoustic, planar, len(stamps), plane_tolerance_m, path)
+            poses, pose_source = _recorded_poses(data, acoustic, len(stamps))
+        except KeyError as err:  # a dataset or attribute the format requires, missing
+            raise ValueError(f"{path}: the file lacks part of the CHIRP format ({err}); is it whole?") from None
     rig = dataclasses.replace(rig, sonar=sonar, lidar=planar)
     grid, scenario = rig.processing.grid, path.stem
     options = {"plane_tolerance_m": plane_tolerance_m, "episode_gap_s": episode_gap_s}

@@ -19,6 +19,7 @@ import numpy as np
 
 from clitools.outputs import atomic_output, check_output
 
+from ..datasets.shards import dataset_shards
 from ..extras import MissingExtra
 
 STAMP_START_S = 1_700_000_000
@@ -91,10 +92,8 @@ def export_mcap(dataset: str | Path, out: str | Path, *, overwrite: bool = False
     from scipy.spatial.transform import Rotation
 
     folder, out = Path(dataset), Path(out)
-    shards = sorted(folder.glob("shard-*.h5"))
-    if not shards:
-        raise ValueError(f"{folder} holds no shard-*.h5 files")
     check_output(out, overwrite=overwrite, inputs=[folder])  # refused before any reading
+    shards = dataset_shards(folder)  # each checked: a foreign or damaged file is refused naming it
     drive = []  # (shard, episode) and time of every frame, for the stamps
     for i, path in enumerate(shards):
         with h5py.File(path, "r") as f:

@@ -14,12 +14,40 @@ can take them.
 from __future__ import annotations
 
 import json
+import math
 import time
 from pathlib import Path
 
 import numpy as np
 
+from clitools.limits import check_fits, check_memory, format_bytes, free_disk_bytes, input_file
+
 from ..engine.signals import pdm_to_pcm
+
+PDM_DECODE_BYTES_PER_BYTE = 64  # a ping being decoded: its bits unpacked, as +-1, filtered (per byte of PDM)
+
+
+def check_pdm_files(paths: list[str | Path], *, channels: int, samples_per_ping: int | None, rig, out: Path) -> None:
+    """Refuse, by `stat` before any is opened, files that are not regular (a FIFO would never end)
+    and recordings whose words, decoding and energyscapes this machine's memory (or the disk of
+    `out`) cannot hold."""
+    sizes = [input_file(path, what="PDM recording", max_bytes=math.inf).stat().st_size for path in paths]
+    words = sum(size // max(channels // 8, 1) for size in sizes)
+    pings = len(paths) if samples_per_ping is None else max(words // max(samples_per_ping, 1), 1)
+    image = 4 * rig.processing.grid.range_count * rig.processing.grid.azimuth_count  # float32 energyscape
+    what = f"{len(paths)} PDM file(s) of {format_bytes(sum(sizes))} ({pings:,} ping(s))"
+    check_memory(
+        sum(sizes) + PDM_DECODE_BYTES_PER_BYTE * max(sizes) + pings * image,
+        what=what,
+        advice="import fewer files at a time",
+    )
+    check_fits(
+        pings * image,
+        available=free_disk_bytes(out),
+        what=what,
+        room=f"free on the disk of {out}",
+        advice="give another --out",
+    )
 
 
 def read_pdm_pings(paths: list[str | Path], *, channels: int, samples_per_ping: int | None) -> list[np.ndarray]:
@@ -73,6 +101,7 @@ def import_pdm(
             f"the PDM rate {pdm_rate_hz:.0f} Hz is not a whole multiple of the call's sample rate "
             f"{sonar.chirp.sample_rate_hz:.0f} Hz (sonar.chirp.sample_rate_hz)"
         )
+    check_pdm_files(paths, channels=channels, samples_per_ping=samples_per_ping, rig=rig, out=out)
     pings = read_pdm_pings(paths, channels=channels, samples_per_ping=samples_per_ping)
     decode = dict(channels=channels, pdm_rate_hz=pdm_rate_hz, decimation=round(decimation), bit_order=bit_order)
     pcm = np.stack([pdm_to_pcm(p, **decode) for p in pings])  # (N, channels, samples)

@@ -1,0 +1,129 @@
+"""Suite files (TOML or JSON) read with every field checked: a wrong type, an unknown key or a
+file that is no suite is refused naming the file and the field, before anything is planned.
+
+`read_suite_file` returns the file's tables as plain values of the types `suites.load_suite`
+builds a Suite from; the values' ranges are the Suite's, Scenario's and Physics' own checks.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import tomllib
+import typing
+from pathlib import Path
+
+from clitools import read_value
+from clitools.limits import input_file
+
+from .physics import Physics
+
+SUITE_FILE_MAX_BYTES = 1_000_000
+"""A suite names its scenarios, physics and settings in a few kilobytes; a file a thousand times
+larger is not a suite (and a FIFO or a device is refused before it is opened)."""
+
+SUITE_FIELDS = {
+    "base": "a suite name",
+    "name": "a string",
+    "description": "a string",
+    "frames": "a whole number",
+    "episode_frames": "a whole number",
+    "dt_s": "a number",
+    "speed_m_s": "a number or [low, high]",
+    "sensor_height_m": "a number or [low, high]",
+    "turn_rate_rad_s": "a number or [low, high]",
+    "settings": "a list of strings",
+    "scenarios": "a list of tables",
+    "variants": "a table of tables",
+    "physics": "a table",
+}
+"""Each top-level key of a suite file and what it takes."""
+
+SCENARIO_FIELDS = {"name": "a string", "builder": "a string", "params": "a table", "vary": "a table"}
+SCENARIO_FIELDS |= {"weight": "a number"}
+
+
+def read_suite_file(path: Path, named: list[str]) -> dict:
+    """The tables of suite file `path` (.toml or .json), every key known and every value of its
+    type; `named` are the suites a `base` may name. Raises FileNotFoundError or ValueError naming
+    the file and the field."""
+    input_file(path, what="suite file", max_bytes=SUITE_FILE_MAX_BYTES, bound="a suite is a few kilobytes")
+    kind = path.suffix[1:].upper()
+    try:
+        text = path.read_text(encoding="utf-8")
+        data = tomllib.loads(text) if path.suffix == ".toml" else json.loads(text)
+    except UnicodeDecodeError:
+        raise ValueError(f"suite file {path} is not text (UTF-8); give a {kind} file") from None
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"suite file {path} is not valid {kind}: {err}") from None
+    except RecursionError:
+        raise ValueError(
+            f"suite file {path} nests lists or tables deeper than its reader can follow; a suite nests a few levels"
+        ) from None
+    if not isinstance(data, dict):
+        raise ValueError(f"suite file {path} holds a {type(data).__name__}, not a table of suite fields")
+    if unknown := sorted(set(data) - set(SUITE_FIELDS)):
+        raise ValueError(f"suite file {path}: unknown keys {unknown}; allowed: {sorted(SUITE_FIELDS)}")
+    for key, value in data.items():
+        _check(value, SUITE_FIELDS[key], f"{path}: {key}")
+    if "base" in data and data["base"] not in named:
+        raise ValueError(f"{path}: base {data['base']!r} is not a suite; named suites are {named}")
+    for i, scenario in enumerate(data.get("scenarios", [])):
+        where = f"{path}: scenarios[{i}]"
+        if unknown := sorted(set(scenario) - set(SCENARIO_FIELDS)):
+            raise ValueError(f"{where}: unknown keys {unknown}; allowed: {sorted(SCENARIO_FIELDS)}")
+        if missing := [k for k in ("name", "builder") if k not in scenario]:
+            raise ValueError(f"{where}: give its {' and '.join(missing)}")
+        for key, value in scenario.items():
+            _check(value, SCENARIO_FIELDS[key], f"{where} ({scenario['name']!r}) {key}")
+    tables = [("physics", data.get("physics", {}))] + [
+        (f"variants.{k}", v) for k, v in data.get("variants", {}).items()
+    ]
+    for where, table in tables:
+        _check_physics(table, f"{path}: {where}")
+    return data
+
+
+def _check(value, kind: str, where: str) -> None:
+    """Refuse `value` unless it is `kind` (a description from SUITE_FIELDS or SCENARIO_FIELDS)."""
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    ok = {
+        "a suite name": isinstance(value, str),
+        "a string": isinstance(value, str),
+        "a whole number": number and float(value).is_integer(),
+        "a number": number,
+        "a number or [low, high]": number or _pair(value),
+        "a list of strings": isinstance(value, list) and all(isinstance(v, str) for v in value),
+        "a list of tables": isinstance(value, list) and all(isinstance(v, dict) for v in value),
+        "a table of tables": isinstance(value, dict) and all(isinstance(v, dict) for v in value.values()),
+        "a table": isinstance(value, dict),
+    }[kind]
+    if not ok:
+        raise ValueError(f"{where} must be {kind}, got {json.dumps(value, default=str)[:80]}")
+
+
+def _pair(value) -> bool:
+    return (
+        isinstance(value, list)
+        and len(value) == 2
+        and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+    )
+
+
+def _check_physics(table: dict, where: str) -> None:
+    """Refuse unknown Physics fields and values not of their type (their ranges are Physics' own
+    checks): `max_bounces = "abc"` is named here, not left to a float() deep inside."""
+    hints = typing.get_type_hints(Physics)
+    fields = [f.name for f in dataclasses.fields(Physics)]
+    if unknown := sorted(set(table) - set(fields)):
+        raise ValueError(f"{where}: unknown physics fields {unknown}; Physics has {fields}")
+    for key, value in table.items():
+        if key in ("vary", "surfaces"):
+            _check(value, "a table", f"{where}.{key}")
+        elif key in ("snr_db", "temperature_c"):
+            _check(value, "a number or [low, high]", f"{where}.{key}")
+        else:
+            try:
+                read_value(json.dumps(value), hints[key])
+            except ValueError as err:
+                raise ValueError(f"{where}.{key}: {err}") from None

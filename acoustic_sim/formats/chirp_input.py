@@ -1,0 +1,182 @@
+"""What a CHIRP file must be before `chirp.import_chirp` reads its pings.
+
+A recording comes from elsewhere, so nothing in it is taken on trust: the file is a regular one
+(a FIFO would never end) and holds its own data (an HDF5 external link, external or virtual
+dataset can read any file on this machine), checked with h5py before the CHIRP reader opens it;
+its microphones (`microphones`) have real signals, finite positions and a positive sample rate,
+one increasing time per ping (`ping_stamps`), and a ping count this machine's memory and the
+output's disk can take (`check_room`: a header may claim a billion pings never written).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from clitools.limits import check_fits, check_memory, free_disk_bytes, input_file
+
+from ..datasets.plan import frame_bytes
+
+MOST_OBJECTS = 100_000  # groups and datasets a recording may hold (one per sensor stream: tens)
+MOST_CALIBRATION_VALUES = 1_000_000  # a calibration dataset (transforms, positions) is read whole on opening
+BLOCK_COPIES = 4  # a block of pings in memory: as read, as float32, transposed, and the beamformer's work
+
+
+def check_file(path: Path) -> None:
+    """A regular HDF5 file of format "chirp" whose objects all live inside it and whose
+    calibration is of calibration's size; ValueError naming the file and the object otherwise."""
+    input_file(path, what="CHIRP file", max_bytes=math.inf)  # read lazily: its claims are checked, not its size
+    try:
+        f = h5py.File(path, "r")
+    except OSError as err:
+        raise ValueError(f"{path} is not a readable HDF5 file ({str(err).splitlines()[0]})") from None
+    with f:
+        kind = f.attrs.get("format")
+        kind = kind.decode() if isinstance(kind, bytes) else kind
+        if kind != "chirp":
+            raise ValueError(f"{path} is not a CHIRP file (its format attribute is {kind!r}, not 'chirp')")
+        _check_objects(f, path)
+
+
+def _check_objects(f: h5py.File, path: Path) -> None:
+    """Walk every link of the file (not following any out of it): refuse external links,
+    external and virtual datasets, and calibration datasets too large to be calibration."""
+    pending, seen = [f], set()
+    while pending:
+        group = pending.pop()
+        for name in group:
+            link = group.get(name, getlink=True)
+            where = f"{group.name.rstrip('/')}/{name}"
+            if isinstance(link, h5py.ExternalLink):
+                _refuse(path, where, f"an external link to {link.filename}:{link.path}")
+            if isinstance(link, h5py.SoftLink):
+                continue  # a name for an object inside the file, walked where it lives
+            item = group[name]
+            address = h5py.h5o.get_info(item.id).addr  # hard links to one object: walk it once
+            if address in seen:
+                continue
+            seen.add(address)
+            if len(seen) > MOST_OBJECTS:
+                raise ValueError(f"{path} holds more than {MOST_OBJECTS:,} HDF5 objects; is it a recording?")
+            if isinstance(item, h5py.Group):
+                pending.append(item)
+                continue
+            if item.is_virtual:
+                files = sorted({source.file_name for source in item.virtual_sources()})
+                _refuse(path, where, f"a virtual dataset reading {', '.join(files)}")
+            if item.external:
+                _refuse(path, where, f"an external dataset reading {', '.join(str(e[0]) for e in item.external)}")
+            if "/calibration/" in where and item.size > MOST_CALIBRATION_VALUES:
+                raise ValueError(
+                    f"{path}: {where} holds {item.size:,} values ({item.shape}); calibration is matrices and positions"
+                )
+
+
+def _refuse(path: Path, where: str, what: str) -> None:
+    raise ValueError(
+        f"{path}: {where} is {what}; an imported recording must hold its own data (these can read any file on "
+        "this machine): copy the data into the file (h5repack, or h5py) and import that"
+    )
+
+
+def microphones(data, call_rate_hz: float, path: Path) -> tuple[object, np.ndarray, float]:
+    """The file's reference sensor (else its first acoustic sensor), checked to hold signals, one
+    position per channel and our call's sample rate; returns it, the microphone positions
+    (channels, 3) [m] and the sample rate [Hz]."""
+    # Sensors are tested against None: chirppy's sensors have a length, so an empty one is falsy.
+    acoustic = data.sensors.get(str(data.reference_sensor))
+    if acoustic is None:
+        acoustic = next(iter(data.get_sensors_by_type("acoustic_sensor")), None)
+    if acoustic is None or acoustic.signals is None or acoustic.get_receiver_positions() is None:
+        raise ValueError(
+            f"{path} holds no microphone data (an acoustic_sensor with data/signals and "
+            "calibration/receiver_relative_translations)"
+        )
+    _, _, channels = check_signals(acoustic, path)
+    mics = np.asarray(acoustic.get_receiver_positions())
+    if mics.dtype.kind not in "fiu" or not np.isfinite(mics).all():
+        raise ValueError(f"{path}: {acoustic.name}'s microphone positions are not finite numbers ({mics.dtype})")
+    mics, rate = mics.astype(np.float64), sample_rate(acoustic, path)
+    if mics.shape != (channels, 3):
+        raise ValueError(f"{path}: {channels} microphone channels but positions of shape {mics.shape}")
+    if abs(rate - call_rate_hz) > 1e-6 * call_rate_hz:
+        raise ValueError(
+            f"{path}: the microphones were sampled at {rate:g} Hz, but our call is sampled at {call_rate_hz:g} Hz; "
+            f"give the recorded call with --set sonar.chirp.sample_rate_hz={rate:g} (and its frequencies)"
+        )
+    return acoustic, mics, rate
+
+
+def ping_stamps(acoustic, path: Path) -> np.ndarray:
+    """Unix time of each ping [s], float64 (pings,), checked to increase."""
+    stamps = np.asarray(acoustic.get_timestamps(), dtype=np.float64)
+    if len(stamps) != acoustic.signals.shape[0] or not np.all(np.diff(stamps) > 0):
+        raise ValueError(f"{path}: {acoustic.name}'s timestamps are not one increasing time per ping")
+    return stamps
+
+
+def check_signals(acoustic, path: Path) -> tuple[int, int, int]:
+    """The reference sensor's signals: a (pings, samples, channels) dataset of real numbers with
+    one timestamp per ping; returns its shape."""
+    signals = acoustic.signals
+    if signals.ndim != 3:
+        raise ValueError(
+            f"{path}: {acoustic.name}'s signals have shape {signals.shape}; CHIRP stores them as "
+            "(pings, samples, channels)"
+        )
+    if signals.dtype.kind == "c":
+        raise ValueError(
+            f"{path}: {acoustic.name}'s signals are complex ({signals.dtype}); import takes the real microphone "
+            "samples (as recorded): store their real part (or whatever real signal was recorded) and import that"
+        )
+    if signals.dtype.kind not in "fiu":
+        raise ValueError(f"{path}: {acoustic.name}'s signals are {signals.dtype}, not real numbers")
+    stamps = acoustic.timestamps
+    if stamps is None or stamps.shape != signals.shape[:1] or stamps.dtype.kind not in "fiu":
+        shape = None if stamps is None else stamps.shape
+        raise ValueError(
+            f"{path}: {acoustic.name} has timestamps of shape {shape} for {signals.shape[0]:,} pings; "
+            "CHIRP gives one time (Unix seconds) per ping"
+        )
+    if signals.shape[0] == 0:
+        raise ValueError(f"{path}: {acoustic.name} holds no pings (its signals have 0 captures); nothing to import")
+    return signals.shape
+
+
+def sample_rate(acoustic, path: Path) -> float:
+    """The sensor's sample_rate_hz attribute as a positive, finite number [Hz]."""
+    value = acoustic.sample_rates
+    try:
+        rate = float(np.asarray(value).item())
+    except (TypeError, ValueError):
+        rate = math.nan
+    if not (math.isfinite(rate) and rate > 0):
+        shown = repr(value) if isinstance(value, str | bytes) or np.ndim(value) else value
+        raise ValueError(
+            f"{path}: {acoustic.name}'s sample_rate_hz is {shown}; a recording needs its sample rate, a positive "
+            "number of Hz: fix that attribute"
+        )
+    return rate
+
+
+def check_room(shape: tuple[int, int, int], rig, out: Path, path: Path, *, block: int) -> None:
+    """Refuse a recording whose pings this machine cannot hold in memory (the energyscapes,
+    labels and poses of all its pings, and `block` pings of signals) or the disk of `out` cannot
+    take, before anything is read: a header may claim pings that were never written."""
+    pings, samples, channels = shape
+    disk, memory = frame_bytes(rig, keep_signals=False)
+    check_memory(
+        pings * memory + BLOCK_COPIES * min(block, pings) * samples * channels * 4,  # float32 samples
+        what=f"{path}: {pings:,} pings of {samples:,} samples x {channels} channels",
+        advice="import a shorter recording (split it), or on a machine with more memory",
+    )
+    check_fits(
+        pings * disk,
+        available=free_disk_bytes(out),
+        what=f"the dataset of {pings:,} pings",
+        room=f"free on the disk of {out}",
+        advice="give another --out",
+    )
