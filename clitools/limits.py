@@ -113,6 +113,30 @@ _KINDS = (
 )
 
 
+def file_kind(mode: int) -> str:
+    """What a `stat` mode describes, in words ("a FIFO (named pipe)", "a folder", ...)."""
+    return next((name for test, name in _KINDS if test(mode)), "not a regular file")
+
+
+def regular_file(path: str | os.PathLike, what: str) -> Path:
+    """`path`, checked by `stat` before anything opens it: it exists and is a regular file (through
+    any symlinks). FileNotFoundError, or ValueError naming `what` and what the path is instead."""
+    path = Path(path)
+    try:
+        info = path.stat()  # follows symlinks: a link to /dev/urandom is a character device
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{what} {path} does not exist") from None
+    except OSError as err:
+        raise OSError(f"{what} {path} cannot be read ({err.strerror})") from None
+    if not stat.S_ISREG(info.st_mode):
+        target = f" (the symlink leads to {os.path.realpath(path)})" if path.is_symlink() else ""
+        raise ValueError(
+            f"{what} {path} is {file_kind(info.st_mode)}{target}, not a regular file: reading it could hang or "
+            "never end; give a file on disk"
+        )
+    return path
+
+
 def input_file(path: str | os.PathLike, *, what: str, max_bytes: float, bound: str = "") -> Path:
     """`path`, checked by `stat` before anything opens it: it exists, is a regular file (through
     any symlinks) and holds at most `max_bytes`.
@@ -127,20 +151,8 @@ def input_file(path: str | os.PathLike, *, what: str, max_bytes: float, bound: s
         FileNotFoundError: it does not exist.
         ValueError: it is a FIFO, device, socket or folder (SizeError: it is larger than `max_bytes`).
     """
-    path = Path(path)
-    try:
-        info = path.stat()  # follows symlinks: a link to /dev/urandom is a character device
-    except FileNotFoundError:
-        raise FileNotFoundError(f"{what} {path} does not exist") from None
-    except OSError as err:
-        raise OSError(f"{what} {path} cannot be read ({err.strerror})") from None
-    if not stat.S_ISREG(info.st_mode):
-        kind = next((name for test, name in _KINDS if test(info.st_mode)), "not a regular file")
-        target = f" (the symlink leads to {os.path.realpath(path)})" if path.is_symlink() else ""
-        raise ValueError(
-            f"{what} {path} is {kind}{target}, not a regular file: reading it could hang or never end; "
-            "give a file on disk"
-        )
+    path = regular_file(path, what)
+    info = path.stat()
     if info.st_size > max_bytes:
         why = f" ({bound})" if bound else ""
         raise SizeError(

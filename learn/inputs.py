@@ -3,79 +3,23 @@
 A FIFO or a device (`/dev/urandom`) blocks or never ends a read, so only regular files are opened
 (checked with `stat`, which follows links). A header (an HDF5 dataset's shape, a `.npy` header, a
 model's config) may claim more than the machine holds: the claim is compared with the memory
-available before anything is allocated. JSON that does not parse names its file, line and column.
+available before anything is allocated. Both checks are `clitools.limits`, which the simulator
+uses too. JSON that does not parse names its file, line and column.
 Every refusal is a ValueError or OSError naming the file (the CLI prints it as one `error:` line).
 """
 
 from __future__ import annotations
 
 import json
-import os
-import stat
 from pathlib import Path
 
 import numpy as np
 
+from clitools.limits import SizeError, check_memory, regular_file
+from clitools.limits import format_bytes as size_text
 
-class TooLarge(ValueError):
-    """An input that would need more memory than this machine has available."""
-
-
-def file_kind(mode: int) -> str:
-    """What a `stat` mode describes, in words ("a FIFO", "a folder", ...)."""
-    kinds = (
-        (stat.S_ISDIR, "a folder"),
-        (stat.S_ISFIFO, "a FIFO (named pipe)"),
-        (stat.S_ISCHR, "a character device"),
-        (stat.S_ISBLK, "a block device"),
-        (stat.S_ISSOCK, "a socket"),
-    )
-    return next((name for test, name in kinds if test(mode)), "not a regular file")
-
-
-def regular_file(path: str | Path, what: str) -> Path:
-    """`path` when it is a regular file (after links); else FileNotFoundError or ValueError naming
-    `what` ("checkpoint", "--input", ...) and what the path is instead."""
-    path = Path(path)
-    try:
-        mode = os.stat(path).st_mode
-    except FileNotFoundError:
-        raise FileNotFoundError(f"{what} {path} does not exist") from None
-    except OSError as err:
-        raise OSError(f"{what} {path} cannot be read ({err.strerror})") from None
-    if not stat.S_ISREG(mode):
-        raise ValueError(f"{what} {path} is {file_kind(mode)}, not a regular file: give the file itself")
-    return path
-
-
-def available_memory_bytes() -> int | None:
-    """Memory this process can still allocate [bytes]: /proc/meminfo's MemAvailable, less where a
-    cgroup (container) limit leaves less; None where neither can be read (no check is made then)."""
-    found = []
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                found.append(int(line.split()[1]) * 1024)
-    except (OSError, ValueError, IndexError):
-        try:
-            found.append(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
-        except (OSError, ValueError, AttributeError):
-            pass
-    try:
-        limit = Path("/sys/fs/cgroup/memory.max").read_text().strip()
-        if limit != "max":
-            found.append(int(limit) - int(Path("/sys/fs/cgroup/memory.current").read_text()))
-    except (OSError, ValueError):
-        pass
-    return max(0, min(found)) if found else None
-
-
-def size_text(nbytes: float) -> str:
-    """Bytes in words: "1.3 GB", "512 MB", "24 kB"."""
-    for unit, scale in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
-        if nbytes >= scale:
-            return f"{nbytes / scale:,.3g} {unit}"
-    return f"{int(nbytes)} B"
+TooLarge = SizeError
+"""An input that would need more memory than this machine has available."""
 
 
 def check_fits(nbytes: float, what: str, advice: str) -> None:
@@ -86,12 +30,7 @@ def check_fits(nbytes: float, what: str, advice: str) -> None:
         what: The input and its size in words ("data/x: 1,000,000 frames of 240 x 181").
         advice: What to do instead.
     """
-    available = available_memory_bytes()
-    if available is not None and nbytes > available:
-        raise TooLarge(
-            f"{what} would need {size_text(nbytes)} of memory, more than the {size_text(available)} available "
-            f"here: {advice}"
-        )
+    check_memory(nbytes, what=what, advice=advice)
 
 
 def read_json(path: str | Path, what: str, advice: str) -> dict:

@@ -1,5 +1,6 @@
-"""Crafted files for the safety tests."""
+"""Crafted files and processes for the safety tests."""
 
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -30,3 +31,10 @@ def damage_energyscape_chunk(shard: Path) -> None:
     middle = chunk.byte_offset + chunk.size // 2
     raw[middle : middle + 16] = bytes(255 - b for b in raw[middle : middle + 16])
     shard.write_bytes(bytes(raw))
+
+
+def sigint_as_from_a_terminal() -> None:
+    """`preexec_fn` for a child that a test stops with SIGINT: a shell running commands in the
+    background (a CI runner, `cmd &`) starts them with SIGINT ignored, and Python then installs no
+    KeyboardInterrupt handler, so the child would never see the test's Ctrl-C."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)

@@ -27,6 +27,7 @@ import torch
 
 import learn
 import learn.inputs
+from clitools import limits
 from learn.cli import main
 from learn.data import DataConfig, DataError, load_frames
 from learn.predict import predict
@@ -237,19 +238,19 @@ def test_a_shard_claiming_billions_of_frames_is_refused_before_allocating(tiny_d
             del f[name]
             f.create_dataset(name, shape=(frames,), dtype=np.int32, chunks=(4096,), fletcher32=True)
     assert shard.stat().st_size < 10**7
-    with pytest.raises(learn.inputs.TooLarge, match=r"2,000,000,008 frames of 240 x 181\) would need \d+ TB"):
+    with pytest.raises(learn.inputs.TooLarge, match=r"2,000,000,008 frames of 240 x 181\) needs [\d.,]+ TB"):
         load_frames(folder)
 
 
 def test_memory_is_checked_with_the_figure(tiny_dataset, monkeypatch):
     """16 frames of 240 x 181: 2,085,376 bytes held (float16, uint8 and two int64 per frame) and
-    two shards' worth of 1,042,560 bytes as read: 4.17 MB, refused where 1 MB is available."""
-    monkeypatch.setattr(learn.inputs, "available_memory_bytes", lambda: 1_000_000)
+    two shards' worth of 1,042,560 bytes as read: 4.2 MB, refused where 1 MB is available."""
+    monkeypatch.setattr(limits, "available_memory_bytes", lambda: 1_000_000)
     with pytest.raises(
-        learn.inputs.TooLarge, match=r"16 frames of 240 x 181\) would need 4\.17 MB .* the 1 MB available"
+        learn.inputs.TooLarge, match=r"16 frames of 240 x 181\) needs 4\.2 MB, more than the 1\.0 MB of memory free"
     ):
         load_frames(tiny_dataset)
-    monkeypatch.setattr(learn.inputs, "available_memory_bytes", lambda: 4_170_496)
+    monkeypatch.setattr(limits, "available_memory_bytes", lambda: 4_170_496)
     assert len(load_frames(tiny_dataset)) == 16
 
 
@@ -301,11 +302,11 @@ def test_npy_inputs_that_would_go_wrong_are_refused(tmp_path, capsys, monkeypatc
         line = cli_error(capsys, ["predict", "--checkpoint", str(CKPT), "--input", str(tmp_path / name), "--out", pred])
         assert re.search(words, line), line
     np.save(tmp_path / "fine.npy", np.ones((6, *GRID), np.float32))
-    monkeypatch.setattr(learn.inputs, "available_memory_bytes", lambda: 1_000_000)
+    monkeypatch.setattr(limits, "available_memory_bytes", lambda: 1_000_000)
     line = cli_error(
         capsys, ["predict", "--checkpoint", str(CKPT), "--input", str(tmp_path / "fine.npy"), "--out", pred]
     )
-    assert "6 energyscapes of 240 x 181) would need 2.35 MB" in line  # 6 x 43,440 cells x 9 bytes
+    assert "6 energyscapes of 240 x 181) needs 2.3 MB" in line  # 6 x 43,440 cells x 9 bytes
     assert not Path(pred).exists()
 
 
@@ -337,7 +338,7 @@ CHECKPOINT_CASES = {
     "inf-floor": (lambda c: c["data_config"].update(floor_db=float("inf")), r"floor_db must be a finite number"),
     "width-30000": (
         lambda c: c["model_config"].update(width=30_000),
-        r"model_config: model polar_unet \(frames 5, width 30000: [\d,]+ weights\) would need 3\.\d\d TB",
+        r"model_config: model polar_unet \(frames 5, width 30000: [\d,]+ weights\) needs 3\.\d TB",
     ),
     "width-text": (lambda c: c["model_config"].update(width="16"), r"width must be an integer, got '16'"),
     "no-range": (lambda c: c.pop("range_m"), r"range_m is None, not a list of finite numbers"),

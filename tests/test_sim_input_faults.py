@@ -35,6 +35,8 @@ from acoustic_sim.datasets.suites import SUITES, load_suite
 from acoustic_sim.settings import apply_settings
 from clitools.limits import SizeError
 
+from .crafted import sigint_as_from_a_terminal
+
 ROOT = Path(__file__).resolve().parents[1]
 MB = 10**6
 
@@ -223,6 +225,7 @@ def test_ctrl_c_in_generate_stops_the_workers_and_keeps_the_folder_resumable(tmp
         stdout=subprocess.DEVNULL,
         text=True,
         start_new_session=True,  # its own process group, as a shell gives a command
+        preexec_fn=sigint_as_from_a_terminal,
     )
     try:
         for _ in range(1200):  # until the first shard has its final name (at most 2 min)

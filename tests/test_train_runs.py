@@ -30,6 +30,8 @@ from learn.runs import LOCK_FILE, clear_run
 from learn.scan import scan_scores
 from learn.train import _keep
 
+from .crafted import sigint_as_from_a_terminal
+
 EPOCHS = 3
 TRAIN = ["--frames", "3", "--width", "2", "--batch-size", "2", "--val-fraction", "0.25", "--max-train-windows", "4"]
 TRAIN += ["--loss", "bce", "--lr", "3e-3", "--seed", "5", "--device", "cpu", "--quiet", "--epochs", str(EPOCHS)]
@@ -78,6 +80,7 @@ def stopped_after_first_epoch(coarse, out, sig) -> tuple[int, str]:
         stderr=subprocess.PIPE,
         text=True,
         env=ENV,
+        preexec_fn=sigint_as_from_a_terminal,
     )
     deadline = time.monotonic() + 300  # a hang guard, not a timing assert
     while not (out / "last.pt").exists():
