@@ -1,4 +1,4 @@
-"""Pictures of learning: loss/metric curves and sonar / LiDAR / prediction grids (Fig 4 style)."""
+"""Pictures of learning: loss/metric curves, sonar / LiDAR / prediction grids (Fig 4 style), drives from above."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.lines import Line2D
 from matplotlib.ticker import MaxNLocator
 
 _FONT = {"font.size": 10, "axes.titlesize": 11, "axes.labelsize": 10, "legend.fontsize": 9}
@@ -175,6 +176,74 @@ def plot_examples(rows: list[dict], range_m, azimuth_rad, out: str | Path, *, th
             truth_r = _first_return(row["truth"], range_m, 0.5)
             pred_r = _first_return(row["pred"], range_m, level)
             _top_down(axes[3], truth_r, pred_r, range_m, azimuth_rad)
+        fig.savefig(out, dpi=90)
+    plt.close(fig)
+    return Path(out)
+
+
+def world_points(ranges, poses, azimuth_rad) -> np.ndarray:
+    """The world-frame points of a drive's returns, frame by frame, each frame's beams in order.
+
+    Args:
+        ranges: Range [m] per frame and beam, shape (T, A); inf or NaN = no return (left out).
+        poses: Planar sensor poses x [m], y [m], yaw [rad] in the world, shape (T, 3).
+        azimuth_rad: Beam directions [rad], 0 = sensor x axis (ahead), positive left, shape (A,).
+
+    Returns:
+        x, y [m] of each return, float64, shape (N, 2).
+    """
+    ranges, poses = np.asarray(ranges, dtype=np.float64), np.asarray(poses, dtype=np.float64)
+    heading = poses[:, 2:3] + np.asarray(azimuth_rad, dtype=np.float64)[None, :]
+    keep = np.isfinite(ranges)
+    r = np.where(keep, ranges, 0.0)
+    x, y = poses[:, :1] + r * np.cos(heading), poses[:, 1:2] + r * np.sin(heading)
+    return np.stack([x[keep], y[keep]], axis=1)
+
+
+def plot_drive_from_above(scans: dict[str, np.ndarray], poses, azimuth_rad, out: str | Path, *, title=None) -> Path:
+    """A whole drive seen from above: one panel per named scan set, each its returns in the world and the path.
+
+    Every panel has the same limits (all sets' returns and the path) and equal aspect, so a wall
+    that stays put, a ghost that smears along the path or a wall that only memory keeps show as
+    such side by side.
+
+    Args:
+        scans: Name (e.g. "truth", "K = 5", "memory", "occupancy grid") -> ranges [m] per frame and
+            beam, shape (T, A), inf or NaN = no return.
+        poses: Planar sensor poses x [m], y [m], yaw [rad] in the world, shape (T, 3).
+        azimuth_rad: Beam directions [rad], 0 = ahead, positive left, shape (A,).
+        out: PNG path.
+        title: Figure title.
+    """
+    poses = np.asarray(poses, dtype=np.float64)
+    points = {name: world_points(ranges, poses, azimuth_rad) for name, ranges in scans.items()}
+    everything = np.concatenate([poses[:, :2], *points.values()])
+    lo, hi = everything.min(axis=0), everything.max(axis=0)
+    pad = 0.03 * float((hi - lo).max()) + 0.2
+    lo, hi = lo - pad, hi + pad
+    cols = min(len(points), 4)
+    rows = -(-len(points) // cols)
+    tall = float(np.clip((hi[1] - lo[1]) / (hi[0] - lo[0]), 0.3, 3.0))  # panel height per width
+    with plt.rc_context(_FONT):
+        fig, axes = plt.subplots(
+            rows, cols, figsize=(4.5 * cols, 4.5 * rows * tall + 0.8), squeeze=False, layout="constrained"
+        )
+        for ax in axes.flat[len(points) :]:
+            ax.set_visible(False)
+        for ax, (name, xy) in zip(axes.flat, points.items(), strict=False):
+            ax.scatter(xy[:, 0], xy[:, 1], s=1.5, color="black", linewidths=0, rasterized=True, label="returns")
+            ax.plot(poses[:, 0], poses[:, 1], color="tab:blue", linewidth=1.2, label="sensor path")
+            ax.plot(*poses[0, :2], marker="o", color="tab:blue", linestyle="none", label="start")
+            ax.set(xlim=(lo[0], hi[0]), ylim=(lo[1], hi[1]), title=f"{name} ({len(xy):,} returns)")
+            ax.set(xlabel="x [m]", ylabel="y [m]")
+            ax.set_aspect("equal")
+            ax.grid(alpha=0.3)
+        handles, labels = axes.flat[0].get_legend_handles_labels()
+        # A dot as small as the panels' would not show in the legend.
+        handles[0] = Line2D([], [], marker="o", markersize=3, color="black", linestyle="none")
+        fig.legend(handles, labels, loc="outside lower center", ncols=3)
+        if title:
+            fig.suptitle(title, fontsize=12)
         fig.savefig(out, dpi=90)
     plt.close(fig)
     return Path(out)
