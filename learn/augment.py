@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import torch
 
 from .data import Windows, normalise
+from .odometry import OdometryNoise, noisy_window
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -28,35 +29,38 @@ class AugmentConfig:
             the far end of the grid (0 dB at the near end): spreading and absorption differ
             between engines and sensors.
         band_masks: Range bands per window (each up to a tenth of the grid) set to the floor.
+        odometry_drift: Models with memory: the motion of each window as odometry with this
+            drift reports it (`learn.odometry.OdometryNoise.from_drift`, drawn per window).
     """
 
     mirror: float = 0.5
     floor_jitter_db: float = 5.0
     range_tilt_db: float = 6.0
     band_masks: int = 2
+    odometry_drift: float = 0.0
 
     def __post_init__(self) -> None:
         if not 0.0 <= self.mirror <= 1.0:
             raise ValueError(f"augment.mirror is a probability in 0..1, got {self.mirror}")
-        values = (self.floor_jitter_db, self.range_tilt_db, self.band_masks)
+        values = (self.floor_jitter_db, self.range_tilt_db, self.band_masks, self.odometry_drift)
         if min(values) < 0 or not all(math.isfinite(v) for v in values):
             raise ValueError(f"augment sizes must be finite and >= 0, got {values}")
 
     @classmethod
     def none(cls) -> AugmentConfig:
         """No augmentation: the paper's training, and every run's before the study kept it."""
-        return cls(mirror=0.0, floor_jitter_db=0.0, range_tilt_db=0.0, band_masks=0)
+        return cls(mirror=0.0, floor_jitter_db=0.0, range_tilt_db=0.0, band_masks=0, odometry_drift=0.0)
 
     @property
     def active(self) -> bool:
-        return bool(self.mirror or self.floor_jitter_db or self.range_tilt_db or self.band_masks)
+        changes = (self.mirror, self.floor_jitter_db, self.range_tilt_db, self.band_masks, self.odometry_drift)
+        return any(bool(v) for v in changes)
 
 
-def augmented_batch(
-    windows: Windows, indices, config: AugmentConfig, generator: torch.Generator
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """`windows.batch(indices)` with this window's draws applied: x (B, 1, K, R, A) in [0, 1], y."""
-    energy, y = windows.raw(indices)  # (B, K, R, A) linear, (B, R, A)
+def augmented_batch(windows: Windows, indices, config: AugmentConfig, generator: torch.Generator):
+    """`windows.batch(indices)` with this window's draws applied: (x, y) as `Windows.batch` gives
+    them, the frames in [0, 1]; a mirrored window's motion is mirrored too, and drifts."""
+    energy, y, motion = windows.raw(indices)  # (B, N, R, A) linear, (B, R, A), (B, N, 4) or None
     b, _, r, _ = energy.shape
     dev = energy.device
 
@@ -78,4 +82,11 @@ def augmented_batch(
         flip = uniform(b) < config.mirror
         x = torch.where(flip[:, None, None, None], x.flip(-1), x)
         y = torch.where(flip[:, None, None], y.flip(-1), y)
-    return x[:, None], y[:, None]
+        if motion is not None:  # the mirror image of a drive turns the other way: y and yaw change sign
+            sign = torch.tensor([1.0, -1.0, -1.0, 1.0], device=dev)
+            motion = torch.where(flip[:, None, None], motion * sign, motion)
+    if motion is None:
+        return x[:, None], y[:, None]
+    noise = OdometryNoise.from_drift(config.odometry_drift)
+    moved = noisy_window(motion[..., :3], windows.config.anchor, noise, generator)
+    return (x[:, None], torch.cat([moved, motion[..., 3:]], -1)), y[:, None]

@@ -44,8 +44,12 @@ def _configs(args):
         cuda_graphs=args.cuda_graphs,
     )
     config = LearnConfig(
-        model=dataclasses.replace(base.model, name=args.model, frames=args.frames, width=args.width),
-        data=dataclasses.replace(base.data, frames=args.frames, label=args.label),
+        model=dataclasses.replace(
+            base.model, name=args.model, frames=args.frames, width=args.width, history=args.history
+        ),
+        data=dataclasses.replace(
+            base.data, frames=args.frames, label=args.label, history=args.history, history_stride=args.history_stride
+        ),
         augment=AugmentConfig.none() if args.no_augment else base.augment,
         train=train,
     )
@@ -227,6 +231,10 @@ def _training_options(p, base) -> None:
     p.add_argument("--frames", type=int, default=model.frames, help="window length K")
     p.add_argument("--width", type=int, default=model.width, help="base channels of polar_unet")
     p.add_argument("--label", default=data.label, choices=["middle", "last"], help="label frame of a window")
+    p.add_argument(
+        "--history", type=int, default=data.history, help="polar_memory: frames before the window it also reads"
+    )
+    p.add_argument("--history-stride", type=int, default=data.history_stride, help="frames between two history frames")
     p.add_argument("--epochs", type=int, default=train.epochs, help="most epochs")
     p.add_argument("--batch-size", type=int, default=train.batch_size, help="windows per step")
     p.add_argument("--lr", type=float, default=train.lr, help="Adam learning rate")

@@ -104,7 +104,8 @@ class LearnConfig:
     augmentation the sim-to-real study kept, Adam 1e-4). `--set train.lr=3e-4`, `augment=none`.
 
     The network and the windows read the same number of frames: `model.frames == data.frames`
-    (`with_frames` changes both; `learn train --frames` sets both).
+    and `model.history == data.history` (`with_frames` changes both; `learn train --frames` and
+    `--history` set both).
     """
 
     model: ModelConfig = field(default_factory=ModelConfig)
@@ -118,6 +119,13 @@ class LearnConfig:
                 f"model.frames and data.frames must agree: set the window length with --frames "
                 f"(got {self.model.frames} and {self.data.frames})"
             )
+        if self.model.history != self.data.history:
+            raise ValueError(
+                f"model.history and data.history must agree: set them with --history "
+                f"(got {self.model.history} and {self.data.history})"
+            )
+        if self.data.history and not self.model.uses_odometry:
+            raise ValueError(f"history frames ({self.data.history}) are read by --model polar_memory only")
 
     def with_frames(self, frames: int) -> LearnConfig:
         """This config with windows (and the network's input) of `frames` energyscapes."""

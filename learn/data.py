@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from .inputs import check_fits, read_json
+from .odometry import relative
 from .shardfile import FORMAT as FORMAT  # re-exported: learn.data is where readers look for them
 from .shardfile import FORMAT_VERSION as FORMAT_VERSION
 from .shardfile import DataError as DataError
@@ -40,11 +41,18 @@ class DataConfig:
         floor_db: Input normalisation: each energyscape in dB below its own peak, floored at
             -floor_db and mapped to [0, 1]. Per-frame scaling makes the input independent of the
             absolute echo level (which differs between simulation and real sensors).
+        history: Frames before the window that a model with memory also reads, every
+            `history_stride` frames back from its first frame (0: the window alone). Near the
+            start of a drive some are not there yet; they are given as absent, so a window is the
+            same window with and without history.
+        history_stride: Frames between two history frames (10 frames are 1 s of a drive).
     """
 
     frames: int = 5
     label: Label = "middle"
     floor_db: float = 40.0
+    history: int = 0
+    history_stride: int = 1
 
     def __post_init__(self) -> None:
         if not isinstance(self.frames, Integral) or isinstance(self.frames, bool):
@@ -58,11 +66,27 @@ class DataConfig:
         if not isinstance(self.floor_db, Real) or not (self.floor_db > 0 and math.isfinite(self.floor_db)):
             # an infinite floor maps every cell to NaN (inf / inf), a NaN one every comparison to False
             raise ValueError(f"floor_db must be a finite number of dB > 0, got {self.floor_db!r}")
+        for name in ("history", "history_stride"):
+            value = getattr(self, name)
+            if not isinstance(value, Integral) or isinstance(value, bool) or value < (name == "history_stride"):
+                raise ValueError(f"{name} must be an integer >= {int(name == 'history_stride')}, got {value!r}")
 
     @property
     def label_offset(self) -> int:
         """Frame of the label within a window."""
         return self.frames // 2 if self.label == "middle" else self.frames - 1
+
+    @property
+    def offsets(self) -> np.ndarray:
+        """Every frame a window reads, relative to its first frame: the history, oldest first,
+        then the window's K frames."""
+        back = -self.history_stride * np.arange(self.history, 0, -1)
+        return np.concatenate([back, np.arange(self.frames)]).astype(np.int64)
+
+    @property
+    def anchor(self) -> int:
+        """Index of the label frame in `offsets`."""
+        return self.history + self.label_offset
 
 
 def window_starts(episode: np.ndarray, frames: int) -> np.ndarray:
@@ -100,6 +124,9 @@ class Frames:
         scenarios: Scenario names.
         range_m, azimuth_rad: Axis coordinates (R,), (A,).
         info: Folder, manifest fields (suite, variant, plan_id) and the shards' configs.
+        pose: (T, 3) float64 planar sensor poses (x, y [m], yaw [rad], `learn.odometry`) as
+            odometry reports them; None where the data has none (a recording without odometry,
+            a bare .npy).
     """
 
     energyscape: np.ndarray
@@ -110,6 +137,7 @@ class Frames:
     range_m: np.ndarray
     azimuth_rad: np.ndarray
     info: dict
+    pose: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.episode)
@@ -156,6 +184,7 @@ def load_frames(folder: str | Path) -> Frames:
     )
     energyscape, label = np.empty((total, *shape), np.float16), np.empty((total, *shape), np.uint8)
     episode, scenario = np.empty(total, np.int64), np.empty(total, np.int64)
+    pose: np.ndarray | None = np.empty((total, 3))
     names, seen, grid, start = [], {}, None, 0
     for header in headers:
         arrays = read_arrays(header, seen)
@@ -168,10 +197,14 @@ def load_frames(folder: str | Path) -> Frames:
         rows = slice(start, start + header.frames)
         energyscape[rows], label[rows], episode[rows] = arrays.energyscape, arrays.label, arrays.episode
         scenario[rows] = remap[arrays.scenario]
+        if pose is not None and arrays.pose is not None:
+            pose[rows] = arrays.pose
+        else:  # poses of some frames only are no poses
+            pose = None
         start += header.frames
     info |= {k: manifest.get(k) for k in ("suite", "variant", "physics")}
     info |= {"plan_id": first.plan_id, "config": first.config}
-    return Frames(energyscape, label, episode, scenario, names, grid[0], grid[1], info)
+    return Frames(energyscape, label, episode, scenario, names, grid[0], grid[1], info, pose)
 
 
 def _manifest(folder: Path) -> dict:
@@ -245,40 +278,68 @@ def torch_device(name: str | torch.device) -> torch.device:
 
 
 class Windows:
-    """Windows of a dataset on a device: `batch(indices)` -> (x (B, 1, K, R, A), y (B, 1, R, A)).
+    """Windows of a dataset on a device: `batch(indices)` -> (x, y (B, 1, R, A)).
+
+    x is the frames (B, 1, N, R, A) normalised (N = history + K, oldest first; absent history
+    frames are 0), or with `odometry` the pair (frames, motion): motion (B, N, 4) holds each
+    frame's pose in the label frame's sensor frame (x, y [m], yaw [rad]) and 1 where the frame is
+    there (0 for history before the drive began).
 
     Args:
         frames: The dataset (see `load_frames`).
-        config: Window length, label position and normalisation.
+        config: Window length, history, label position and normalisation.
         device: Where the frames are kept and batches are made.
+        odometry: Give each frame's motion (a model with memory reads it); needs the data's poses.
     """
 
-    def __init__(self, frames: Frames, config: DataConfig, device: str | torch.device = "cpu"):
-        self.frames, self.config = frames, config
+    def __init__(self, frames: Frames, config: DataConfig, device: str | torch.device = "cpu", *, odometry=False):
+        self.frames, self.config, self.odometry = frames, config, bool(odometry)
         self.device = torch_device(device)
+        if config.history and not self.odometry:
+            raise ValueError(f"history frames ({config.history}) are read by a model with memory, which needs odometry")
+        if self.odometry and frames.pose is None:
+            raise DataError(
+                f"{frames.info['folder']} holds no poses (a recording without odometry, or a bare .npy), and a "
+                "model with memory needs them: use a model without memory (polar_unet), or data with odometry"
+            )
         self.starts = window_starts(frames.episode, config.frames)
         if len(self.starts) == 0:
             raise DataError(f"no window of {config.frames} frames fits in any episode of {frames.info['folder']}")
         label_frame = self.starts + config.label_offset
         self.episode = frames.episode[label_frame]
         self.scenario = frames.scenario[label_frame]
+        first_of_episode = np.flatnonzero(np.r_[True, frames.episode[1:] != frames.episode[:-1]])
+        first = first_of_episode[np.searchsorted(first_of_episode, self.starts, side="right") - 1]
         self._energyscape = torch.from_numpy(frames.energyscape).to(self.device)
         self._label = torch.from_numpy(frames.label).to(self.device)
         self._starts = torch.from_numpy(self.starts).to(self.device)
-        self._offsets = torch.arange(config.frames, device=self.device)
+        self._first = torch.from_numpy(first).to(self.device)  # each window's episode's first frame
+        self._offsets = torch.from_numpy(config.offsets).to(self.device)
+        self._pose = torch.from_numpy(frames.pose).float().to(self.device) if self.odometry else None
 
     def __len__(self) -> int:
         return len(self.starts)
 
-    def batch(self, indices) -> tuple[torch.Tensor, torch.Tensor]:
-        energy, y = self.raw(indices)
-        return normalise(energy, self.config.floor_db)[:, None], y[:, None]
+    def batch(self, indices):
+        energy, y, motion = self.raw(indices)
+        x = normalise(energy, self.config.floor_db)[:, None]
+        return ((x, motion) if self.odometry else x), y[:, None]
 
-    def raw(self, indices) -> tuple[torch.Tensor, torch.Tensor]:
-        """Energyscapes as stored (B, K, R, A) and labels (B, R, A), before normalisation."""
+    def raw(self, indices) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """Energyscapes as stored (B, N, R, A) (0 where absent), labels (B, R, A), and motion
+        (B, N, 4) or None (see the class docstring), before normalisation."""
         index = torch.as_tensor(indices, device=self.device, dtype=torch.int64)
         start = self._starts[index]
-        return self._energyscape[start[:, None] + self._offsets], self._label[start + self.config.label_offset].float()
+        frame = start[:, None] + self._offsets  # (B, N)
+        present = frame >= self._first[index][:, None]
+        frame = torch.maximum(frame, self._first[index][:, None])
+        energy = self._energyscape[frame] * present[:, :, None, None]
+        label = self._label[start + self.config.label_offset].float()
+        if not self.odometry:
+            return energy, label, None
+        pose = self._pose[frame]  # (B, N, 3)
+        motion = relative(pose, pose[:, self.config.anchor, None])
+        return energy, label, torch.cat([motion, present[:, :, None].float()], -1)
 
 
 def split_groups(groups: np.ndarray, folds: int, *, seed: int = 0) -> np.ndarray:

@@ -15,6 +15,7 @@ of each beam of the label frame's energyscape, within 10 dB of the frame's peak)
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 from collections.abc import Callable, Iterable
@@ -27,7 +28,8 @@ from tqdm.auto import tqdm
 from .checkpoint import load_checkpoint
 from .data import DataConfig, Frames, Windows, load_frames, recorded_path
 from .metrics import image_metrics
-from .models import predict_image
+from .models import ModelConfig, predict_image
+from .odometry import OdometryNoise, noisy_drive
 from .report import example_file, report_markdown, write_per_scenario, write_per_window
 from .scan import CALIBRATION_THRESHOLDS, scan_f1_sweep
 
@@ -111,7 +113,8 @@ def calibrate_on_predictions(
 
 def model_predictor(model, *, amp: bool = True) -> Callable:
     def predict(x):
-        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=amp and x.device.type == "cuda"):
+        device = (x[0] if isinstance(x, tuple) else x).device
+        with torch.autocast("cuda", dtype=torch.bfloat16, enabled=amp and device.type == "cuda"):
             return predict_image(model, x)
 
     model.eval()
@@ -218,6 +221,8 @@ def evaluate(
     timing: bool = True,
     threshold: float | None = None,
     progress: bool = False,
+    odometry_noise: OdometryNoise | None = None,
+    odometry_seed: int = 0,
 ) -> dict:
     """Score one or more checkpoints on a dataset (with baselines) and write metrics.json (means
     and std overall and per scenario), per_scenario.csv, per_window.csv (every metric of every
@@ -232,6 +237,9 @@ def evaluate(
         episodes: Episode ids to score instead of a split.
         threshold: Return threshold for every model instead of each checkpoint's calibrated one.
         progress: A progress bar per model and baseline while it is scored.
+        odometry_noise: Models with memory (and the occupancy grids) read the drive's poses as
+            odometry with this drift reports them (`learn.odometry`), drawn per episode from
+            `odometry_seed`; None or all zero: the true poses.
     """
     from .plots import plot_examples
 
@@ -243,22 +251,31 @@ def evaluate(
     first_name = next(iter(models))
     ckpt = models[first_name][1]
     frames = data if isinstance(data, Frames) else load_frames(data)
+    if odometry_noise is not None and odometry_noise.active:
+        frames = with_noisy_odometry(frames, odometry_noise, seed=odometry_seed)
+    data_config = DataConfig(**ckpt["data_config"])
+    windows = Windows(frames, plain_windows(data_config), device)  # the baselines' (and every model's) windows
     for name, (_, c) in models.items():
         check_grid(frames, c, name)
-        if c["data_config"] != ckpt["data_config"]:
-            raise ValueError(f"{name!r} reads other windows ({c['data_config']}) than {first_name!r}; compare alike")
-    data_config = DataConfig(**ckpt["data_config"])
-    windows = Windows(frames, data_config, device)
+        theirs = DataConfig(**c["data_config"])
+        if (theirs.frames, theirs.label) != (data_config.frames, data_config.label):
+            raise ValueError(
+                f"{name!r} reads other windows (K = {theirs.frames}, label {theirs.label}) than {first_name!r} "
+                f"(K = {data_config.frames}, label {data_config.label}); compare alike"
+            )
     indices, split = _pick_windows(windows, ckpt, frames, split, episodes)
     out.mkdir(parents=True, exist_ok=True)
     scenario = windows.scenario[indices]
-    predictors = {name: (model_predictor(m), return_threshold(c, threshold)) for name, (m, c) in models.items()}
-    predictors["echo peak"] = (echo_peak_predictor(data_config.label_offset), BASELINE_THRESHOLD)
-    predictors["empty"] = (empty_predictor, BASELINE_THRESHOLD)
+    predictors = {
+        name: (model_predictor(m), return_threshold(c, threshold), model_windows(frames, c, device))
+        for name, (m, c) in models.items()
+    }
+    predictors["echo peak"] = (echo_peak_predictor(data_config.label_offset), BASELINE_THRESHOLD, windows)
+    predictors["empty"] = (empty_predictor, BASELINE_THRESHOLD, windows)
     results, per_window = {}, {}
-    for name, (predict, t) in predictors.items():
+    for name, (predict, t, their_windows) in predictors.items():
         bar = f"scoring {name}" if progress else None
-        per_window[name] = score(predict, windows, indices, threshold=t, batch_size=batch_size, progress=bar)
+        per_window[name] = score(predict, their_windows, indices, threshold=t, batch_size=batch_size, progress=bar)
         results[name] = summarise(per_window[name], scenario, frames.scenarios)
     report = {
         "checkpoints": {name: recorded_path(path) for name, path in named.items()},
@@ -271,12 +288,14 @@ def evaluate(
         "model": ckpt["model_config"],
         "parameters": ckpt["parameters"],
         "data_config": ckpt["data_config"],
-        "thresholds": {name: t for name, (_, t) in predictors.items()},
+        "thresholds": {name: t for name, (_, t, _) in predictors.items()},
+        "odometry_noise": dataclasses.asdict(odometry_noise) if odometry_noise else None,
+        "odometry_seed": odometry_seed if odometry_noise else None,
         "examples_from": first_name,
         "results": results,
     }
     if timing:
-        report["inference"] = inference_timing(models[first_name][0], windows)
+        report["inference"] = inference_timing(models[first_name][0], predictors[first_name][2])
     (out / "metrics.json").write_text(json.dumps(report, indent=1))
     write_per_scenario(out / "per_scenario.csv", results)
     write_per_window(out / "per_window.csv", per_window, indices, windows)
@@ -286,6 +305,30 @@ def evaluate(
         plot_examples(rows, frames.range_m, frames.azimuth_rad, path, threshold=predictors[name][1])
     (out / "report.md").write_text(report_markdown(report))
     return report
+
+
+def plain_windows(config: DataConfig) -> DataConfig:
+    """The windows without history: what a model without memory and the baselines read."""
+    return dataclasses.replace(config, history=0, history_stride=1)
+
+
+def model_windows(frames: Frames, ckpt: dict, device) -> Windows:
+    """The windows a checkpoint's model reads (its history and motion for a model with memory)."""
+    model = ModelConfig(**ckpt["model_config"])
+    return Windows(frames, DataConfig(**ckpt["data_config"]), device, odometry=model.uses_odometry)
+
+
+def with_noisy_odometry(frames: Frames, noise: OdometryNoise, *, seed: int) -> Frames:
+    """`frames` with its poses as odometry with `noise` reports them, one draw per episode (from
+    `seed` and the episode id, so the same episode drifts alike in every run)."""
+    if frames.pose is None:
+        raise ValueError(f"{frames.info['folder']} holds no poses to add odometry noise to")
+    pose = frames.pose.copy()
+    for episode in np.unique(frames.episode):
+        rows = np.flatnonzero(frames.episode == episode)
+        rng = np.random.default_rng([seed, int(episode)])
+        pose[rows] = noisy_drive(frames.pose[rows], noise, rng)
+    return dataclasses.replace(frames, pose=pose)
 
 
 def _grid_text(range_m, azimuth_rad) -> str:
@@ -341,13 +384,13 @@ def _example_rows(predictors, name, picker, per_window, windows, indices, frames
     rank[np.argsort(f1, kind="stable")] = np.arange(len(f1))  # this model's rank of each window
     order = np.argsort(per_window[picker]["scan_f1"], kind="stable")
     picks = list(dict.fromkeys(int(order[round(q * (len(order) - 1))]) for q in np.linspace(0.1, 0.9, count)))
-    predict, _ = predictors[name]
+    predict, _, their_windows = predictors[name]
     offset = windows.config.label_offset
     rows = []
     for local in picks:
         x, y = windows.batch([indices[local]])
         with torch.no_grad():
-            pred = predict(x).float().clamp(0, 1)
+            pred = predict(their_windows.batch([indices[local]])[0]).float().clamp(0, 1)
         peak = per_window["echo peak"]["scan_f1"][local]
         rows.append(
             {

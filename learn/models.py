@@ -3,11 +3,13 @@
     model = build_model(ModelConfig(name="polar_unet", frames=5))
     image = predict_image(model, x)  # (B, 1, R, A), in [0, 1] for logit models
 
-Two models:
+Three models:
 - `PaperNet`: the paper's Table 1 network, a 3D convolutional autoencoder over (time, range, azimuth)
   that outputs the image directly (trained with MSE, as in the paper).
 - `PolarUNet`: ours, a small 2D UNet with the K frames as channels plus range/azimuth coordinate
   channels; it outputs logits (trained with BCE), has ~60x fewer parameters and is far cheaper to run.
+- `PolarMemory` (`learn.memory`): the polar UNet over a window and its history, every frame brought
+  into the current sensor frame by odometry; forward(x, motion).
 
 Every model has a class attribute `output`: "image" (forward returns the image) or "logits"
 (the image is sigmoid(forward)). R and A are free (the paper grid is 240 x 181); K is fixed per model.
@@ -18,7 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
-from numbers import Integral
+from numbers import Integral, Real
 
 import torch
 import torch.nn.functional as F
@@ -39,12 +41,17 @@ class ModelConfig:
             shares. Floor and ceiling bands and array sidelobes span all azimuths and are strong
             in another engine's or a real sensor's frames; walls do not. Part of the network, so
             an exported model computes it too.
+        history: polar_memory only: frames before the window it reads (`DataConfig.history`).
+        extent: polar_memory only: the polar grid it resamples on, first and last range bin centre
+            [m] and first and last azimuth centre [rad]; `learn train` sets it from the data.
     """
 
     name: str = "polar_unet"
     frames: int = 5
     width: int = 16
     row_contrast: bool = False
+    history: int = 0
+    extent: tuple[float, float, float, float] | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or self.name not in MODEL_NAMES:
@@ -61,8 +68,26 @@ class ModelConfig:
             raise ValueError(f"the paper network needs an odd number of frames (1, 3, 5), got {self.frames}")
         if self.width < 1:
             raise ValueError(f"width must be >= 1, got {self.width}")
-        if self.row_contrast and self.name != "polar_unet":
+        if self.row_contrast and self.name not in ("polar_unet", "polar_memory"):
             raise ValueError(f"row_contrast is a polar_unet input, not one of {self.name!r}")
+        if not isinstance(self.history, Integral) or isinstance(self.history, bool) or self.history < 0:
+            raise ValueError(f"history must be an integer >= 0, got {self.history!r}")
+        if self.history and not self.uses_odometry:
+            raise ValueError(f"history frames are read by polar_memory, not by {self.name!r}")
+        if self.extent is not None:
+            extent = tuple(self.extent) if isinstance(self.extent, list | tuple) else ()
+            numbers = len(extent) == 4 and all(isinstance(v, Real) and math.isfinite(v) for v in extent)
+            if not (numbers and extent[1] > extent[0] >= 0 and extent[3] > extent[2]):
+                raise ValueError(
+                    f"extent must be (first range [m], last range [m], first azimuth [rad], last azimuth [rad]), "
+                    f"increasing and finite, got {self.extent!r}"
+                )
+            object.__setattr__(self, "extent", tuple(float(v) for v in extent))
+
+    @property
+    def uses_odometry(self) -> bool:
+        """Whether the network reads each frame's motion besides the frames (a model with memory)."""
+        return self.name == "polar_memory"
 
 
 # ---------------------------------------------------------------------------------------------
@@ -257,7 +282,18 @@ def _upsample_to(x: torch.Tensor, like: torch.Tensor) -> torch.Tensor:
 MODELS: dict[str, Callable[[ModelConfig], nn.Module]] = {
     "paper": lambda config: PaperNet(frames=config.frames),
     "polar_unet": lambda config: PolarUNet(frames=config.frames, width=config.width, row_contrast=config.row_contrast),
+    "polar_memory": lambda config: _polar_memory(config),
 }
+
+
+def _polar_memory(config: ModelConfig) -> nn.Module:
+    from .memory import PolarMemory  # it builds on this module's UNet
+
+    if config.extent is None:
+        raise ValueError("polar_memory needs the polar grid it resamples on (model.extent): `learn train` sets it")
+    return PolarMemory(config.frames, config.history, config.width, config.row_contrast, config.extent)
+
+
 MODEL_NAMES = tuple(MODELS)
 
 
@@ -289,11 +325,17 @@ def parameter_count(model: nn.Module) -> int:
     return sum(p.numel() for p in model.parameters() if p.requires_grad)
 
 
-def predict_image(model: nn.Module, x: torch.Tensor) -> torch.Tensor:
-    """The predicted lidar image of either kind of model: (B, 1, K, R, A) -> (B, 1, R, A).
+def run_model(model: nn.Module, x) -> torch.Tensor:
+    """The model's output for x as `learn.data.Windows.batch` gives it: the frames, or (frames,
+    motion) for a model with memory."""
+    return model(*x) if isinstance(x, tuple) else model(x)
+
+
+def predict_image(model: nn.Module, x) -> torch.Tensor:
+    """The predicted lidar image of any model: x (see `run_model`) -> (B, 1, R, A).
 
     Logit models are passed through a sigmoid; image models are clamped to [0, 1].
     """
-    out = model(x)
+    out = run_model(model, x)
     kind = getattr(model, "module", model).output  # DistributedDataParallel wraps the model
     return torch.sigmoid(out) if kind == "logits" else out.clamp(0.0, 1.0)

@@ -21,6 +21,7 @@ import h5py
 import numpy as np
 
 from .inputs import regular_file
+from .odometry import planar
 
 FORMAT = "sonar2lidar-dataset"  # written by acoustic_sim.datasets.shards; the file format is the interface
 FORMAT_VERSION = 1
@@ -34,7 +35,7 @@ READ = {
     "range_m": "f",
     "azimuth_rad": "f",
 }
-ALSO_READ = {"time": "f"}  # frame times, read by learn.ros for `predict --mcap`
+ALSO_READ = {"time": "f", "pose": "f"}  # frame times (learn.ros for `predict --mcap`), sensor poses (memory)
 REDO = "regenerate it with `python -m acoustic_sim generate`, or move it out of the folder"
 
 
@@ -72,7 +73,8 @@ class ShardHeader:
 @dataclass
 class ShardArrays:
     """A shard's arrays as the learner holds them: energyscape (T, R, A) float16, label (T, R, A)
-    uint8, episode and scenario (T,) int64, range_m (R,) [m], azimuth_rad (A,) [rad]."""
+    uint8, episode and scenario (T,) int64, range_m (R,) [m], azimuth_rad (A,) [rad], pose (T, 3)
+    planar sensor poses (x [m], y [m], yaw [rad]; `learn.odometry`), None where the shard has none."""
 
     energyscape: np.ndarray
     label: np.ndarray
@@ -80,6 +82,7 @@ class ShardArrays:
     scenario: np.ndarray
     range_m: np.ndarray
     azimuth_rad: np.ndarray
+    pose: np.ndarray | None = None
 
 
 def open_shard(path: Path) -> h5py.File:
@@ -204,7 +207,7 @@ def read_arrays(header: ShardHeader, seen_episodes: dict[int, Path]) -> ShardArr
     path = header.path
     with open_shard(path) as f:
         arrays = {}
-        for name in READ:
+        for name in (*READ, *(["pose"] if _has_poses(f, header) else [])):
             try:
                 arrays[name] = f[name][()]
             except OSError as err:  # a checksum or decompression failure
@@ -221,7 +224,23 @@ def read_arrays(header: ShardHeader, seen_episodes: dict[int, Path]) -> ShardArr
         scenario=_scenarios(arrays["scenario"], header),
         range_m=arrays["range_m"].astype(np.float64),
         azimuth_rad=arrays["azimuth_rad"].astype(np.float64),
+        pose=_poses(arrays["pose"], path, header.frames) if "pose" in arrays else None,
     )
+
+
+def _has_poses(f: h5py.File, header: ShardHeader) -> bool:
+    """Whether the shard holds its frames' poses: a CHIRP recording imported without odometry
+    stores identities, and says so in its config."""
+    return "pose" in f and not str(header.config.get("poses", "")).startswith("identity")
+
+
+def _poses(pose: np.ndarray, path: Path, frames: int) -> np.ndarray:
+    """4 x 4 sensor-to-world poses -> planar (T, 3), refused where not finite or not (T, 4, 4)."""
+    if pose.shape != (frames, 4, 4):
+        raise DataError(f"{path}: pose has shape {pose.shape}, expected ({frames}, 4, 4): {REDO}")
+    if not np.isfinite(pose).all():
+        raise DataError(f"{path}: pose holds NaN or inf values: {REDO}")
+    return planar(pose)
 
 
 def as_float16(values: np.ndarray, what: str, advice: str) -> np.ndarray:

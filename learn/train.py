@@ -14,6 +14,7 @@ that epoch are read at it, and the checkpoint stores it for evaluate, predict an
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import time
@@ -29,14 +30,14 @@ from .augment import augmented_batch
 from .config import MONITORS, LearnConfig, TrainConfig, to_record
 from .data import FORMAT_VERSION, Frames, Windows, load_frames, split_groups, torch_device, validation_split
 from .evaluate import calibrate_on_predictions, model_predictor, predict_batches, score_predictions
-from .models import build_model, parameter_count
+from .models import build_model, parameter_count, run_model
 from .progress import epoch_line, sizes_line, write_fold_summary
 from .runs import run_folder, save_epoch, save_history, start_state, write_run_config, write_summary
 from .tensorboard import TensorBoardLog, summary_writer
 
 
-def loss_fn(model, x: torch.Tensor, y: torch.Tensor, config: TrainConfig) -> torch.Tensor:
-    out = model(x)
+def loss_fn(model, x, y: torch.Tensor, config: TrainConfig) -> torch.Tensor:
+    out = run_model(model, x)
     kind = _unwrap(model).output
     if config.loss == "bce":
         if kind != "logits":
@@ -166,7 +167,8 @@ def _train_in(data, out: Path, config: LearnConfig, *, device: str, folds: int, 
     frames = data if isinstance(data, Frames) else load_frames(data)
     if frames.info.get("suite") == "crossengine":
         raise ValueError(f"{frames.info['folder']} is the crossengine test set: score models on it, never train on it")
-    windows = Windows(frames, config.data, dev)
+    config = with_grid(config, frames)
+    windows = Windows(frames, config.data, dev, odometry=config.model.uses_odometry)
     groups = windows.episode if config.train.split_by == "episode" else windows.scenario
     each |= {"config": config, "dist_info": dist_info}
     if folds > 1:
@@ -186,6 +188,21 @@ def _train_in(data, out: Path, config: LearnConfig, *, device: str, folds: int, 
         dist.barrier()  # rank 0 writes the summaries last; leaving without this aborts gloo ranks at exit
         dist.destroy_process_group()
     return result
+
+
+def with_grid(config: LearnConfig, frames: Frames) -> LearnConfig:
+    """`config` with a model with memory told the polar grid it resamples on (the data's),
+    refused where it was given another one."""
+    if not config.model.uses_odometry:
+        return config
+    r, a = frames.range_m, frames.azimuth_rad
+    even = np.allclose(np.diff(r), r[1] - r[0], rtol=1e-3) and np.allclose(np.diff(a), a[1] - a[0], rtol=1e-3)
+    if len(r) < 2 or len(a) < 2 or not even:
+        raise ValueError(f"{frames.info['folder']}: polar_memory needs evenly spaced range and azimuth bins")
+    extent = (float(r[0]), float(r[-1]), float(a[0]), float(a[-1]))
+    if config.model.extent is not None and not np.allclose(config.model.extent, extent, atol=1e-6):
+        raise ValueError(f"model.extent {config.model.extent} is not the grid of {frames.info['folder']} ({extent})")
+    return dataclasses.replace(config, model=dataclasses.replace(config.model, extent=extent))
 
 
 def _train_one(

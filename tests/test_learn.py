@@ -479,8 +479,15 @@ def test_set_reaches_fields_no_option_names_and_the_run_records_them(tiny_datase
     assert main(argv) == 0
     written = json.loads((run / "config.json").read_text())
     assert written["train_config"]["pos_weight"] == 5.0 and written["train_config"]["max_val_windows"] is None
-    assert written["data_config"] == {"frames": 3, "label": "middle", "floor_db": 50.0}
-    assert written["model_config"] == {"name": "polar_unet", "frames": 3, "width": 4, "row_contrast": True}
+    assert written["data_config"] == {
+        "frames": 3,
+        "label": "middle",
+        "floor_db": 50.0,
+        "history": 0,
+        "history_stride": 1,
+    }
+    model = {"name": "polar_unet", "frames": 3, "width": 4, "row_contrast": True, "history": 0, "extent": None}
+    assert written["model_config"] == model
     assert written["dataset"]["plan_id"] == load_frames(tiny_dataset).info["plan_id"] and not written["resumed"]
     from learn.cli import _configs, _recorded_config, build_parser
     from learn.config import from_record
@@ -599,12 +606,19 @@ def test_training_with_augmentation_records_it(tiny_dataset, tmp_path):
         "floor_jitter_db": 0.0,
         "range_tilt_db": 6.0,
         "band_masks": 2,
+        "odometry_drift": 0.0,
     }  # the rest: defaults
     assert load_checkpoint(run / "best.pt")[1]["train_config"]["augment"]["mirror"] == 0.25
     plain = tmp_path / "plain"  # --no-augment starts from none; a --set after it adds one back
     assert main([*argv[:4], str(plain), *argv[5:], "--no-augment", "--set", "augment.mirror=0.5"]) == 0
     augment = json.loads((plain / "config.json").read_text())["train_config"]["augment"]
-    assert augment == {"mirror": 0.5, "floor_jitter_db": 0.0, "range_tilt_db": 0.0, "band_masks": 0}
+    assert augment == {
+        "mirror": 0.5,
+        "floor_jitter_db": 0.0,
+        "range_tilt_db": 0.0,
+        "band_masks": 0,
+        "odometry_drift": 0.0,
+    }
 
 
 @pytest.mark.filterwarnings("ignore:.*predicts no return")
