@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .models import PolarUNet, row_contrast
+from .polar_unet import PolarUNet, row_contrast
 
 BEHIND = 1e-6  # [m]: points this close to straight behind a frame's sensor have no azimuth in view
 EDGE = 1e-4  # of the half grid: the outermost bin centres are in view despite float rounding

@@ -11,9 +11,9 @@ from learn.models import (
     PolarUNet,
     build_model,
     parameter_count,
-    polar_pad,
     predict_image,
 )
+from learn.polar_unet import polar_pad
 
 PAPER_PARAMETERS_K5 = 13_367_121  # Table 1 + a two-convolution residual block (bias-free before BN) + 1x1 head
 
