@@ -82,6 +82,7 @@ def _train(args) -> int:
 
 def _evaluate(args) -> int:
     from .evaluate import evaluate
+    from .odometry import OdometryNoise
 
     inputs = [*(c.partition("=")[2] or c for c in args.checkpoint), args.data]  # --checkpoint NAME=PATH or PATH
     with atomic_folder(args.out, overwrite=args.overwrite, inputs=inputs, expected=["metrics.json"]) as stage:
@@ -93,6 +94,9 @@ def _evaluate(args) -> int:
             split=args.split,
             threshold=args.threshold,
             progress=not args.quiet,
+            odometry_noise=OdometryNoise.from_drift(args.odometry_drift),
+            odometry_seed=args.odometry_seed,
+            grids=not args.no_grids,
         )
     print(f"{counted(report['windows'], 'window')} ({report['split']} split) of {report['data']}:")
     for name, r in report["results"].items():
@@ -341,6 +345,14 @@ def build_parser(base=None) -> argparse.ArgumentParser:
     p.add_argument("--split", default="auto", choices=["auto", "val", "all"], help="auto: val on the training data")
     p.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    p.add_argument(
+        "--odometry-drift",
+        type=float,
+        default=0.0,
+        help="models with memory and the occupancy grids read poses as odometry with this drift (0.05: 5 %%)",
+    )
+    p.add_argument("--odometry-seed", type=int, default=0, help="seed of the odometry drift, drawn per episode")
+    p.add_argument("--no-grids", action="store_true", help="leave out the occupancy-grid baselines")
     _threshold_option(p)
     p.set_defaults(handler=_evaluate)
     p = sub.add_parser("predict", formatter_class=fmt, parents=[common], **COMMANDS["predict"])

@@ -27,6 +27,7 @@ from tqdm.auto import tqdm
 
 from .checkpoint import load_checkpoint
 from .data import DataConfig, Frames, Windows, load_frames, recorded_path
+from .grid_baselines import grid_predictors
 from .metrics import image_metrics
 from .models import ModelConfig, predict_image
 from .odometry import OdometryNoise, noisy_drive
@@ -41,8 +42,10 @@ def predict_batches(predict: Callable, windows: Windows, indices: np.ndarray, ba
     """(prediction (B, R, A) float32 in [0, 1], label (B, R, A)) per batch of windows."""
     with torch.no_grad():
         for start in range(0, len(indices), batch_size):
-            x, y = windows.batch(indices[start : start + batch_size])
-            yield predict(x).float().clamp(0, 1)[:, 0], y[:, 0]
+            chunk = indices[start : start + batch_size]
+            x, y = windows.batch(chunk)
+            pred = predict.by_window(chunk) if hasattr(predict, "by_window") else predict(x)  # see grid_baselines
+            yield pred.float().clamp(0, 1)[:, 0], y[:, 0]
 
 
 def _axes(windows: Windows) -> tuple[torch.Tensor, torch.Tensor]:
@@ -223,6 +226,7 @@ def evaluate(
     progress: bool = False,
     odometry_noise: OdometryNoise | None = None,
     odometry_seed: int = 0,
+    grids: bool = True,
 ) -> dict:
     """Score one or more checkpoints on a dataset (with baselines) and write metrics.json (means
     and std overall and per scenario), per_scenario.csv, per_window.csv (every metric of every
@@ -240,6 +244,8 @@ def evaluate(
         odometry_noise: Models with memory (and the occupancy grids) read the drive's poses as
             odometry with this drift reports them (`learn.odometry`), drawn per episode from
             `odometry_seed`; None or all zero: the true poses.
+        grids: Score the occupancy-grid baselines too (`learn.grid_baselines`; data with poses),
+            fed by echo peaks and by the first model without memory.
     """
     from .plots import plot_examples
 
@@ -272,6 +278,11 @@ def evaluate(
     }
     predictors["echo peak"] = (echo_peak_predictor(data_config.label_offset), BASELINE_THRESHOLD, windows)
     predictors["empty"] = (empty_predictor, BASELINE_THRESHOLD, windows)
+    if grids and frames.pose is not None:
+        plain = [name for name, (_, c) in models.items() if not ModelConfig(**c["model_config"]).uses_odometry]
+        feeders = {name: predictors[name] for name in plain[:1]}  # the first model without memory
+        for name, images in grid_predictors(windows, indices, feeders, ECHO_PEAK_LEVEL).items():
+            predictors[name] = (images, BASELINE_THRESHOLD, windows)
     results, per_window = {}, {}
     for name, (predict, t, their_windows) in predictors.items():
         bar = f"scoring {name}" if progress else None

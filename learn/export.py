@@ -2,7 +2,9 @@
 
     info = export_onnx(model, "runs/unet/model.onnx", frames=5)  # {"path", "max_abs_diff", "opset", ...}
 
-The ONNX graph takes float32 energyscapes (batch, 1, K, R, A) named "energyscapes" and returns
+The ONNX graph takes float32 energyscapes (batch, 1, K, R, A) named "energyscapes" (a model with
+memory: (batch, 1, N, R, A), its history first, and "motion" (batch, N, 4), each frame's pose in the
+label frame and whether it is there, as `learn.data.Windows` gives them) and returns
 the model's raw output (batch, 1, R, A) named "output": the image for "image" models (clip it
 to [0, 1]), logits for "logits" models (apply a sigmoid). The batch dimension is dynamic; K, R and A are fixed.
 The file's metadata carries "output_kind" ("image" or "logits") and "return_threshold": a cell
@@ -97,7 +99,7 @@ def _export_checked(model: nn.Module, path: Path, shape: tuple, *, check: bool, 
     onnx, onnxruntime = _import_onnx()
     frames, range_count, azimuth_count = shape
     device = next(model.parameters()).device
-    x = torch.rand(2, 1, frames, range_count, azimuth_count, generator=torch.Generator().manual_seed(0))
+    sample, names = _sample_inputs(model, frames, range_count, azimuth_count)
 
     was_training = model.training
     model.eval()
@@ -108,22 +110,24 @@ def _export_checked(model: nn.Module, path: Path, shape: tuple, *, check: bool, 
     try:
         with torch.no_grad(), warnings.catch_warnings():
             warnings.filterwarnings("ignore", message=".*LeafSpec", category=FutureWarning)  # inside torch 2.13
+            warnings.filterwarnings("ignore", message="# The axis name")  # one batch axis for two inputs
             # The torch.export-based exporter (the default since torch 2.9; the TorchScript one is
             # deprecated) handles every layer we use: BatchNorm, ConvTranspose3d with output_size,
             # replicate padding, bilinear resize. One self-contained file, no external weights.
+            batch = torch.export.Dim("batch")
             torch.onnx.export(
                 model,
-                (x.to(device),),
+                tuple(t.to(device) for t in sample),
                 str(path),
-                input_names=["energyscapes"],
+                input_names=names,
                 output_names=["output"],
-                dynamic_shapes=({0: torch.export.Dim("batch")},),
+                dynamic_shapes=tuple({0: batch} for _ in sample),
                 opset_version=OPSET,
                 dynamo=True,
                 external_data=False,
                 verbose=False,
             )
-            expected = model(x.to(device)).float().cpu().numpy() if check else None
+            expected = model(*(t.to(device) for t in sample)).float().cpu().numpy() if check else None
     finally:
         model.train(was_training)
         exporter_log.setLevel(level)
@@ -139,10 +143,23 @@ def _export_checked(model: nn.Module, path: Path, shape: tuple, *, check: bool, 
         return info
 
     session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    (got,) = session.run(None, {"energyscapes": x.numpy()})
+    (got,) = session.run(None, {name: t.numpy() for name, t in zip(names, sample, strict=True)})
     diff = float(np.max(np.abs(got - expected)))
     tolerance = RELATIVE_TOLERANCE * max(1.0, float(np.max(np.abs(expected))))
     info.update(max_abs_diff=diff, tolerance=tolerance)
     if not diff <= tolerance:  # also catches NaN
         raise RuntimeError(f"ONNX output differs from torch by {diff:.3g} > tolerance {tolerance:.3g} ({path})")
     return info
+
+
+def _sample_inputs(model: nn.Module, frames: int, range_count: int, azimuth_count: int):
+    """Inputs the export traces and checks with, and their names: energyscapes, and for a model
+    with memory the motion of each frame (some absent, some turned and moved)."""
+    draw = torch.Generator().manual_seed(0)
+    n = frames + getattr(model, "history", 0)
+    x = torch.rand(2, 1, n, range_count, azimuth_count, generator=draw)
+    if not getattr(model, "odometry", False):
+        return (x,), ["energyscapes"]
+    motion = torch.rand(2, n, 4, generator=draw) - 0.5  # up to 0.5 m and 0.5 rad away
+    motion[..., 3] = (torch.arange(n) >= n // 4).float()  # the oldest quarter absent
+    return (x, motion), ["energyscapes", "motion"]

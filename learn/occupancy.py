@@ -9,8 +9,8 @@ evidence gathered a second ago stays when the wall is silent now, and a return t
 put in the world (a multipath ghost) is worn away by the beams that later pass through it. The grid
 is read out as a LiDAR scan from the current pose: each beam's first cell with log-odds > 0.
 
-numpy only; poses are planar (x, y, yaw) of a level sensor (`planar_poses` reads them from the
-shards' 4x4 sensor-to-world matrices). Azimuth 0 is the sensor's x axis (ahead), positive to the
+numpy only; poses are planar (x, y, yaw) of a level sensor (`learn.odometry.planar` reads them
+from the shards' 4x4 sensor-to-world matrices). Azimuth 0 is the sensor's x axis (ahead), positive to the
 left, as in the polar grid of `learn.metrics`.
 """
 
@@ -73,21 +73,6 @@ class GridConfig:
             raise ValueError(
                 f"GridConfig.miss must be < 0 and miss_no_return <= 0, got {self.miss}, {self.miss_no_return}"
             )
-
-
-def planar_poses(sensor_to_world: np.ndarray) -> np.ndarray:
-    """(x, y, yaw) of a level sensor from 4x4 sensor-to-world poses (as the shards' `pose`).
-
-    Args:
-        sensor_to_world: Homogeneous poses, shape (T, 4, 4).
-
-    Returns:
-        x [m], y [m], yaw [rad] (the sensor x axis' heading, from world x towards world y), float64, (T, 3).
-    """
-    m = np.asarray(sensor_to_world, dtype=np.float64)
-    if m.ndim != 3 or m.shape[1:] != (4, 4):
-        raise ValueError(f"poses must have shape (T, 4, 4), got {m.shape}")
-    return np.stack([m[:, 0, 3], m[:, 1, 3], np.arctan2(m[:, 1, 0], m[:, 0, 0])], axis=1)
 
 
 class OccupancyGrid:

@@ -172,14 +172,18 @@ def test_paper_overfits_one_batch(flush_denormal):
     assert hit.float().mean() >= 0.9
 
 
-@pytest.mark.parametrize(("name", "contrast"), [("paper", False), ("polar_unet", False), ("polar_unet", True)])
+@pytest.mark.parametrize(
+    ("name", "contrast"), [("paper", False), ("polar_unet", False), ("polar_unet", True), ("polar_memory", False)]
+)
 def test_onnx_matches_torch(name, contrast, tmp_path):
-    """ONNX export (K = 3, 40 x 30) checks itself; onnxruntime on another batch size (3) equals torch."""
+    """ONNX export (K = 3, 40 x 30) checks itself; onnxruntime on another batch size (3) equals torch
+    (the model with memory: 2 history frames, some absent, each frame moved and turned)."""
     pytest.importorskip("onnxruntime")
     from learn.export import export_onnx
 
     torch.manual_seed(0)
-    model = build_model(ModelConfig(name=name, frames=3, width=8, row_contrast=contrast))
+    memory = {"history": 2, "extent": (0.1, 4.0, -1.5, 1.5)} if name == "polar_memory" else {}
+    model = build_model(ModelConfig(name=name, frames=3, width=8, row_contrast=contrast, **memory))
     with torch.no_grad():  # non-trivial batch-norm statistics, so eval mode differs from train mode
         for module in model.modules():
             if isinstance(module, torch.nn.modules.batchnorm._BatchNorm):
@@ -192,13 +196,18 @@ def test_onnx_matches_torch(name, contrast, tmp_path):
 
     import onnxruntime
 
-    x = torch.rand(3, 1, 3, 40, 30, generator=torch.Generator().manual_seed(1))
+    draw = torch.Generator().manual_seed(1)
+    frames = 3 + memory.get("history", 0)
+    inputs = {"energyscapes": torch.rand(3, 1, frames, 40, 30, generator=draw)}
+    if memory:
+        inputs["motion"] = torch.cat([torch.rand(3, frames, 3, generator=draw) - 0.5, torch.ones(3, frames, 1)], -1)
+        inputs["motion"][:, 0, 3] = 0.0  # the oldest frame absent
     session = onnxruntime.InferenceSession(info["path"], providers=["CPUExecutionProvider"])
     meta = session.get_modelmeta().custom_metadata_map
     assert meta == {"output_kind": model.output, "return_threshold": "0.35"}
-    (got,) = session.run(None, {"energyscapes": x.numpy()})
+    (got,) = session.run(None, {k: v.numpy() for k, v in inputs.items()})
     with torch.no_grad():
-        expected = model.eval()(x).numpy()
+        expected = model.eval()(*inputs.values()).numpy()
     np.testing.assert_allclose(got, expected, rtol=1e-4, atol=1e-5)
 
 

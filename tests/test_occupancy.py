@@ -5,7 +5,8 @@ from above (learn.plots)."""
 import numpy as np
 import pytest
 
-from learn.occupancy import GridConfig, OccupancyGrid, occupancy_scans, planar_poses
+from learn.occupancy import GridConfig, OccupancyGrid, occupancy_scans
+from learn.odometry import planar
 from learn.plots import plot_drive_from_above, world_points
 from tests.pictures import axes_frames, near, read_rgb
 
@@ -251,7 +252,7 @@ def test_planar_poses_from_4x4():
     m = np.eye(4)
     m[:2, :2] = [[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]]
     m[:3, 3] = [1.0, 2.0, 0.5]
-    np.testing.assert_allclose(planar_poses(m[None]), [[1.0, 2.0, yaw]], atol=1e-12)
+    np.testing.assert_allclose(planar(m[None]), [[1.0, 2.0, yaw]], atol=1e-12)
 
 
 def test_world_points_by_hand():
