@@ -489,20 +489,22 @@ def test_set_reaches_fields_no_option_names_and_the_run_records_them(tiny_datase
     model = {"name": "polar_unet", "frames": 3, "width": 4, "row_contrast": True, "history": 0, "extent": None}
     assert written["model_config"] == model
     assert written["dataset"]["plan_id"] == load_frames(tiny_dataset).info["plan_id"] and not written["resumed"]
-    from learn.cli import _configs, _recorded_config, build_parser
+    from learn.cli import _recorded_config, build_parser
+    from learn.cli_training import run_config
     from learn.config import from_record
 
-    ran = _configs(build_parser().parse_args(argv))  # the whole config, in both places
+    ran = run_config(build_parser().parse_args(argv))  # the whole config, in both places
     assert from_record(written) == from_record(load_checkpoint(run / "best.pt")[1]) == ran
     again = ["train", "--data", str(tiny_dataset), "--out", "again", "--config", str(run / "config.json")]
-    assert _configs(build_parser(_recorded_config(again)).parse_args(again)) == ran  # a repeat of it
+    assert run_config(build_parser(_recorded_config(again)).parse_args(again)) == ran  # a repeat of it
 
 
 def test_config_option_starts_from_a_recorded_run(tmp_path, capsys):
     """`learn train --config RUN/config.json`: the run's settings become the options' defaults, so the
     same command repeats it; options and --set still change single fields; a record from before
     augmentation had a section reads as none; an unreadable file is one `error:` line."""
-    from learn.cli import _configs, build_parser, main
+    from learn.cli import build_parser, main
+    from learn.cli_training import run_config
     from learn.config import read_run_config, to_record
 
     recorded = dataclasses.replace(recipe(seed=7, max_minutes=30.0, amp=False), augment=AugmentConfig(mirror=0.1))
@@ -514,7 +516,7 @@ def test_config_option_starts_from_a_recorded_run(tmp_path, capsys):
         from learn.cli import _recorded_config
 
         argv = ["train", "--data", "d", "--out", "o", "--config", str(path), *extra]
-        return _configs(build_parser(_recorded_config(argv)).parse_args(argv))
+        return run_config(build_parser(_recorded_config(argv)).parse_args(argv))
 
     assert recorded != LearnConfig() and configs() == recorded
     assert configs("--epochs", "9", "--set", "augment.mirror=0.2") == dataclasses.replace(

@@ -177,9 +177,9 @@ def _check_settings(command: Command, cwd: Path) -> None:
         if args.command == "generate":
             command.frames = _suite_frames(args, cwd)
     elif hasattr(args, "epochs"):  # the learner's training options
-        from learn.cli import _configs
+        from learn.cli_training import run_config
 
-        _configs(args)
+        run_config(args)
 
 
 def _suite_frames(args: argparse.Namespace, cwd: Path) -> int:

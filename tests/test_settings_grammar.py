@@ -4,7 +4,7 @@ to its LearnConfig.
 
 TABLE is the grammar, one row per (text, field type, answer). Each row runs through each command
 line's own settings path (acoustic_sim.settings.apply_settings on the SimConfig tree, learn.cli's
-_configs on the parsed `learn train` arguments), on a probe section that holds a field of every
+run_config on the parsed `learn train` arguments), on a probe section that holds a field of every
 type, grafted onto each real root. Every field of both real trees then reads its own value back,
 and one row runs through each command line as a real subprocess.
 """
@@ -162,9 +162,9 @@ def _sim(settings: list[str], root=None):
 
 
 def _learn(settings: list[str]):
-    """What `python -m learn train --set ...` makes of the settings (its own parser and _configs)."""
+    """What `python -m learn train --set ...` makes of the settings (its own parser and run_config)."""
     argv = ["train", "--data", "nowhere", "--out", "nowhere"]
-    return learn_cli._configs(
+    return learn_cli.run_config(
         learn_cli.build_parser().parse_args([*argv, *(a for s in settings for a in ("--set", s))])
     )
 
