@@ -26,7 +26,16 @@ from benchmarks.provenance import provenance, relative  # noqa: E402
 from learn.checkpoint import load_checkpoint  # noqa: E402
 from learn.cli import named_folder  # noqa: E402
 from learn.data import DataConfig, Windows, load_frames  # noqa: E402
-from learn.evaluate import BASELINE_THRESHOLD, echo_peak_predictor, model_predictor, predict_batches  # noqa: E402
+from learn.evaluate import (  # noqa: E402
+    BASELINE_THRESHOLD,
+    echo_peak_predictor,
+    model_predictor,
+    model_windows,
+    plain_windows,
+    predict_batches,
+    with_noisy_odometry,
+)
+from learn.odometry import OdometryNoise  # noqa: E402
 from learn.scan import LABEL_THRESHOLD, SCAN_TOLERANCE_M, first_return_ranges  # noqa: E402
 
 BANDS_DEG = (0, 30, 50, 70, 90)  # incidence bands [deg]
@@ -85,16 +94,21 @@ def main() -> None:
     p.add_argument("--test", type=named_folder, required=True, help="NAME=FOLDER of the test set")
     p.add_argument("--out", type=Path, required=True, help="markdown file to write")
     p.add_argument("--device", default="cpu")
+    p.add_argument("--odometry-drift", type=float, default=0.0, help="models with memory read drifting odometry")
     args = p.parse_args()
     name, folder = args.test
     frames = load_frames(folder)
-    hits, windows = [], None
+    noise = OdometryNoise.from_drift(args.odometry_drift)
+    if noise.active:
+        frames = with_noisy_odometry(frames, noise, seed=0)
+    hits, config = [], None
     for run in args.runs:
         model, ckpt = load_checkpoint(run / "best.pt", args.device)
-        windows = Windows(frames, DataConfig(**ckpt["data_config"]), args.device)
-        true, hit = found(model_predictor(model), windows, float(ckpt["threshold"]))
+        config = DataConfig(**ckpt["data_config"])
+        true, hit = found(model_predictor(model), model_windows(frames, ckpt, args.device), float(ckpt["threshold"]))
         hits.append(hit)
         print(f"{run}: recall {hit[np.isfinite(true)].mean():.3f}", flush=True)
+    windows = Windows(frames, plain_windows(config), args.device)
     _, peak = found(echo_peak_predictor(windows.config.label_offset), windows, BASELINE_THRESHOLD)
     angle = incidence_deg(true, np.asarray(frames.azimuth_rad))
     has = np.isfinite(true)
