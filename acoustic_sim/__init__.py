@@ -1,29 +1,55 @@
 """Physically based in-air sonar and LiDAR simulation on NVIDIA Warp (CPU and CUDA)."""
 
-from importlib.metadata import PackageNotFoundError, version
+import importlib
 
-from .config import (
-    AtmosphereConfig,
-    ChirpConfig,
-    ConfigError,
-    LidarConfig,
-    PolarGrid,
-    ProcessingConfig,
-    SimConfig,
-    SonarConfig,
-    TracerConfig,
-)
-from .engine.beamform import Beamformer, energyscape
-from .engine.lidar import Lidar, LidarScan, lidar_image, ranges_to_points
-from .engine.paths import Arrivals, PathTracer
-from .engine.poses import check_poses
-from .engine.scene import WarpScene, warp_scene
-from .engine.sonar import Sonar, SonarFrames
+_PUBLIC = {
+    "AtmosphereConfig": "config",
+    "ChirpConfig": "config",
+    "ConfigError": "config",
+    "LidarConfig": "config",
+    "PolarGrid": "config",
+    "ProcessingConfig": "config",
+    "SimConfig": "config",
+    "SonarConfig": "config",
+    "TracerConfig": "config",
+    "Beamformer": "engine.beamform",
+    "energyscape": "engine.beamform",
+    "Lidar": "engine.lidar",
+    "LidarScan": "engine.lidar",
+    "lidar_image": "engine.lidar",
+    "ranges_to_points": "engine.lidar",
+    "Arrivals": "engine.paths",
+    "PathTracer": "engine.paths",
+    "check_poses": "engine.poses",
+    "WarpScene": "engine.scene",
+    "warp_scene": "engine.scene",
+    "Sonar": "engine.sonar",
+    "SonarFrames": "engine.sonar",
+}
+"""Each public name and the module it lives in, imported on first use (PEP 562): `python -m
+acoustic_sim` then starts without Warp and SciPy, which its commands import inside the part
+that turns Ctrl-C into one line (a Ctrl-C while they loaded printed a trace)."""
 
-try:
-    __version__ = version("sonar2lidar")
-except PackageNotFoundError:  # running from a source tree that was not installed
-    __version__ = "0+unknown"
+
+def __getattr__(name: str):
+    if name == "__version__":
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            value = version("sonar2lidar")
+        except PackageNotFoundError:  # running from a source tree that was not installed
+            value = "0+unknown"
+    elif name in _PUBLIC:
+        value = getattr(importlib.import_module(f".{_PUBLIC[name]}", __name__), name)
+    else:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted({*globals(), *_PUBLIC, "__version__"})
+
 
 __all__ = [
     "Arrivals",

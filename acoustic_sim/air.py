@@ -91,6 +91,11 @@ def chirp(
     if not 0.0 <= taper_fraction <= 0.5:
         raise ValueError(f"taper_fraction must lie in [0, 0.5], got {taper_fraction}")
     count = round(duration_s * sample_rate_hz) + 1
+    if count < 2:
+        raise ValueError(
+            f"a call of duration_s {duration_s:g} at sample_rate_hz {sample_rate_hz:g} has {count} sample; "
+            "give at least two sample periods"
+        )
     t = np.arange(count) / sample_rate_hz
     f0, f1, big_t = start_frequency_hz, stop_frequency_hz, duration_s
     if sweep == "linear" or f0 == f1:

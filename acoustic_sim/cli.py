@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 from clitools import HelpFormatter, counted, run_command
+from clitools.errors import interrupt_after
 from clitools.outputs import OVERWRITE_HELP, atomic_folder
 
 from .cli_text import COMMANDS, DESCRIPTION, EXAMPLES, SET_HELP, VERBOSE_HELP
@@ -23,25 +24,35 @@ def _scene_from_args(args):
     kwargs = {}
     for item in args.scene_arg or []:
         key, sep, value = item.partition("=")
-        if not sep:
+        if not sep or not key.strip():
             raise ValueError(f"--scene-arg expects KEY=VALUE, got {item!r}")
         try:
             kwargs[key.replace("-", "_")] = json.loads(value)
         except json.JSONDecodeError:
             kwargs[key.replace("-", "_")] = value
+    if "seed" in kwargs:  # the builder's seed is --seed's (it seeds the drive and noise too)
+        raise ValueError("--scene-arg seed: give the seed with --seed")
+    given = " ".join(f"--scene-arg {k}={json.dumps(v)}" for k, v in kwargs.items())
     if args.svg:
-        return scenes.from_svg(args.svg, **kwargs)
-    if args.mesh:
-        return scenes.from_mesh(args.mesh, **kwargs)
+        source, build, path = f"--svg {args.svg}", scenes.from_svg, (args.svg,)
+    elif args.mesh:
+        source, build, path = f"--mesh {args.mesh}", scenes.from_mesh, (args.mesh,)
+    else:
+        source, build, path = f"--scene {args.scene}", scenes.BUILDERS[args.scene], ()
+        kwargs = {"seed": args.seed} | kwargs
     try:
-        return scenes.BUILDERS[args.scene](**({"seed": args.seed} | kwargs))
-    except (TypeError, ValueError) as err:  # SceneError names its field; a value of the wrong type may not
-        given = " ".join(f"--scene-arg {k}={json.dumps(v)}" for k, v in kwargs.items())
-        raise ValueError(f"--scene {args.scene} {given}: {err}; see help(scenes.{args.scene})") from None
+        return build(*path, **kwargs)
+    except (TypeError, ValueError) as err:  # SceneError names its field; an unknown or mistyped argument may not
+        if isinstance(err, ValueError) and not given:  # nothing of the user's to add: it names its file
+            raise
+        raise ValueError(f"{source} {given}: {err}; see help(scenes.{build.__name__})") from None
 
 
 def _render(args) -> int:
+    from .render import check_picture_name
+
     out = Path(args.out)
+    check_picture_name(out)
     inputs = [p for p in (args.svg, args.mesh) if p]
     names = [out.name, out.with_suffix(".json").name]  # the picture and its settings, published together
     with atomic_folder(out.parent, overwrite=args.overwrite, inputs=inputs, expected=names) as stage:
@@ -52,6 +63,7 @@ def _render(args) -> int:
 
 def _render_into(args, picture: Path) -> str:
     """Draw the picture and its settings file at `picture`; returns the line to print."""
+    import numpy as np
     import warp as wp
 
     from .devices import check_device, quiet_warp
@@ -60,7 +72,7 @@ def _render_into(args, picture: Path) -> str:
     import scenes
 
     from .config import SimConfig
-    from .datasets.plan import check_scan
+    from .datasets.plan import check_scan, check_seed
     from .engine.lidar import Lidar, lidar_image
     from .render import render_lidar
     from .settings import apply_settings
@@ -68,6 +80,9 @@ def _render_into(args, picture: Path) -> str:
     t0 = time.perf_counter()
     check_device(args.device)
     rig = apply_settings(SimConfig(), args.set or ())
+    check_seed(args.seed, "--seed")
+    if args.sonar and np.ndim(rig.processing.elevation_deg):
+        raise ValueError("render --sonar draws one energyscape a ping: set processing.elevation_deg to one angle")
     check_scan(args.frames, rig, "--frames: a drive")  # before the drive and its scan are made
     scene = _scene_from_args(args)
     poses = scenes.trajectory(scene, frames=args.frames, dt=args.dt, speed=args.speed, seed=args.seed)
@@ -196,12 +211,12 @@ def _generate_crossengine(args) -> int:
     from .formats.crossengine import generate_crossengine
 
     own = {"--max-bounces": args.max_bounces, "--set": args.set, "--shards": args.shards, "--signals": args.signals}
-    own |= {"--arrivals": args.arrivals, "--ray-address": args.ray_address}
+    own |= {"--arrivals": args.arrivals, "--ray-address": args.ray_address, "--variants": args.variants}
     if given := [k for k, v in own.items() if v not in (None, False)]:
         raise ValueError(f"the crossengine test set is another engine's: {', '.join(given)} does not apply to it")
     summary = generate_crossengine(
         args.out,
-        frames=args.frames or 1000,
+        frames=1000 if args.frames is None else args.frames,  # --frames 0 is refused, not the default
         seed=args.seed,
         device=args.device,
         workers=args.workers,
@@ -289,7 +304,8 @@ def _export(args) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    import scenes
+    with interrupt_after():  # trimesh, which scenes imports, would swallow a Ctrl-C
+        import scenes
 
     from .config import NOISE_KINDS, TracerConfig
 

@@ -88,6 +88,8 @@ class PolarGrid:
             raise ValueError("PolarGrid bin sizes must be positive")
         if not -180 <= self.azimuth_min_deg <= self.azimuth_max_deg <= 180:
             raise ValueError("PolarGrid needs -180 <= azimuth_min_deg <= azimuth_max_deg <= 180")
+        if self.range_count < 1:  # every image would be empty
+            raise ValueError(f"PolarGrid has no range bin: range_bin_m {self.range_bin_m:g} exceeds its range span")
         check_memory_for(  # a frame's float32 energyscape, its label and the beamformer's work: 16 B a cell
             self.range_count * self.azimuth_count * 16,
             f"PolarGrid of {self.range_count:,} x {self.azimuth_count:,} cells (range_bin_m {self.range_bin_m:g}, "
@@ -308,10 +310,12 @@ class SonarConfig:
         mics = np.asarray(self.microphones_m, dtype=np.float64)
         if mics.ndim != 2 or mics.shape[1] != 3 or len(mics) < 2 or not np.isfinite(mics).all():
             raise ValueError(f"microphones_m must be >= 2 finite (x, y, z) positions, got shape {mics.shape}")
-        if len(self.emitter_m) != 3 or not np.isfinite(self.emitter_m).all():
-            raise ValueError("emitter_m must be a finite (x, y, z) position")
-        if self.emitter_radius_m <= 0 or self.record_samples < self.chirp.sample_count:
-            raise ValueError("emitter_radius_m must be positive and record_samples >= the call's length")
+        if len(self.emitter_m) != 3 or not np.isfinite(self.emitter_m).all() or not self.emitter_radius_m > 0:
+            raise ValueError("emitter_m must be a finite (x, y, z) position and emitter_radius_m must be positive")
+        if np.ptp(mics, axis=0).max() <= 0:  # one point has no aperture: no direction can be told
+            raise ValueError("microphones_m are all at one point; an array needs microphones at distinct positions")
+        if self.record_samples < self.chirp.sample_count:
+            raise ValueError(f"record_samples {self.record_samples:,} < the call's {self.chirp.sample_count:,} samples")
         check_memory_for(  # int64 impulses and float32 signals per mic; absorption filters (complex128): 128 B
             self.record_samples * (12 * len(mics) + 128),
             f"SonarConfig.record_samples {self.record_samples:,} ({len(mics)} microphones) for one ping",

@@ -9,6 +9,7 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.backend_bases import FigureCanvasBase
 from matplotlib.collections import LineCollection
 
 from clitools import counted
@@ -49,6 +50,16 @@ def draw_scene_top(ax, scene: Scene, *, height: float) -> None:
     ax.set_aspect("equal")
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")
+
+
+def check_picture_name(out: Path) -> None:
+    """Refuse, before anything is drawn, an --out whose suffix names no format matplotlib writes
+    (no suffix: PNG) or that names no file."""
+    formats = FigureCanvasBase.get_supported_filetypes()
+    if not out.name or out.name in (".", ".."):
+        raise ValueError(f"--out {str(out)!r} names no file; give a picture file such as scene.png")
+    if out.suffix and out.suffix[1:].lower() not in formats:
+        raise ValueError(f"--out {out}: {out.suffix} is no picture format; give one of .{', .'.join(sorted(formats))}")
 
 
 def draw_polar_image(

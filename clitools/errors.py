@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
+import signal
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 
 USAGE_ERROR = 2
 """The exit status of a user error, as argparse's own for a bad option."""
@@ -44,3 +46,22 @@ def run_command(command: Callable[[], int], argv: Sequence[str], user_errors: tu
             raise
         print(f"interrupted: {error_line(err)}" if str(err).strip() else "interrupted", file=sys.stderr)
         return INTERRUPTED
+
+
+@contextlib.contextmanager
+def interrupt_after() -> Iterator[None]:
+    """Hold Ctrl-C until the block ends, then raise KeyboardInterrupt: for imports of libraries
+    that catch BaseException (trimesh does, around its optional imports), where a Ctrl-C was
+    lost and the command ran on. A SIGINT that is ignored (a command started in the background)
+    or handled otherwise is left as it is. Main thread only (as any signal handler)."""
+    if signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield
+        return
+    held = []
+    signal.signal(signal.SIGINT, lambda *_: held.append(True))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+    if held:
+        raise KeyboardInterrupt

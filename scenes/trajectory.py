@@ -233,6 +233,8 @@ def trajectory(
         raise SceneError(f"frames must be >= 1, got {frames}")
     if not (dt > 0 and speed >= 0 and sensor_height >= 0):
         raise SceneError("dt must be > 0, speed and sensor_height >= 0")
+    if not np.isfinite([dt, speed, sensor_height, speed * dt]).all():
+        raise SceneError(f"dt, speed and sensor_height must be finite, got {dt}, {speed} and {sensor_height}")
     space = free_space(scene, clearance=clearance, robot_height=robot_height)
     rng = np.random.default_rng(seed)
     # Prefer cells with room around them for goals; the cost grows near obstacles so routes
@@ -294,7 +296,13 @@ def trajectory(
         xy = np.repeat(dense[:1], frames, axis=0)
         yaw = np.full(frames, heading)
     else:
-        xy, yaw = _drive(_walk(dense, speed * dt, frames + 1), frames, turn_rate * dt)
+        walked = _walk(dense, speed * dt, frames + 1)
+        if len(walked) < 2:  # no point of the route lies a step away: the step outgrows the scene
+            raise SceneError(
+                f"{scene.name}: a step of speed x dt = {speed * dt:.3g} m is longer than any route through the "
+                "scene; give a lower speed or dt"
+            )
+        xy, yaw = _drive(walked, frames, turn_rate * dt)
         if len(xy) < frames:  # pragma: no cover - the route is built longer than needed
             raise SceneError(f"{scene.name}: route too short for {frames} frames")
     return poses(xy, yaw, scene.floor_z + sensor_height)

@@ -35,6 +35,8 @@ def check_plan_file(out: Path, tasks: list[ShardTask], meta: dict) -> None:
                 "rerun with those settings to resume it, or use another --out"
             )
         return
+    if out.is_symlink() and not out.exists():
+        raise DatasetError(f"--out {out} is a symbolic link to {os.readlink(out)}, which does not exist; give a folder")
     if out.exists() and not out.is_dir():
         raise DatasetError(f"--out {out} is a file; give a folder for the dataset")
     if out.is_dir() and any(out.iterdir()):
@@ -97,7 +99,12 @@ def output_lock(out: Path):
             fd = os.open(path, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
             break
         except FileExistsError:
-            pid, _, host = path.read_text(errors="replace").strip().partition(" ")
+            try:
+                pid, _, host = path.read_text(errors="replace").strip().partition(" ")
+            except OSError as err:  # a folder or a FIFO by that name: no generate made it
+                raise DatasetError(
+                    f"{path} is in the way of generate's lock ({err.strerror or err}); remove it and rerun"
+                ) from None
             if host != socket.gethostname() or _alive(pid):
                 raise DatasetError(
                     f"another generate (pid {pid} on {host or '?'}) is writing {out}; wait for it, or delete "
@@ -124,17 +131,37 @@ def _alive(pid: str) -> bool:
     return True
 
 
+def check_no_strangers(tasks: list[ShardTask]) -> None:
+    """Refuse shard-*.h5 files in the run's folders that the plan does not write (a copy, a
+    link, another run's shard): readers take every shard of a folder, so they would mix in."""
+    planned = {Path(t.path) for t in tasks}
+    for folder in sorted({p.parent for p in planned}):
+        if strangers := sorted(p.name for p in folder.glob("shard-*.h5") if p not in planned):
+            raise DatasetError(
+                f"{folder} holds {', '.join(strangers[:3])}{' ...' if len(strangers) > 3 else ''}, which this run's "
+                f"plan does not write (it writes {len(planned)} shard(s)); readers would mix it in: move it away"
+            )
+
+
 def is_complete(task: ShardTask) -> bool:
     """Whether the task's shard exists, belongs to this plan and passes its checksums. A shard of
     this plan that fails them is moved aside (`.damaged`) and counted as not done."""
     path = Path(task.path)
     if not path.exists():
         return False
-    attrs = read_attrs(path)  # raises DatasetError for foreign, truncated or other-version files
-    if attrs.get("plan_id") != task.plan_id or int(attrs["frame_count"]) != task.frame_count:
+    try:
+        attrs = read_attrs(path)
+    except DatasetError as err:  # foreign, truncated or of another version: it may be someone's, keep it
+        raise DatasetError(f"{err}; generate never replaces it: move it away and rerun to write the shard") from None
+    if attrs.get("plan_id") != task.plan_id:
         raise DatasetError(
             f"{path} belongs to another run (plan {attrs.get('plan_id')}, not {task.plan_id}); "
             "use another --out or remove that folder"
+        )
+    if int(attrs["frame_count"]) != task.frame_count or int(attrs.get("shard", task.shard)) != task.shard:
+        raise DatasetError(
+            f"{path} holds shard {attrs.get('shard')} of this run ({attrs['frame_count']} frames), not shard "
+            f"{task.shard} ({task.frame_count} frames): a copy or a link under another name; remove it and rerun"
         )
     try:
         verify_shard(path)

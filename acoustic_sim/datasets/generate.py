@@ -26,7 +26,15 @@ from ..config import SimConfig
 from ..devices import check_device_name, resolve_device
 from ..extras import MissingExtra
 from .episode import build_scene, prepare_episode, simulate_episode
-from .folder import PLAN_FILE, check_plan_file, forget_plan, is_complete, output_lock, remove_temporaries
+from .folder import (
+    PLAN_FILE,
+    check_no_strangers,
+    check_plan_file,
+    forget_plan,
+    is_complete,
+    output_lock,
+    remove_temporaries,
+)
 from .manifest import About, FactTable, rig_facts, write_manifest
 from .physics import Physics, rig
 from .plan import Episode, ShardTask, check_shard_memory, plan
@@ -186,6 +194,7 @@ def make_dataset(
         check_plan_file(out, tasks, plan_meta)
         planned = fresh  # this run wrote plan.json
         with output_lock(out):  # one writer per folder
+            check_no_strangers(tasks)
             todo = [t for t in tasks if not is_complete(t)]
             done_frames = sum(t.frame_count for t in tasks) - sum(t.frame_count for t in todo)
             bar = tqdm(total=sum(t.frame_count for t in tasks), initial=done_frames, unit="frame", disable=not progress)

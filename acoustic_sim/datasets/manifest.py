@@ -95,8 +95,13 @@ def write_card(folder: Path, manifest: dict, tables: tuple[FactTable, ...] = ())
                     continue
                 seen.add(name)
                 k = min(i + 5, len(episode) - 1) if episode[min(i + 5, len(episode) - 1)] == episode[i] else i
-                examples.append((f"{name}, frame {k}", f["energyscape"][k], f["lidar/image"][k]))
-    render_examples(examples, PolarGrid(), folder / "card.png")
+                energy, lidar = f["energyscape"][k], f["lidar/image"][k]
+                elevations = np.atleast_1d(manifest["sim"]["processing"]["elevation_deg"])
+                if energy.ndim == 3:  # one image per elevation: the card shows the first
+                    energy, lidar = energy[0], lidar[0] if lidar.ndim == 3 else lidar
+                    name = f"{name} at {elevations[0]:g} deg elevation"
+                examples.append((f"{name}, frame {k}", energy, lidar))
+    render_examples(examples, PolarGrid(**manifest["sim"]["processing"]["grid"]), folder / "card.png")  # the run's grid
     title = manifest["suite"] + (f" / {manifest['variant']}" if manifest["variant"] else "")
     rows = "\n".join(f"| {name} | {count:,} |" for name, count in manifest["scenarios"].items())
     facts = "".join(_table_text(table) for table in tables)

@@ -26,20 +26,30 @@ from ..config import (
 from ..settings import apply_settings
 
 
-def draw_value(rng: np.random.Generator, key: str, spec):
+def draw_value(rng: np.random.Generator, key: str, spec, *, where: str | None = None):
+    """A value drawn by `spec` ([low, high], {"choice": [...]}, or a list of them and numbers)
+    for `key`; ValueError naming `where` (default: vary.KEY) for a spec that draws nothing real."""
+    where = where or f"vary.{key}"
     if isinstance(spec, dict):
         if set(spec) != {"choice"} or not spec["choice"]:
-            raise ValueError(f"vary.{key}: a dict must be {{'choice': [values]}}")
+            raise ValueError(f"{where}: a dict must be {{'choice': [values]}}")
         return spec["choice"][int(rng.integers(len(spec["choice"])))]
     if isinstance(spec, list | tuple) and any(isinstance(s, list | tuple | dict) for s in spec):
         # Element by element; plain numbers stay fixed (e.g. a room size with a fixed height).
-        return [draw_value(rng, key, s) if isinstance(s, list | tuple | dict) else s for s in spec]
-    if not (isinstance(spec, list | tuple) and len(spec) == 2 and spec[0] <= spec[1]):
-        raise ValueError(f"vary.{key}: expected [low, high], {{'choice': [...]}} or a list of [low, high]")
+        return [draw_value(rng, key, s, where=where) if isinstance(s, list | tuple | dict) else s for s in spec]
+    numbers = isinstance(spec, list | tuple) and all(_is_number(v) for v in spec)
+    if not (numbers and len(spec) == 2):
+        raise ValueError(f"{where}: expected [low, high], {{'choice': [...]}} or a list of [low, high], got {spec!r}")
     low, high = spec
+    if not (np.isfinite([low, high]).all() and low <= high):
+        raise ValueError(f"{where}: expected [low, high] of finite numbers, low <= high, got [{low}, {high}]")
     if isinstance(low, int) and isinstance(high, int):
         return int(rng.integers(low, high + 1))
     return float(rng.uniform(low, high))
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, int | float | np.integer | np.floating) and not isinstance(value, bool)
 
 
 VARYING_SECTIONS = ("sonar", "tracer")

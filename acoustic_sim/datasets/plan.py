@@ -134,6 +134,24 @@ def check_size(suite: Suite, out: str | Path, frames: int, *, keep_signals: bool
     )
 
 
+MOST_INT64 = 2**63 - 1
+"""Counts and seeds are stored as int64 in every shard and plan."""
+
+
+def short_number(value: int) -> str:
+    """An integer as a user reads it: 12,345, or 1.000e+30 when it has more than 15 digits."""
+    digits = str(abs(value))
+    if len(digits) <= 15:
+        return f"{value:,}"
+    return f"{'-' if value < 0 else ''}{digits[0]}.{digits[1:4]}e+{len(digits) - 1}"
+
+
+def check_seed(seed: int, what: str) -> None:
+    """Refuse a seed numpy cannot take (negative) or the shards cannot store (beyond int64)."""
+    if not 0 <= seed <= MOST_INT64:
+        raise ValueError(f"{what} must lie in 0..2**63-1, got {short_number(seed)}")
+
+
 def check_scan(frames: int, sim: SimConfig, what: str) -> None:
     """Refuse a drive of `frames` poses whose LiDAR scan (one array of frames x beams ranges) and
     labels Warp cannot index (int32) or this machine's memory cannot hold; `what` names it."""
@@ -183,8 +201,9 @@ def plan(
     (default: one per FRAMES_PER_SHARD frames; it does not depend on the worker count, so a run
     can be resumed with other --workers)."""
     frames = suite.frames if frames is None else int(frames)
-    if frames < 1:
-        raise ValueError(f"frames must be >= 1, got {frames}")
+    if not 1 <= frames <= MOST_INT64:
+        raise ValueError(f"frames must lie in 1..2**63-1, got {short_number(frames)}")
+    check_seed(seed, "seed")
     check_size(suite, out, frames, keep_signals=keep_signals)
     episodes = plan_episodes(suite, frames, seed)
     shards = min(math.ceil(frames / FRAMES_PER_SHARD), len(episodes)) if shards is None else shards

@@ -166,12 +166,54 @@ def dataset_shards(folder: str | Path) -> list[Path]:
         raise DatasetError(f"{folder} is not a folder; give a dataset folder (with shard-*.h5 files)")
     shards = sorted(folder.glob("shard-*.h5"))
     if not shards:
+        variants = sorted(p.parent.name for p in folder.glob("*/shard-*.h5"))
+        if variants:  # a suite of several variants writes one dataset a sub-folder
+            listed = ", ".join(sorted(set(variants)))
+            raise DatasetError(f"{folder} holds no shard-*.h5 files; its variants ({listed}) are datasets: give one")
         raise DatasetError(f"{folder} holds no shard-*.h5 files")
     for path in shards:
         attrs = read_attrs(path)
         if not isinstance(attrs.get("config"), dict):
             raise DatasetError(f"{path} has no `config` attribute (its rig as JSON); the shard is damaged")
     return shards
+
+
+def one_run_shards(folder: str | Path) -> list[Path]:
+    """`dataset_shards` of a folder an export reads as one drive: every shard of one run (one
+    plan id) and none twice (a copy or a link would repeat its frames)."""
+    folder = Path(folder)
+    shards, seen = dataset_shards(folder), {}
+    for path in shards:
+        attrs = read_attrs(path)
+        key = (attrs.get("plan_id"), attrs.get("shard"))
+        if key in seen:
+            raise DatasetError(
+                f"{path} repeats {seen[key].name} (plan {key[0]}, shard {key[1]}): a copy or a link; keep one of them"
+            )
+        seen[key] = path
+    plans = sorted({plan for plan, _ in seen}, key=str)
+    if len(plans) > 1:
+        raise DatasetError(
+            f"{folder} holds shards of {len(plans)} runs (plans {', '.join(map(str, plans))}); a dataset folder holds "
+            "one run: move the others to a folder of their own"
+        )
+    return shards
+
+
+def check_outside(folder: str | Path, out: str | Path) -> None:
+    """Refuse an export's `out` inside the dataset folder it reads: the file would become part
+    of the dataset (one named like a shard breaks it; any other is mixed into what readers see)."""
+    if Path(os.path.realpath(out)).is_relative_to(os.path.realpath(folder)):
+        raise DatasetError(f"--out {out} lies inside the dataset {folder} being exported; write it elsewhere")
+
+
+def finite_poses(f: h5py.File, path: Path) -> np.ndarray:
+    """The shard's poses (frames, 4, 4), refused naming the first frame whose pose is not finite."""
+    poses = f["pose"][:]
+    bad = np.flatnonzero(~np.isfinite(poses).reshape(len(poses), -1).all(axis=1))
+    if len(bad):
+        raise DatasetError(f"{path}: the pose of frame {bad[0]} is not finite; the shard is damaged")
+    return poses
 
 
 def verify_shard(path: Path) -> None:

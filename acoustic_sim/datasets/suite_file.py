@@ -26,8 +26,8 @@ SUITE_FIELDS = {
     "base": "a suite name",
     "name": "a string",
     "description": "a string",
-    "frames": "a whole number",
-    "episode_frames": "a whole number",
+    "frames": "a whole number up to 2**63 - 1",  # int64, as every count a shard stores
+    "episode_frames": "a whole number up to 2**63 - 1",
     "dt_s": "a number",
     "speed_m_s": "a number or [low, high]",
     "sensor_height_m": "a number or [low, high]",
@@ -90,7 +90,7 @@ def _check(value, kind: str, where: str) -> None:
     ok = {
         "a suite name": isinstance(value, str),
         "a string": isinstance(value, str),
-        "a whole number": number and float(value).is_integer(),
+        "a whole number up to 2**63 - 1": number and float(value).is_integer() and abs(value) <= 2**63 - 1,
         "a number": number,
         "a number or [low, high]": number or _pair(value),
         "a list of strings": isinstance(value, list) and all(isinstance(v, str) for v in value),

@@ -52,8 +52,8 @@ class Scenario:
     def __post_init__(self) -> None:
         if self.builder not in scenes.BUILDERS:
             raise ValueError(f"scenario {self.name!r}: unknown builder {self.builder!r}; use {sorted(scenes.BUILDERS)}")
-        if not self.weight > 0:
-            raise ValueError(f"scenario {self.name!r}: weight must be > 0")
+        if not 0 < self.weight < np.inf:  # an infinite weight deals episodes by NaN shares
+            raise ValueError(f"scenario {self.name!r}: weight must be a finite number > 0, got {self.weight}")
         for key, spec in self.vary.items():
             draw_value(np.random.default_rng(0), key, spec)  # validates the spec
 
@@ -119,7 +119,7 @@ class Suite:
         for name, low in (("speed_m_s", 0.0), ("sensor_height_m", 0.0), ("turn_rate_rad_s", 1e-3)):
             spec = getattr(self, name)
             ends = [spec, spec] if np.ndim(spec) == 0 else spec
-            draw_value(np.random.default_rng(0), f"suite {self.name!r} {name}", list(ends))  # a number or [low, high]
+            draw_value(np.random.default_rng(0), name, list(ends), where=f"suite {self.name!r}: {name}")
             if min(ends) < low:
                 raise ValueError(f"suite {self.name!r}: {name} must be >= {low}, got {spec}")
 

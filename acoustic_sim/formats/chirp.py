@@ -49,7 +49,7 @@ import numpy as np
 from clitools.outputs import KeptErrorFile, atomic_folder, atomic_output, check_output
 
 from ..config import ChirpConfig, LidarConfig, SonarConfig
-from ..datasets.shards import COMPRESSION, dataset_shards
+from ..datasets.shards import COMPRESSION, check_outside, finite_poses, one_run_shards
 from ..engine.lidar import lidar_image, ranges_to_points
 from ..extras import MissingExtra
 from . import chirp_input
@@ -91,8 +91,14 @@ def _read_drive(shards: list[Path]) -> dict:
             if sim is not None and config != sim:
                 raise ValueError(f"{path} was simulated with another rig than {shards[0].name}: one file, one rig")
             sim = config
+            want = (f["pose"].shape[0], len(config["sonar"]["microphones_m"]), config["sonar"]["record_samples"])
+            if f["signals"].shape != want:
+                raise ValueError(
+                    f"{path} holds signals of shape {f['signals'].shape}, not (frames, microphones, samples) = {want} "
+                    "as its rig says; the shard is damaged"
+                )
             drive["ranges"].append(f["lidar/ranges"][:])
-            drive["pose"].append(f["pose"][:])
+            drive["pose"].append(finite_poses(f, path))
             drive["time"].append(f["time"][:])
             keys += [(i, int(e)) for e in f["episode"][:]]  # episodes restart in every shard
     index = {key: n for n, key in enumerate(dict.fromkeys(keys))}
@@ -184,8 +190,9 @@ def export_chirp(dataset: str | Path, out: str | Path, *, overwrite: bool = Fals
 
     folder, out = Path(dataset), Path(out)
     check_output(out, overwrite=overwrite, inputs=[folder])  # refused before any reading
-    shards = dataset_shards(folder)  # each checked: a foreign or damaged file is refused naming it
+    shards = one_run_shards(folder)  # each checked: foreign, damaged, repeated files are refused naming them
     drive = _read_drive(shards)
+    check_outside(folder, out)
     source = f"sonar2lidar {__version__} simulation of {folder}"
     with atomic_output(out, overwrite=overwrite, inputs=[folder]) as tmp:
         # A failed write inside HDF5 makes its close fail half way, and the objects left behind
@@ -259,29 +266,6 @@ def episodes_of(stamps: np.ndarray, gap_s: float) -> np.ndarray:
     return np.concatenate([[0], np.cumsum(np.diff(stamps) > gap_s)]).astype(np.int64)
 
 
-def _recorded_poses(data, acoustic, count: int) -> tuple[np.ndarray, str]:
-    """Sonar-to-odom poses (count, 4, 4) from the first odometry sensor and the file's base_link
-    transform, or identities with the reason."""
-    from scipy.spatial.transform import Rotation
-
-    identity = np.tile(np.eye(4), (count, 1, 1))
-    odometry = next(iter(data.get_sensors_by_type("odometry")), None)
-    if odometry is None or not odometry.can_align_to_reference:
-        return identity, "identity (no odometry synced to the pings)"
-    try:
-        mount = data.get_transform(acoustic.name, "base_link")  # sonar frame -> robot frame
-    except ValueError:
-        return identity, "identity (no base_link transform: CHIRP before 2.1)"
-    poses = np.empty((count, 4, 4))
-    for i in range(count):
-        sample = odometry.at_reference_capture(i)
-        base = np.eye(4)
-        base[:3, :3] = Rotation.from_quat(sample["orientation"]).as_matrix()
-        base[:3, 3] = sample["position"]
-        poses[i] = base @ mount
-    return poses, f"{odometry.name} (base_link in its odom frame)"
-
-
 def _check_import(path: Path, out: Path, rig) -> None:
     """Refuse, before reading any ping, an --out that is not empty, more than one elevation and a
     file that is not CHIRP or does not hold its own data (`chirp_input.check_file`)."""
@@ -294,24 +278,37 @@ def _check_import(path: Path, out: Path, rig) -> None:
     chirp_input.check_file(path)
 
 
-def _recorded_sonar(sonar: SonarConfig, mics: np.ndarray, samples: int) -> SonarConfig:
+def _recorded_sonar(sonar: SonarConfig, mics: np.ndarray, samples: int, source: str) -> SonarConfig:
     """The rig's sonar with the file's microphones, taken as nominal (no gains or delays), and
-    record length."""
+    record length; ValueError naming `source` (file and sensor) when the sonar cannot be one."""
+    if samples < sonar.chirp.sample_count:
+        raise ValueError(
+            f"{source}: its pings hold {samples:,} samples, fewer than the call's {sonar.chirp.sample_count:,}; "
+            "give the recorded call with --set sonar.chirp.*"
+        )
     mic_rows = tuple(tuple(float(v) for v in row) for row in mics)
-    return dataclasses.replace(
-        sonar, microphones_m=mic_rows, microphone_gain=(), microphone_delay_s=(), record_samples=samples
-    )
+    try:
+        return dataclasses.replace(
+            sonar, microphones_m=mic_rows, microphone_gain=(), microphone_delay_s=(), record_samples=samples
+        )
+    except ValueError as err:  # e.g. microphones all at one point
+        raise ValueError(f"{source}: {err}") from None
 
 
-def _energyscapes(acoustic, sonar: SonarConfig, processing, *, device) -> np.ndarray:
-    """Our processing of every ping of the sensor, BLOCK pings at once: float16 (pings, R, A)."""
+def _energyscapes(acoustic, sonar: SonarConfig, processing, path: Path, *, device) -> np.ndarray:
+    """Our processing of every ping of the sensor, BLOCK pings at once: float16 (pings, R, A);
+    signals it refuses (NaN, overflowing) are named by file, sensor and pings."""
     from ..engine.beamform import energyscape
 
     count = acoustic.signals.shape[0]
     energy = np.empty((count, *processing.grid.shape), np.float16)
     for first in range(0, count, BLOCK):  # (ping, sample, mic) -> (ping, mic, sample)
         block = np.asarray(acoustic.signals[first : first + BLOCK], dtype=np.float32).transpose(0, 2, 1)
-        energy[first : first + len(block)] = energyscape(block, sonar, processing, device=device)
+        try:
+            energy[first : first + len(block)] = energyscape(block, sonar, processing, device=device)
+        except ValueError as err:
+            last = first + len(block) - 1
+            raise ValueError(f"{path}: {acoustic.name}'s pings {first}..{last}: {err}") from None
     return energy
 
 
@@ -336,7 +333,7 @@ def _lidar_truth(
         )
     found = 0  # points of any height
     for i in range(count):
-        xyz = np.asarray(scanner.at_reference_capture(i)["points"], dtype=np.float64)[:, :3]
+        xyz = np.asarray(chirp_input.capture(scanner, i, path)["points"], dtype=np.float64)[:, :3]
         found += int(np.isfinite(xyz).all(axis=1).sum())
         ranges[i] = planar_scan(xyz @ move[:3, :3].T + move[:3, 3], planar, plane_tolerance_m=plane_tolerance_m)
     if not found:
@@ -371,6 +368,10 @@ def import_chirp(
         episode_gap_s: A longer pause between pings starts a new episode [s].
     """
     t0, path, out = time.perf_counter(), Path(path), Path(out)
+    for option, value in (("--plane-tolerance", plane_tolerance_m), ("--episode-gap", episode_gap_s)):
+        if not value >= 0:  # NaN too: it compares false, so no point would be near and no pause long
+            unit = "metres" if option == "--plane-tolerance" else "seconds"
+            raise ValueError(f"{option} {value}: give a number of {unit} >= 0 (inf: no limit)")
     _check_import(path, out, rig)
     chirppy = _chirppy()
     planar = dataclasses.replace(rig.lidar, elevation_min_deg=0.0, elevation_max_deg=0.0, elevation_count=1)
@@ -386,10 +387,10 @@ def import_chirp(
             )
             _warn_if_other_call(data, rig.sonar.chirp, path)
             stamps = chirp_input.ping_stamps(acoustic, path)
-            sonar = _recorded_sonar(rig.sonar, mics, acoustic.signals.shape[1])
-            energy = _energyscapes(acoustic, sonar, rig.processing, device=device)
+            sonar = _recorded_sonar(rig.sonar, mics, acoustic.signals.shape[1], f"{path}: {acoustic.name}")
+            energy = _energyscapes(acoustic, sonar, rig.processing, path, device=device)
             ranges, lidar_name = _lidar_truth(data, acoustic, planar, len(stamps), plane_tolerance_m, path)
-            poses, pose_source = _recorded_poses(data, acoustic, len(stamps))
+            poses, pose_source = chirp_input.recorded_poses(data, acoustic, len(stamps), path)
         except KeyError as err:  # a dataset or attribute the format requires, missing
             raise ValueError(f"{path}: the file lacks part of the CHIRP format ({err}); is it whole?") from None
     rig = dataclasses.replace(rig, sonar=sonar, lidar=planar)
@@ -401,10 +402,15 @@ def import_chirp(
     pings = ImportedPings(
         stamps, energy, ranges, lidar_image(ranges, planar, grid), poses, episodes_of(stamps, episode_gap_s)
     )
-    with atomic_folder(out, overwrite=False, inputs=[path]) as stage:  # nothing under `out` until all is written
-        entries = write_shards(stage, pings, grid, config, plan_id=plan_id, scenario=scenario)
-        write_manifest(stage, entries, config, plan_id=plan_id, scenario=scenario, lidar=lidar_name)
-        write_card(stage, pings, grid, config, lidar=lidar_name, microphones=len(mics), rate_hz=rate)
+    try:
+        with atomic_folder(out, overwrite=False, inputs=[path]) as stage:  # nothing under `out` until all is written
+            entries = write_shards(stage, pings, grid, config, plan_id=plan_id, scenario=scenario)
+            write_manifest(stage, entries, config, plan_id=plan_id, scenario=scenario, lidar=lidar_name)
+            write_card(stage, pings, grid, config, lidar=lidar_name, microphones=len(mics), rate_hz=rate)
+    except FileExistsError:  # another process wrote into --out meanwhile (not --overwrite's case: never for CHIRP)
+        raise FileExistsError(
+            f"--out {out} was filled by another process while this import ran; its files are kept: give a new --out"
+        ) from None
     return {
         "out": str(out),
         "pings": len(stamps),

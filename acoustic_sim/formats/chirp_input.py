@@ -6,6 +6,8 @@ dataset can read any file on this machine), checked with h5py before the CHIRP r
 its microphones (`microphones`) have real signals, finite positions and a positive sample rate,
 one increasing time per ping (`ping_stamps`), and a ping count this machine's memory and the
 output's disk can take (`check_room`: a header may claim a billion pings never written).
+Sensors synced to the pings are read a capture a ping (`capture`: a file holding fewer captures
+than pings is named), and odometry gives finite poses (`recorded_poses`).
 """
 
 from __future__ import annotations
@@ -180,3 +182,45 @@ def check_room(shape: tuple[int, int, int], rig, out: Path, path: Path, *, block
         room=f"free on the disk of {out}",
         advice="give another --out",
     )
+
+
+def capture(sensor, index: int, path: Path) -> dict:
+    """Capture `index` of a sensor synced to the pings; ValueError naming the file and sensor when
+    the file holds fewer captures than pings (or a part of one is missing)."""
+    try:
+        return sensor.at_reference_capture(index)
+    except (IndexError, KeyError, ValueError) as err:
+        raise ValueError(
+            f"{path}: {sensor.name} has no whole capture for ping {index} ({type(err).__name__}: {err}); CHIRP "
+            "gives a sensor synced to the pings one capture per ping"
+        ) from None
+
+
+def recorded_poses(data, acoustic, count: int, path: Path) -> tuple[np.ndarray, str]:
+    """Sonar-to-odom poses (count, 4, 4) from the first odometry sensor and the file's base_link
+    transform, or identities with the reason."""
+    from scipy.spatial.transform import Rotation
+
+    identity = np.tile(np.eye(4), (count, 1, 1))
+    odometry = next(iter(data.get_sensors_by_type("odometry")), None)
+    if odometry is None or not odometry.can_align_to_reference:
+        return identity, "identity (no odometry synced to the pings)"
+    try:
+        mount = data.get_transform(acoustic.name, "base_link")  # sonar frame -> robot frame
+    except ValueError:
+        return identity, "identity (no base_link transform: CHIRP before 2.1)"
+    poses = np.empty((count, 4, 4))
+    for i in range(count):
+        sample = capture(odometry, i, path)
+        position = np.asarray(sample["position"], dtype=np.float64)
+        turn = np.asarray(sample["orientation"], dtype=np.float64)
+        if position.shape != (3,) or turn.shape != (4,) or not np.isfinite([*position, *turn]).all() or not turn.any():
+            raise ValueError(
+                f"{path}: {odometry.name}'s pose at ping {i} is not a finite position and a non-zero quaternion "
+                f"(position {position}, orientation {turn}); fix the odometry, or remove it to import without poses"
+            )
+        base = np.eye(4)
+        base[:3, :3] = Rotation.from_quat(turn).as_matrix()
+        base[:3, 3] = position
+        poses[i] = base @ mount
+    return poses, f"{odometry.name} (base_link in its odom frame)"

@@ -28,7 +28,7 @@ from scenes import FLOOR_PLANS, floor_plan, polygon_room, trajectory
 from ..config import LidarConfig, ProcessingConfig, SonarConfig
 from ..datasets.generate import make_dataset
 from ..datasets.manifest import About, FactTable, sensor_facts
-from ..datasets.plan import Episode, ShardTask, plan_id
+from ..datasets.plan import Episode, ShardTask, check_seed, plan_id
 from ..datasets.runner import ShardHeader
 from ..datasets.shards import FORMAT_VERSION
 from ..datasets.suites import DRIVE
@@ -249,6 +249,7 @@ def plan_crossengine(
     drive i in a room of the floor-plan family i mod 5, each drive seeded from (`seed`, i)."""
     if frames < 1 or episode_frames < 1:
         raise ValueError(f"frames and episode_frames must be >= 1, got {frames} and {episode_frames}")
+    check_seed(seed, "seed")
     config = _settings(frames, seed, episode_frames)
     run_id = plan_id(config | {"format_version": FORMAT_VERSION, "scenes_revision": scenes.REVISION})
     suite = {"name": SUITE, "config": config}

@@ -19,7 +19,7 @@ import numpy as np
 
 from clitools.outputs import atomic_output, check_output
 
-from ..datasets.shards import dataset_shards
+from ..datasets.shards import check_outside, finite_poses, one_run_shards
 from ..extras import MissingExtra
 
 STAMP_START_S = 1_700_000_000
@@ -93,7 +93,8 @@ def export_mcap(dataset: str | Path, out: str | Path, *, overwrite: bool = False
 
     folder, out = Path(dataset), Path(out)
     check_output(out, overwrite=overwrite, inputs=[folder])  # refused before any reading
-    shards = dataset_shards(folder)  # each checked: a foreign or damaged file is refused naming it
+    shards = one_run_shards(folder)  # each checked: foreign, damaged, repeated files are refused naming them
+    check_outside(folder, out)
     drive = []  # (shard, episode) and time of every frame, for the stamps
     for i, path in enumerate(shards):
         with h5py.File(path, "r") as f:
@@ -114,7 +115,7 @@ def export_mcap(dataset: str | Path, out: str | Path, *, overwrite: bool = False
         for path in shards:
             with h5py.File(path, "r") as f:
                 lidar = json.loads(f.attrs["config"])["sim"]["lidar"]
-                ranges, energy, poses = f["lidar/ranges"][:], f["energyscape"][:], f["pose"][:]
+                ranges, energy, poses = f["lidar/ranges"][:], f["energyscape"][:], finite_poses(f, path)
             step = np.deg2rad((lidar["azimuth_max_deg"] - lidar["azimuth_min_deg"]) / (lidar["azimuth_count"] - 1))
             quaternions = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x, y, z, w
             for k in range(len(ranges)):

@@ -50,6 +50,18 @@ def check_pdm_files(paths: list[str | Path], *, channels: int, samples_per_ping:
     )
 
 
+def check_decoding(*, channels: int, pdm_rate_hz: float, samples_per_ping: int | None) -> None:
+    """Refuse decoding options no stream has, naming the option: a channel count that is not a
+    positive multiple of 8 (a word holds one bit per channel), a PDM rate that is not a positive
+    finite number of Hz, a ping of fewer than one word."""
+    if channels < 8 or channels % 8:
+        raise ValueError(f"--channels {channels}: a PDM word holds one bit per channel; give a positive multiple of 8")
+    if not (math.isfinite(pdm_rate_hz) and pdm_rate_hz > 0):
+        raise ValueError(f"--pdm-rate {pdm_rate_hz}: give the PDM sample rate, a positive number of Hz (4.5e6)")
+    if samples_per_ping is not None and samples_per_ping < 1:
+        raise ValueError(f"--samples-per-ping {samples_per_ping}: give a positive number of words per ping")
+
+
 def read_pdm_pings(paths: list[str | Path], *, channels: int, samples_per_ping: int | None) -> list[np.ndarray]:
     """Raw words of every ping: each file is one ping, or pings of `samples_per_ping` words each."""
     width = channels // 8
@@ -89,6 +101,7 @@ def import_pdm(
     t0, out = time.perf_counter(), Path(out)
     if out.suffix != ".npy":
         raise ValueError(f"--out names the energyscapes file (.npy), got {out}")
+    check_decoding(channels=channels, pdm_rate_hz=pdm_rate_hz, samples_per_ping=samples_per_ping)
     sonar, processing = rig.sonar, rig.processing
     if channels != sonar.microphone_count:
         raise ValueError(
