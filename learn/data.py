@@ -9,7 +9,6 @@ validation scenes are never seen in training) or by scenario family.
 
 from __future__ import annotations
 
-import math
 import os
 import typing
 from dataclasses import dataclass
@@ -27,6 +26,7 @@ from .shardfile import DataError as DataError
 from .shardfile import ShardHeader, read_arrays, read_header
 
 Label = Literal["middle", "last"]
+MAX_FLOOR_DB = 300.0  # far below where 10^(-floor/20) underflows float32 (~760 dB)
 LABELS: tuple[str, ...] = typing.get_args(Label)
 
 
@@ -55,9 +55,11 @@ class DataConfig:
             raise ValueError(f"label must be one of {LABELS}, got {self.label!r}")
         if self.label == "middle" and self.frames % 2 == 0:
             raise ValueError(f"label 'middle' needs an odd window length K, got frames={self.frames} (or label 'last')")
-        if not isinstance(self.floor_db, Real) or not (self.floor_db > 0 and math.isfinite(self.floor_db)):
-            # an infinite floor maps every cell to NaN (inf / inf), a NaN one every comparison to False
-            raise ValueError(f"floor_db must be a finite number of dB > 0, got {self.floor_db!r}")
+        floor = self.floor_db
+        if not isinstance(floor, Real) or isinstance(floor, bool) or not (0 < floor <= MAX_FLOOR_DB):
+            # an infinite floor maps every cell to NaN (inf / inf), a NaN one every comparison to
+            # False; one beyond float32's range (10^(-floor/20) underflows to 0) every cell to -inf
+            raise ValueError(f"floor_db must be a finite number of dB in (0, {MAX_FLOOR_DB:g}], got {floor!r}")
 
     @property
     def label_offset(self) -> int:
@@ -258,7 +260,11 @@ class Windows:
         self.device = torch_device(device)
         self.starts = window_starts(frames.episode, config.frames)
         if len(self.starts) == 0:
-            raise DataError(f"no window of {config.frames} frames fits in any episode of {frames.info['folder']}")
+            longest = int(np.unique(frames.episode, return_counts=True)[1].max()) if len(frames.episode) else 0
+            raise DataError(
+                f"no window of {config.frames} frames fits in any episode of {frames.info['folder']} (the longest "
+                f"has {longest}): give more frames, or use a model of a shorter window (--frames)"
+            )
         label_frame = self.starts + config.label_offset
         self.episode = frames.episode[label_frame]
         self.scenario = frames.scenario[label_frame]

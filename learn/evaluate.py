@@ -199,6 +199,8 @@ def _named_checkpoints(checkpoint) -> dict[str, Path]:
     for item in items:
         name, sep, path = str(item).partition("=")
         name, path = (name, path) if sep else (Path(name).parent.name or Path(name).stem, name)
+        if not name:
+            raise ValueError(f"--checkpoint {item!r} has an empty name: give name=path, or the path alone")
         if name in named or name in ("echo peak", "empty"):
             raise ValueError(f"checkpoint name {name!r} is used twice or names a baseline; give name=path")
         named[name] = Path(path)
@@ -252,7 +254,9 @@ def evaluate(
     indices, split = _pick_windows(windows, ckpt, frames, split, episodes)
     out.mkdir(parents=True, exist_ok=True)
     scenario = windows.scenario[indices]
-    predictors = {name: (model_predictor(m), return_threshold(c, threshold)) for name, (m, c) in models.items()}
+    predictors = {
+        name: (model_predictor(m), return_threshold(c, threshold, str(named[name]))) for name, (m, c) in models.items()
+    }
     predictors["echo peak"] = (echo_peak_predictor(data_config.label_offset), BASELINE_THRESHOLD)
     predictors["empty"] = (empty_predictor, BASELINE_THRESHOLD)
     results, per_window = {}, {}
@@ -305,10 +309,12 @@ def check_grid(frames: Frames, ckpt: dict, name: str = "the model") -> None:
         )
 
 
-def return_threshold(ckpt: dict, override: float | None = None) -> float:
+def return_threshold(ckpt: dict, override: float | None = None, name: str = "the checkpoint") -> float:
     """The return threshold to read a checkpoint's predictions at: `override`, else its calibrated one."""
     if override is None and "threshold" not in ckpt:
-        raise ValueError("the checkpoint has no calibrated return threshold (it predates calibration): set one")
+        raise ValueError(
+            f"{name} has no calibrated return threshold (it predates calibration): give one with --threshold"
+        )
     threshold = float(ckpt["threshold"] if override is None else override)
     if not 0 < threshold <= 1:
         raise ValueError(f"the return threshold must lie in (0, 1], got {threshold}")
@@ -327,7 +333,14 @@ def _pick_windows(windows: Windows, ckpt: dict, frames: Frames, split: str, epis
     if split == "val":
         if not same:
             raise ValueError("--split val needs the dataset the checkpoint was trained on")
-        return np.flatnonzero(np.isin(windows.episode, ckpt["dataset"]["val_episodes"])), split
+        indices = np.flatnonzero(np.isin(windows.episode, ckpt["dataset"]["val_episodes"]))
+        if len(indices) == 0:
+            held = ckpt["dataset"]["val_episodes"]
+            raise ValueError(
+                f"{frames.info.get('folder')} holds no whole window of the episodes the checkpoint validated on "
+                f"({held[:5]}{'...' if len(held) > 5 else ''}): score every window with --split all"
+            )
+        return indices, split
     if split == "all":
         return np.arange(len(windows)), split
     raise ValueError(f"split must be auto, val or all, got {split!r}")
