@@ -18,6 +18,7 @@ import dataclasses
 import json
 import os
 import shutil
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -427,3 +428,33 @@ def test_refused_runs_wrote_nothing_into_the_data(results):
 
 def test_the_table_of_cases_is_wide():
     assert len(CASES) >= 60 and len({c[0] for c in CASES}) == len(CASES)
+
+
+CTRL_C_WHILE_IMPORTING = """
+import runpy, sys
+class CtrlC:
+    def find_spec(self, name, path=None, target=None):
+        if name == "learn.cli":
+            raise KeyboardInterrupt
+sys.meta_path.insert(0, CtrlC())
+sys.argv = ["learn", "train", "--data", "d", "--out", "o"]
+runpy.run_module("learn", run_name="__main__")
+"""
+
+
+def test_ctrl_c_while_the_command_line_imports_is_one_line(tmp_path):
+    """Ctrl-C in the seconds before the command line has imported (the probe's SIGINT at 1.2 s on a
+    busy machine): one `interrupted:` line and 130, as after them, not a KeyboardInterrupt trace."""
+    import subprocess
+    import sys
+
+    done = subprocess.run(
+        [sys.executable, "-c", CTRL_C_WHILE_IMPORTING],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        cwd=tmp_path,
+        env=os.environ | {"PYTHONPATH": str(Path(__file__).resolve().parents[1])},
+    )
+    assert done.returncode == 130 and done.stderr.strip().startswith("interrupted:"), done.stderr
+    assert "Traceback" not in done.stderr and len(done.stderr.strip().splitlines()) == 1
