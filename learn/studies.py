@@ -263,8 +263,8 @@ def sim2real_summary(runs: list[str | Path], out: str | Path, *, overwrite: bool
 
 
 def _sim2real_summary(runs: list[str | Path], out: Path) -> dict:
-    distinct_folders(runs, "sim2real")
     read = [read_record(r, "sim2real.json", "learn sim2real") for r in runs]
+    distinct_folders(runs, "sim2real")
     tables = [study_table(t, path, "rows of trained variants") for t, path in read]
     variants = list(tables[0])
     if any(list(t) != variants for t in tables):

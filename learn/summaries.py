@@ -81,8 +81,8 @@ def seeds_summary(reports: list[str | Path], out: str | Path, *, overwrite: bool
 
 
 def _seeds_summary(reports: list[str | Path], out: Path) -> dict:
-    distinct_folders(reports, "evaluation")
     read = [read_record(r, "metrics.json", "learn evaluate") for r in reports]
+    distinct_folders(reports, "evaluation")
     for record, path in read:
         if not isinstance(record.get("results"), dict) or not record["results"]:
             raise ValueError(f"{path} has no results: give folders written by `learn evaluate`")
@@ -127,8 +127,8 @@ def table2_summary(runs: list[str | Path], out: str | Path, *, overwrite: bool =
 
 
 def _table2_summary(runs: list[str | Path], out: Path) -> dict:
-    distinct_folders(runs, "table2")
     read = [read_record(r, "table2.json", "learn table2") for r in runs]
+    distinct_folders(runs, "table2")
     tables = [study_table(t, path, "Table 2 rows") for t, path in read]
     rows = list(tables[0])
     if len(rows) < 2 or any(list(t) != rows for t in tables):
