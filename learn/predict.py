@@ -180,14 +180,14 @@ def _check_outputs(out: Path, png, mcap, *, overwrite: bool, inputs: list) -> No
         raise ValueError(f"--out, --png and --mcap name one file twice ({', '.join(map(str, given))})")
     if png and not Path(png).suffix:
         raise ValueError(f"--png {png} needs a suffix that names the picture's format (.png, .pdf, .svg)")
-    if png:
+    for path in given:
+        check_output(path, overwrite=overwrite, inputs=inputs)
+    if png:  # after the outputs' checks: writing onto an input is the graver mistake
         from matplotlib.backend_bases import FigureCanvasBase
 
         formats = FigureCanvasBase.get_supported_filetypes()
         if Path(png).suffix[1:].lower() not in formats:
             raise ValueError(f"--png {png}: matplotlib draws no {Path(png).suffix} pictures; use .png, .pdf or .svg")
-    for path in given:
-        check_output(path, overwrite=overwrite, inputs=inputs)
 
 
 def prediction_summary(out: str | Path, source: str | Path, seconds: float) -> str:
