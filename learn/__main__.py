@@ -13,7 +13,9 @@ INSTALL_HINT = (
 
 
 def run() -> int:
-    """`learn.cli.main` where torch imports; else the install hint and exit status 2 (a usage error)."""
+    """`learn.cli.main` where torch imports; else the install hint and exit status 2 (a usage error).
+    Ctrl-C while torch and the command line are still importing (seconds on a busy machine) ends
+    as one after them does: one line and the shell's 130, nothing written yet."""
     try:
         import torch  # noqa: F401
     except ModuleNotFoundError as err:
@@ -21,9 +23,20 @@ def run() -> int:
             raise
         print(INSTALL_HINT, file=sys.stderr)
         return 2
-    from .cli import main
-
+    except KeyboardInterrupt:
+        return _interrupted_at_start()
+    try:
+        from .cli import main
+    except KeyboardInterrupt:
+        return _interrupted_at_start()
     return main()
+
+
+def _interrupted_at_start() -> int:
+    if "--debug" in sys.argv:
+        raise KeyboardInterrupt
+    print("interrupted: while starting, before anything was read or written", file=sys.stderr)
+    return 130  # clitools.INTERRUPTED, not imported: clitools may be what was being imported
 
 
 sys.exit(run())

@@ -5,13 +5,20 @@ validation or test windows."""
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
+from numbers import Integral, Real
 
 import torch
 
 from .data import Windows, normalise
 from .odometry import OdometryNoise, noisy_window
+
+MAX_AUGMENT_DB = 100.0  # a jitter or tilt of 100 dB is already 10^5 in amplitude
+MAX_BAND_MASKS = 100  # each masks up to a tenth of the grid: 100 cover it many times over
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, Real) and not isinstance(value, bool) and value == value
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -40,11 +47,20 @@ class AugmentConfig:
     odometry_drift: float = 0.0
 
     def __post_init__(self) -> None:
-        if not 0.0 <= self.mirror <= 1.0:
-            raise ValueError(f"augment.mirror is a probability in 0..1, got {self.mirror}")
-        values = (self.floor_jitter_db, self.range_tilt_db, self.band_masks, self.odometry_drift)
-        if min(values) < 0 or not all(math.isfinite(v) for v in values):
-            raise ValueError(f"augment sizes must be finite and >= 0, got {values}")
+        if not (_is_number(self.mirror) and 0.0 <= self.mirror <= 1.0):
+            raise ValueError(f"augment.mirror is a probability in 0..1, got {self.mirror!r}")
+        # Upper bounds: a gain of 10^(dB/20) beyond them overflows float32 to inf (NaN windows and a
+        # NaN loss that reads as a learning-rate problem), and every band mask is one pass per batch.
+        for name in ("floor_jitter_db", "range_tilt_db"):
+            value = getattr(self, name)
+            if not (_is_number(value) and 0 <= value <= MAX_AUGMENT_DB):
+                raise ValueError(f"augment.{name} must be a number of dB in 0..{MAX_AUGMENT_DB:g}, got {value!r}")
+        masks = self.band_masks
+        if not (isinstance(masks, Integral) and not isinstance(masks, bool) and 0 <= masks <= MAX_BAND_MASKS):
+            raise ValueError(f"augment.band_masks must be an integer in 0..{MAX_BAND_MASKS}, got {masks!r}")
+        drift = self.odometry_drift
+        if not (_is_number(drift) and 0 <= drift <= 1):
+            raise ValueError(f"augment.odometry_drift must be a fraction in 0..1, got {drift!r}")
 
     @classmethod
     def none(cls) -> AugmentConfig:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import itertools
 import math
 import zipfile
 from numbers import Integral, Real
@@ -138,6 +139,12 @@ def load_weights(model: torch.nn.Module, ckpt: dict, path: str | Path, *, role: 
         if key not in saved:
             raise ValueError(f"{role} {path}: its weights do not fit the model it names ({what}): no {key}")
         theirs = saved[key]
+        if isinstance(theirs, torch.Tensor) and theirs.is_floating_point() != tensor.is_floating_point():
+            # load_state_dict would cast silently: integer weights lose their fractions
+            raise ValueError(
+                f"{role} {path}: its weights do not fit the model it names ({what}): {key} holds {theirs.dtype} "
+                f"in the file, {tensor.dtype} in that model"
+            )
         if not isinstance(theirs, torch.Tensor) or theirs.shape != tensor.shape:
             shape = list(theirs.shape) if isinstance(theirs, torch.Tensor) else type(theirs).__name__
             raise ValueError(
@@ -218,6 +225,8 @@ def check_checkpoint_content(ckpt: dict, path: Path) -> None:
         axis = ckpt.get(key)
         if not (isinstance(axis, list | tuple) and axis and all(_finite_number(v) for v in axis)):
             raise ValueError(f"{path}: {key} is {_found(axis)}, not a list of finite numbers: {USE_ANOTHER}")
+        if any(b <= a for a, b in itertools.pairwise(axis)):  # scans read ranges in this order
+            raise ValueError(f"{path}: {key} is not increasing, as every grid axis is: {USE_ANOTHER}")
     if "threshold" in ckpt and not (_finite_number(ckpt["threshold"]) and 0 < ckpt["threshold"] <= 1):
         raise ValueError(f"{path}: threshold is {_found(ckpt['threshold'])}, not a number in (0, 1]: {USE_ANOTHER}")
     if not isinstance(ckpt.get("parameters"), Integral):

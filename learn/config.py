@@ -14,15 +14,17 @@ Runs store it as the record every checkpoint and config.json has held since the 
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import typing
 from dataclasses import dataclass, field
+from numbers import Integral, Real
 from pathlib import Path
 from typing import Literal
 
+import numpy as np
+
 from .augment import AugmentConfig
-from .data import DataConfig
+from .data import DataConfig, Frames
 from .models import ModelConfig
 
 Loss = Literal["mse", "bce"]
@@ -82,20 +84,46 @@ class TrainConfig:
         return self.seed if self.split_seed is None else self.split_seed
 
     def __post_init__(self) -> None:
-        if self.loss not in LOSSES:
-            raise ValueError(f"loss must be one of {LOSSES}, got {self.loss!r}")
-        if self.monitor not in MONITORS:
-            raise ValueError(f"monitor must be one of {tuple(MONITORS)}, got {self.monitor!r}")
-        if self.split_by not in SPLITS:
-            raise ValueError(f"split_by must be one of {SPLITS}, got {self.split_by!r}")
-        if self.epochs < 1 or self.batch_size < 1 or not self.lr > 0 or self.patience < 1:
-            raise ValueError("epochs, batch_size, patience must be >= 1 and lr > 0")
-        if not (0 < self.val_fraction < 1):
-            raise ValueError(f"val_fraction must lie in (0, 1), got {self.val_fraction}")
-        if not (self.pos_weight > 0) or not math.isfinite(self.pos_weight) or not math.isfinite(self.lr):
-            raise ValueError(f"lr and pos_weight must be finite and > 0, got {self.lr} and {self.pos_weight}")
-        if self.max_minutes is not None and not (0 < self.max_minutes < math.inf):
-            raise ValueError(f"max_minutes must be a finite number of minutes > 0, got {self.max_minutes}")
+        # Each field by name, its type first: a hand-edited config.json (`--config`) may hold any
+        # JSON value, and a wrong type would otherwise fail deep inside training, or not at all.
+        for name in ("epochs", "batch_size", "patience"):
+            _check_count(self, name, 1)
+        for name in ("max_train_windows", "max_val_windows"):
+            if getattr(self, name) is not None:
+                _check_count(self, name, 1, unset=" (or none for all)")
+        _check_count(self, "seed", 0, MAX_SEED)
+        if self.split_seed is not None:
+            _check_count(self, "split_seed", 0, MAX_SEED, unset=" (or none: the seed's)")
+        for name in ("lr", "pos_weight"):
+            if not (_is_number(getattr(self, name)) and 0 < getattr(self, name) < math.inf):
+                raise ValueError(f"train.{name} must be a finite number > 0, got {getattr(self, name)!r}")
+        if not (_is_number(self.val_fraction) and 0 < self.val_fraction < 1):
+            raise ValueError(f"train.val_fraction (--val-fraction) must lie in (0, 1), got {self.val_fraction!r}")
+        if self.max_minutes is not None and not (_is_number(self.max_minutes) and 0 < self.max_minutes < math.inf):
+            raise ValueError(f"train.max_minutes must be a finite number of minutes > 0, got {self.max_minutes!r}")
+        for name in ("amp", "cuda_graphs"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"train.{name} must be true or false, got {getattr(self, name)!r}")
+        for name, choices in (("loss", LOSSES), ("monitor", tuple(MONITORS)), ("split_by", SPLITS)):
+            if getattr(self, name) not in choices:
+                raise ValueError(f"train.{name} must be one of {choices}, got {getattr(self, name)!r}")
+
+
+MAX_SEED = 2**63 - 1  # numpy's SeedSequence takes integers >= 0, torch's manual_seed 64-bit ones
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, Real) and not isinstance(value, bool)
+
+
+def _check_count(config, name: str, low: int, high: int | None = None, unset: str = "") -> None:
+    """Refuse a field that is not an integer in low..high, naming it and its option."""
+    value = getattr(config, name)
+    fits = isinstance(value, Integral) and not isinstance(value, bool) and value >= low
+    if not fits or (high is not None and value > high):
+        span = f">= {low}" if high is None else f"in {low}..{high:,}"
+        option = "--" + name.replace("_", "-")
+        raise ValueError(f"train.{name} ({option}) must be an integer {span}{unset}, got {value!r}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -153,6 +181,12 @@ def from_record(record: dict) -> LearnConfig:
     Raises:
         ValueError: a section is missing, or holds a field this version does not know.
     """
+    for section in ("model_config", "data_config", "train_config"):
+        if not isinstance(record.get(section), dict):
+            found = type(record.get(section)).__name__ if section in record else "missing"
+            raise ValueError(f"the recorded configs are not this version's: its {section} is {found}, not settings")
+    if not isinstance(record["train_config"].get("augment", {}), dict):
+        raise ValueError("the recorded configs are not this version's: its train_config.augment is not settings")
     try:
         recipe = dict(record["train_config"])
         augment = AugmentConfig(**{**dataclasses.asdict(AugmentConfig.none()), **recipe.pop("augment", {})})
@@ -162,22 +196,31 @@ def from_record(record: dict) -> LearnConfig:
             augment=augment,
             train=TrainConfig(**recipe),
         )
-    except (KeyError, TypeError) as err:
-        raise ValueError(f"the recorded configs are not this version's: {type(err).__name__} {err}") from None
+    except TypeError as err:  # a field this version does not know
+        raise ValueError(f"the recorded configs are not this version's: {err}") from None
 
 
 def read_run_config(path: str | Path) -> LearnConfig:
     """The config a run wrote to its config.json (`learn train --config RUN/config.json`)."""
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"--config {path} does not exist")
-    try:
-        record = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as err:
-        raise ValueError(f"--config {path} is not JSON: {err}") from None
-    if not isinstance(record, dict):
-        raise ValueError(f"--config {path} is not a run's config.json")
+    from .inputs import read_json
+
+    record = read_json(path, "--config", "give the config.json a run wrote (or fix the file)")
     try:
         return from_record(record)
     except ValueError as err:
         raise ValueError(f"--config {path}: {err}") from None
+
+
+def with_grid(config: LearnConfig, frames: Frames) -> LearnConfig:
+    """`config` with a model with memory told the polar grid it resamples on (the data's),
+    refused where it was given another one."""
+    if not config.model.uses_odometry:
+        return config
+    r, a = frames.range_m, frames.azimuth_rad
+    even = np.allclose(np.diff(r), r[1] - r[0], rtol=1e-3) and np.allclose(np.diff(a), a[1] - a[0], rtol=1e-3)
+    if len(r) < 2 or len(a) < 2 or not even:
+        raise ValueError(f"{frames.info['folder']}: polar_memory needs evenly spaced range and azimuth bins")
+    extent = (float(r[0]), float(r[-1]), float(a[0]), float(a[-1]))
+    if config.model.extent is not None and not np.allclose(config.model.extent, extent, atol=1e-6):
+        raise ValueError(f"model.extent {config.model.extent} is not the grid of {frames.info['folder']} ({extent})")
+    return dataclasses.replace(config, model=dataclasses.replace(config.model, extent=extent))

@@ -9,7 +9,6 @@ validation scenes are never seen in training) or by scenario family.
 
 from __future__ import annotations
 
-import math
 import os
 import typing
 from dataclasses import dataclass
@@ -28,6 +27,7 @@ from .shardfile import DataError as DataError
 from .shardfile import ShardHeader, read_arrays, read_header
 
 Label = Literal["middle", "last"]
+MAX_FLOOR_DB = 300.0  # far below where 10^(-floor/20) underflows float32 (~760 dB)
 LABELS: tuple[str, ...] = typing.get_args(Label)
 
 
@@ -63,9 +63,11 @@ class DataConfig:
             raise ValueError(f"label must be one of {LABELS}, got {self.label!r}")
         if self.label == "middle" and self.frames % 2 == 0:
             raise ValueError(f"label 'middle' needs an odd window length K, got frames={self.frames} (or label 'last')")
-        if not isinstance(self.floor_db, Real) or not (self.floor_db > 0 and math.isfinite(self.floor_db)):
-            # an infinite floor maps every cell to NaN (inf / inf), a NaN one every comparison to False
-            raise ValueError(f"floor_db must be a finite number of dB > 0, got {self.floor_db!r}")
+        floor = self.floor_db
+        if not isinstance(floor, Real) or isinstance(floor, bool) or not (0 < floor <= MAX_FLOOR_DB):
+            # an infinite floor maps every cell to NaN (inf / inf), a NaN one every comparison to
+            # False; one beyond float32's range (10^(-floor/20) underflows to 0) every cell to -inf
+            raise ValueError(f"floor_db must be a finite number of dB in (0, {MAX_FLOOR_DB:g}], got {floor!r}")
         for name in ("history", "history_stride"):
             value = getattr(self, name)
             if not isinstance(value, Integral) or isinstance(value, bool) or value < (name == "history_stride"):
@@ -290,9 +292,12 @@ class Windows:
         config: Window length, history, label position and normalisation.
         device: Where the frames are kept and batches are made.
         odometry: Give each frame's motion (a model with memory reads it); needs the data's poses.
+        share: Windows of the same frames on the same device whose copies of them to use.
     """
 
-    def __init__(self, frames: Frames, config: DataConfig, device: str | torch.device = "cpu", *, odometry=False):
+    def __init__(
+        self, frames: Frames, config: DataConfig, device: str | torch.device = "cpu", *, odometry=False, share=None
+    ):
         self.frames, self.config, self.odometry = frames, config, bool(odometry)
         self.device = torch_device(device)
         if config.history and not self.odometry:
@@ -304,18 +309,28 @@ class Windows:
             )
         self.starts = window_starts(frames.episode, config.frames)
         if len(self.starts) == 0:
-            raise DataError(f"no window of {config.frames} frames fits in any episode of {frames.info['folder']}")
+            longest = int(np.unique(frames.episode, return_counts=True)[1].max()) if len(frames.episode) else 0
+            raise DataError(
+                f"no window of {config.frames} frames fits in any episode of {frames.info['folder']} (the longest "
+                f"has {longest}): give more frames, or use a model of a shorter window (--frames)"
+            )
         label_frame = self.starts + config.label_offset
         self.episode = frames.episode[label_frame]
         self.scenario = frames.scenario[label_frame]
         first_of_episode = np.flatnonzero(np.r_[True, frames.episode[1:] != frames.episode[:-1]])
         first = first_of_episode[np.searchsorted(first_of_episode, self.starts, side="right") - 1]
-        self._energyscape = torch.from_numpy(frames.energyscape).to(self.device)
-        self._label = torch.from_numpy(frames.label).to(self.device)
+        held = share if share is not None and share.frames is frames and share.device == self.device else None
+        # windows of other models on the same frames share one copy on the device (a 50,000-frame
+        # dataset is 6.5 GB: one per model would not fit a GPU beside the others)
+        self._energyscape = held._energyscape if held else torch.from_numpy(frames.energyscape).to(self.device)
+        self._label = held._label if held else torch.from_numpy(frames.label).to(self.device)
         self._starts = torch.from_numpy(self.starts).to(self.device)
         self._first = torch.from_numpy(first).to(self.device)  # each window's episode's first frame
         self._offsets = torch.from_numpy(config.offsets).to(self.device)
-        self._pose = torch.from_numpy(frames.pose).float().to(self.device) if self.odometry else None
+        self._pose = None
+        if self.odometry:
+            self._pose = held._pose if held and held._pose is not None else torch.from_numpy(frames.pose).float()
+            self._pose = self._pose.to(self.device)
 
     def __len__(self) -> int:
         return len(self.starts)

@@ -205,6 +205,8 @@ def _named_checkpoints(checkpoint) -> dict[str, Path]:
     for item in items:
         name, sep, path = str(item).partition("=")
         name, path = (name, path) if sep else (Path(name).parent.name or Path(name).stem, name)
+        if not name:
+            raise ValueError(f"--checkpoint {item!r} has an empty name: give name=path, or the path alone")
         if name in named or name in ("echo peak", "empty"):
             raise ValueError(f"checkpoint name {name!r} is used twice or names a baseline; give name=path")
         named[name] = Path(path)
@@ -272,10 +274,10 @@ def evaluate(
     indices, split = _pick_windows(windows, ckpt, frames, split, episodes)
     out.mkdir(parents=True, exist_ok=True)
     scenario = windows.scenario[indices]
-    predictors = {
-        name: (model_predictor(m), return_threshold(c, threshold), model_windows(frames, c, device))
-        for name, (m, c) in models.items()
-    }
+    predictors = {}
+    for name, (m, c) in models.items():
+        their_windows = model_windows(frames, c, device, share=windows)
+        predictors[name] = (model_predictor(m), return_threshold(c, threshold, str(named[name])), their_windows)
     predictors["echo peak"] = (echo_peak_predictor(data_config.label_offset), BASELINE_THRESHOLD, windows)
     predictors["empty"] = (empty_predictor, BASELINE_THRESHOLD, windows)
     if grids and frames.pose is not None:
@@ -323,10 +325,11 @@ def plain_windows(config: DataConfig) -> DataConfig:
     return dataclasses.replace(config, history=0, history_stride=1)
 
 
-def model_windows(frames: Frames, ckpt: dict, device) -> Windows:
-    """The windows a checkpoint's model reads (its history and motion for a model with memory)."""
+def model_windows(frames: Frames, ckpt: dict, device, share: Windows | None = None) -> Windows:
+    """The windows a checkpoint's model reads (its history and motion for a model with memory),
+    holding the frames on the device once with `share`'s."""
     model = ModelConfig(**ckpt["model_config"])
-    return Windows(frames, DataConfig(**ckpt["data_config"]), device, odometry=model.uses_odometry)
+    return Windows(frames, DataConfig(**ckpt["data_config"]), device, odometry=model.uses_odometry, share=share)
 
 
 def with_noisy_odometry(frames: Frames, noise: OdometryNoise, *, seed: int) -> Frames:
@@ -359,10 +362,12 @@ def check_grid(frames: Frames, ckpt: dict, name: str = "the model") -> None:
         )
 
 
-def return_threshold(ckpt: dict, override: float | None = None) -> float:
+def return_threshold(ckpt: dict, override: float | None = None, name: str = "the checkpoint") -> float:
     """The return threshold to read a checkpoint's predictions at: `override`, else its calibrated one."""
     if override is None and "threshold" not in ckpt:
-        raise ValueError("the checkpoint has no calibrated return threshold (it predates calibration): set one")
+        raise ValueError(
+            f"{name} has no calibrated return threshold (it predates calibration): give one with --threshold"
+        )
     threshold = float(ckpt["threshold"] if override is None else override)
     if not 0 < threshold <= 1:
         raise ValueError(f"the return threshold must lie in (0, 1], got {threshold}")
@@ -381,7 +386,14 @@ def _pick_windows(windows: Windows, ckpt: dict, frames: Frames, split: str, epis
     if split == "val":
         if not same:
             raise ValueError("--split val needs the dataset the checkpoint was trained on")
-        return np.flatnonzero(np.isin(windows.episode, ckpt["dataset"]["val_episodes"])), split
+        indices = np.flatnonzero(np.isin(windows.episode, ckpt["dataset"]["val_episodes"]))
+        if len(indices) == 0:
+            held = ckpt["dataset"]["val_episodes"]
+            raise ValueError(
+                f"{frames.info.get('folder')} holds no whole window of the episodes the checkpoint validated on "
+                f"({held[:5]}{'...' if len(held) > 5 else ''}): score every window with --split all"
+            )
+        return indices, split
     if split == "all":
         return np.arange(len(windows)), split
     raise ValueError(f"split must be auto, val or all, got {split!r}")

@@ -46,6 +46,8 @@ def read_json(path: str | Path, what: str, advice: str) -> dict:
         ) from None
     except UnicodeDecodeError:
         raise ValueError(f"{what} {path} is not UTF-8 text: {advice}") from None
+    except RecursionError:  # brackets nested deeper than the parser's stack
+        raise ValueError(f"{what} {path} nests its JSON too deeply to read: {advice}") from None
     if not isinstance(record, dict):
         raise ValueError(f"{what} {path} holds a JSON {type(record).__name__}, not an object: {advice}")
     return record

@@ -104,7 +104,7 @@ def predict(
     inputs = [checkpoint, source]
     _check_outputs(out, png, mcap, overwrite=overwrite, inputs=inputs)
     model, ckpt = load_checkpoint(checkpoint, device)
-    threshold = return_threshold(ckpt, threshold)
+    threshold = return_threshold(ckpt, threshold, str(checkpoint))
     source = Path(source)
     frames = read_input(source, ckpt)
     check_grid(frames, ckpt)
@@ -182,6 +182,12 @@ def _check_outputs(out: Path, png, mcap, *, overwrite: bool, inputs: list) -> No
         raise ValueError(f"--png {png} needs a suffix that names the picture's format (.png, .pdf, .svg)")
     for path in given:
         check_output(path, overwrite=overwrite, inputs=inputs)
+    if png:  # after the outputs' checks: writing onto an input is the graver mistake
+        from matplotlib.backend_bases import FigureCanvasBase
+
+        formats = FigureCanvasBase.get_supported_filetypes()
+        if Path(png).suffix[1:].lower() not in formats:
+            raise ValueError(f"--png {png}: matplotlib draws no {Path(png).suffix} pictures; use .png, .pdf or .svg")
 
 
 def prediction_summary(out: str | Path, source: str | Path, seconds: float) -> str:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import h5py
 import numpy as np
 
 from . import MissingExtra
@@ -39,16 +40,23 @@ def drive_stamps(episode: np.ndarray, time_s: np.ndarray) -> np.ndarray:
 
 
 def dataset_stamps(folder: str | Path) -> np.ndarray:
-    """Stamps of every frame of a dataset folder, from its shards' `time` and `episode`."""
-    import h5py
-
+    """Stamps of every frame of a dataset folder, from its shards' `time` and `episode` (each
+    shard's `time` checked: present, one finite time per frame)."""
     from .data import shard_paths
+    from .shardfile import REDO, DataError, open_shard
 
     keys, times = [], []
     for i, path in enumerate(shard_paths(folder)):
-        with h5py.File(path, "r") as f:
-            keys += [(i, int(e)) for e in f["episode"][:]]
-            times.append(f["time"][:])
+        with open_shard(path) as f:
+            episode, time = f["episode"][:], f.get("time")
+            if not isinstance(time, h5py.Dataset) or time.shape != episode.shape:
+                found = "no time dataset" if time is None else f"time of shape {getattr(time, 'shape', None)}"
+                raise DataError(f"{path} has {found}, not one time per frame, which --mcap stamps scans with: {REDO}")
+            time = time[:]
+        if not np.isfinite(time).all():
+            raise DataError(f"{path}: time holds NaN or inf, which cannot stamp a scan (--mcap): {REDO}")
+        keys += [(i, int(e)) for e in episode]
+        times.append(time)
     index = {key: n for n, key in enumerate(dict.fromkeys(keys))}
     return drive_stamps(np.array([index[k] for k in keys]), np.concatenate(times))
 

@@ -43,10 +43,16 @@ def run_folder(out: Path, *, resume: bool, overwrite: bool, inputs=()) -> Iterat
     (never one of the run's `inputs`: an --init-from checkpoint or a --config file in it).
     A folder this call created and the run left empty (a refused run) is removed again."""
     out = Path(out)
+    if resume and overwrite:
+        raise ValueError("--resume continues the run in --out and --overwrite deletes it: give one of them")
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file; give a folder for the run")
     created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:  # a dangling link, a read-only or virtual file system
+        reason = err.strerror or str(err)
+        raise OSError(f"cannot make the run folder --out {out} ({reason}): choose another folder") from None
     main = os.environ.get("RANK", "0") == "0"  # set by torchrun, before the process group exists
     try:
         with folder_lock(out, LOCK_FILE, command="learn train") if main else contextlib.nullcontext():
@@ -59,6 +65,16 @@ def run_folder(out: Path, *, resume: bool, overwrite: bool, inputs=()) -> Iterat
     finally:
         if created and out.is_dir() and not any(out.iterdir()):
             out.rmdir()
+
+
+def check_out_beside_data(out: Path, data: Path) -> None:
+    """Refuse a run folder that is, or lies inside, the dataset folder it trains on: a dataset
+    folder holds one run of the simulator, and --overwrite would clear run files among its shards."""
+    target = Path(os.path.realpath(out))
+    if target.is_relative_to(os.path.realpath(data)):
+        raise ValueError(
+            f"--out {out} is or lies inside the dataset folder --data {data}: give the run a folder of its own"
+        )
 
 
 def check_run_folder(out: Path, *, resume: bool, overwrite: bool) -> None:
@@ -131,6 +147,8 @@ def start_state(model, optimizer, config: LearnConfig, windows: Windows, last: P
         if not isinstance(state, dict) or not {"epoch", "step", "stale", "history"} <= set(state):
             raise ValueError(f"--resume {last} holds no training progress (a stripped or exported checkpoint?)")
         state.setdefault("best", state.pop("best_ssim", -math.inf))  # checkpoints from before `monitor`
+        check_progress(state, config.train.monitor, last)
+        check_optimizer_state(optimizer, last)
         kept = last.with_name("best.pt")
         if state.get("best_epoch") is not None and not kept.exists():
             raise ValueError(
@@ -149,6 +167,59 @@ def start_state(model, optimizer, config: LearnConfig, windows: Windows, last: P
         check_same_grid(windows, ckpt, f"--init-from {init_from}")
         load_weights(model, ckpt, init_from, role="--init-from")
     return {"epoch": 0, "step": 0, "best": -math.inf, "stale": 0, "history": []}
+
+
+def check_progress(state: dict, monitor: str, path: Path) -> None:
+    """Refuse a last.pt whose training progress is not what `learn train` writes: counts that are
+    not integers >= 0, a history that does not hold one row per epoch done (with the monitored
+    score), a best score that is NaN or a kept epoch outside them. Resumed, such a state trains
+    the wrong number of epochs, keeps no epoch, or fails in the summary."""
+    bad = f"--resume {path}: its training progress is damaged"
+    redo = "resume from a last.pt written by `learn train`, or start a new run"
+    for key in ("epoch", "step", "stale"):
+        value = state[key]
+        if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+            raise ValueError(f"{bad} (state.{key} is {value!r}, not a count >= 0): {redo}")
+    history, score = state["history"], f"val_{monitor}"
+    rows_fit = isinstance(history, list) and all(
+        isinstance(r, dict) and isinstance(r.get("epoch"), int) and isinstance(r.get(score), float | int)
+        for r in history
+    )
+    # the length first: a damaged epoch count of 10^9 would otherwise build a list of 10^9
+    if not rows_fit or len(history) != state["epoch"] or any(r["epoch"] != k for k, r in enumerate(history, 1)):
+        raise ValueError(
+            f"{bad} (state.history is not one row with {score} per epoch of the {state['epoch']} done): {redo}"
+        )
+    best, kept = state["best"], state.get("best_epoch")
+    if isinstance(best, bool) or not isinstance(best, float | int) or math.isnan(best):
+        raise ValueError(f"{bad} (state.best is {best!r}, not a score): {redo}")
+    if kept is not None and not (isinstance(kept, int) and 1 <= kept <= state["epoch"]):
+        raise ValueError(f"{bad} (state.best_epoch is {kept!r}, not one of the epochs done): {redo}")
+
+
+def check_optimizer_state(optimizer, path: Path) -> None:
+    """Refuse optimizer moments that do not match the weights they belong to, or hold NaN or inf,
+    and settings (learning rate, betas) that are not finite: Adam would fail at its first step
+    with a shape error, or turn the weights to NaN (which reads as a learning-rate problem)."""
+    import torch
+
+    where = f"--resume {path}: its optimizer state"
+    for group in optimizer.param_groups:
+        for key, value in group.items():
+            numbers = value if isinstance(value, tuple | list) and key != "params" else (value,)
+            if key != "params" and any(isinstance(v, float) and not math.isfinite(v) for v in numbers):
+                raise ValueError(f"{where} has {key} {value!r}, not finite: resume from another last.pt")
+        for param in group["params"]:
+            for key, moment in optimizer.state.get(param, {}).items():
+                if not isinstance(moment, torch.Tensor):
+                    raise ValueError(f"{where} holds {key} {moment!r}, not a tensor: resume from another last.pt")
+                if moment.ndim and moment.shape != param.shape:
+                    raise ValueError(
+                        f"{where} does not fit this model ({key} is {list(moment.shape)} for weights of "
+                        f"{list(param.shape)}): resume from another last.pt"
+                    )
+                if moment.is_floating_point() and not bool(torch.isfinite(moment).all()):
+                    raise ValueError(f"{where} holds NaN or inf in {key}: resume from an earlier last.pt")
 
 
 def check_same_grid(windows: Windows, ckpt: dict, name: str) -> None:

@@ -36,6 +36,7 @@ READ = {
     "azimuth_rad": "f",
 }
 ALSO_READ = {"time": "f", "pose": "f"}  # frame times (learn.ros for `predict --mcap`), sensor poses (memory)
+MIN_GRID_CELLS = 7  # learn.metrics.ssim's window: a smaller grid fails in every validation
 REDO = "regenerate it with `python -m acoustic_sim generate`, or move it out of the folder"
 
 
@@ -139,6 +140,13 @@ def _header(f: h5py.File, path: Path) -> ShardHeader:
     for name, (fits, expected) in shapes.items():
         if not fits:
             raise DataError(f"{path}: {name} has shape {sets[name].shape}, expected {expected}: {REDO}")
+    if energyscape.shape[0] == 0:
+        raise DataError(f"{path} holds no frames (an empty shard): {REDO}")
+    if min(energyscape.shape[1:]) < MIN_GRID_CELLS:
+        raise DataError(
+            f"{path}: its grid of {energyscape.shape[1]} ranges x {energyscape.shape[2]} azimuths is smaller than the "
+            f"{MIN_GRID_CELLS} x {MIN_GRID_CELLS} cells the image metrics (SSIM's window) need: {REDO}"
+        )
     stat = os.stat(path)
     return ShardHeader(
         path=path,

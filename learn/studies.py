@@ -22,15 +22,16 @@ import torch
 
 from clitools.outputs import atomic_folder, atomic_output, check_name
 
-from .checkpoint import load_checkpoint
-from .config import LearnConfig
+from .checkpoint import load_checkpoint, read_checkpoint
+from .config import LearnConfig, from_record
 from .data import DataConfig, Windows, load_frames, recorded_path, shard_paths
 from .evaluate import evaluate, model_predictor, return_threshold
 from .models import ModelConfig
-from .report import METRICS
+from .summaries import TABLE2_CASES, distinct_folders, number_at, read_record, spread, study_table
+from .summaries import seeds_summary as seeds_summary  # re-exported: the studies' summaries
+from .summaries import table2_summary as table2_summary
 from .train import train
 
-TABLE2_CASES = ("minimal", "many", "noisy")
 FRAME_COUNTS = (1, 3, 5)
 SIM2REAL_KEYS = (("scan_f1", "scan F1"), ("beam_accuracy", "beam acc."), ("chamfer_m", "Chamfer [m]"), ("iou", "IoU"))
 
@@ -54,11 +55,6 @@ def _check_study_out(out: Path, inputs: list[Path]) -> None:
     for folder in inputs:
         if target.is_relative_to(os.path.realpath(folder)):
             raise ValueError(f"--out {out} is or lies inside the input folder {folder}: choose a folder of its own")
-
-
-def _spread(values: list[float]) -> dict:
-    """Mean, std and the values themselves, of one number over repeated runs."""
-    return {"mean": float(np.mean(values)), "std": float(np.std(values)), "runs": values}
 
 
 def _cell(stats: dict, key: str) -> str:
@@ -150,6 +146,9 @@ def sim2real(
     own model and settings. `variants` limits it to those named (all of `ablation`'s by default)."""
     out, root = Path(out), Path(ablation)
     _check_study_out(out, _paths(ablation, *([reality] if isinstance(reality, str | Path) else reality.values())))
+    if not root.is_dir():
+        what = "does not exist" if not os.path.lexists(root) else "is not a folder"
+        raise ValueError(f"--ablation {root} {what}: give a suite folder of variants (bounces_0/, bounces_1/, ...)")
     present = sorted(p.name for p in root.iterdir() if p.is_dir() and any(p.glob("shard-*.h5")))
     if not present:
         raise ValueError(f"{root} holds no variant folders with shards (expected bounces_0, bounces_1, ...)")
@@ -224,18 +223,26 @@ def typical_windows(runs: dict[str, Path], test: str, frames, out: Path, *, devi
 
 def _trained_model(run: Path) -> ModelConfig:
     """The network of a run to score, refused when it has no best.pt; a run whose training has
-    not stopped (neither early stopping nor its epoch limit) is scored with a warning."""
+    not stopped (neither early stopping nor its epoch limit), or that cannot tell (no last.pt), is
+    scored with a warning. Both files are read through `learn.checkpoint`'s checks."""
     if not (run / "best.pt").is_file():
         raise ValueError(f"{run} has no best.pt to score: train it first (learn train --out {run} ...)")
-    last = torch.load(run / "last.pt", map_location="cpu", weights_only=True)
-    state, config = last["state"], last["train_config"]
-    if state["stale"] < config["patience"] and state["epoch"] < config["epochs"]:
+    best = read_checkpoint(run / "best.pt", role="--score-only")
+    if not os.path.lexists(run / "last.pt"):
+        warnings.warn(f"{run} has no last.pt: scoring its best.pt, not knowing if training stopped", stacklevel=3)
+        return ModelConfig(**best["model_config"])
+    last = read_checkpoint(run / "last.pt", role="--score-only")
+    state, recipe = last.get("state"), from_record(last).train
+    counts = isinstance(state, dict) and all(isinstance(state.get(k), int) for k in ("epoch", "stale"))
+    if not counts:
+        raise ValueError(f"--score-only {run / 'last.pt'} holds no training progress: train the run with learn train")
+    if state["stale"] < recipe.patience and state["epoch"] < recipe.epochs:
         warnings.warn(
             f"{run}: training has not stopped (epoch {state['epoch']}, {state['stale']} without gain of "
-            f"{config['patience']}); scoring its best.pt so far",
+            f"{recipe.patience}); scoring its best.pt so far",
             stacklevel=3,
         )
-    return ModelConfig(**last["model_config"])
+    return ModelConfig(**best["model_config"])
 
 
 def _test_sets(table: dict) -> list[str]:
@@ -256,15 +263,15 @@ def sim2real_summary(runs: list[str | Path], out: str | Path, *, overwrite: bool
 
 
 def _sim2real_summary(runs: list[str | Path], out: Path) -> dict:
-    tables = [json.loads((Path(r) / "sim2real.json").read_text()) for r in runs]
-    if len(tables) < 2:
-        raise ValueError("give at least two sim2real run folders to summarise")
+    read = [read_record(r, "sim2real.json", "learn sim2real") for r in runs]
+    distinct_folders(runs, "sim2real")
+    tables = [study_table(t, path, "rows of trained variants") for t, path in read]
     variants = list(tables[0])
     if any(list(t) != variants for t in tables):
         raise ValueError(f"the runs trained different variants: {[list(t) for t in tables]}")
 
     def across(v: str, where: str, key: str) -> dict:
-        return _spread([t[v][where][key]["mean"] for t in tables])
+        return spread([number_at(t, path, v, where, key, "mean") for t, path in read])
 
     tests = _test_sets(tables[0])
     wheres = ("in_domain", *tests, *(t + ECHO_PEAK for t in tests))
@@ -341,101 +348,3 @@ def _plot_sim2real(table: dict, path: Path, errorbars: bool) -> None:
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)
-
-
-def seeds_summary(reports: list[str | Path], out: str | Path, *, overwrite: bool = False) -> dict:
-    """Mean and std across repeated evaluations (e.g. one per training seed) of every predictor:
-    reads each folder's metrics.json (written by `evaluate`), writes summary.md and summary.json.
-    Each cell is the spread of the runs' window means, so it shows how much a result depends on
-    the seed rather than on the windows. Files already in `out` are replaced only with
-    `overwrite`, files of `reports` never (`clitools.outputs`)."""
-    names = ("summary.md", "summary.json")
-    with atomic_folder(out, overwrite=overwrite, inputs=_paths(*reports), expected=names) as stage:
-        return _seeds_summary(reports, stage)
-
-
-def _seeds_summary(reports: list[str | Path], out: Path) -> dict:
-    runs = [json.loads((Path(r) / "metrics.json").read_text()) for r in reports]
-    if len(runs) < 2:
-        raise ValueError("give at least two evaluation folders to summarise")
-    names = list(runs[0]["results"])
-    if any(list(r["results"]) != names for r in runs):
-        raise ValueError(f"the evaluations scored different predictors: {[list(r['results']) for r in runs]}")
-    summary = {}
-    for name in names:
-        summary[name] = {}
-        for key, _, _ in METRICS:
-            summary[name][key] = _spread([r["results"][name]["all"][key]["mean"] for r in runs])
-    lines = [
-        f"# {len(runs)} runs on `{runs[0]['data']}` ({runs[0]['split']} split, {runs[0]['windows']:,} windows each)",
-        "",
-        "Mean ± std over the runs of each run's mean over windows: " + ", ".join(f"`{Path(r)}`" for r in reports) + ".",
-        "",
-        "| predictor | " + " | ".join(label for _, label, _ in METRICS) + " |",
-        "|---" * (len(METRICS) + 1) + "|",
-    ]
-    for name, stats in summary.items():
-        cells = [
-            "-" if not np.isfinite(stats[k]["mean"]) else f"{f.format(stats[k]['mean'])} ± {f.format(stats[k]['std'])}"
-            for k, _, f in METRICS
-        ]
-        lines.append(f"| {name} | " + " | ".join(cells) + " |")
-    (out / "summary.md").write_text("\n".join(lines) + "\n")
-    (out / "summary.json").write_text(json.dumps(summary, indent=1))
-    return summary
-
-
-def table2_summary(runs: list[str | Path], out: str | Path, *, overwrite: bool = False) -> dict:
-    """Table 2 over repeated runs (e.g. seeds), from their table2.json and the K = 5 row's reports:
-    scan F1 mean ± std of the runs' window means per row and case, the echo-peak baseline on the
-    same windows, and per-run paired differences (each run scores all its rows on the same validation
-    episodes, so the episodes' difficulty cancels out of a difference). Files already in `out`
-    are replaced only with `overwrite`, files of `runs` never (`clitools.outputs`)."""
-    names = ("table2.md", "table2.json")
-    with atomic_folder(out, overwrite=overwrite, inputs=_paths(*runs), expected=names) as stage:
-        return _table2_summary(runs, stage)
-
-
-def _table2_summary(runs: list[str | Path], out: Path) -> dict:
-    tables = [json.loads((Path(r) / "table2.json").read_text()) for r in runs]
-    if len(tables) < 2:
-        raise ValueError("give at least two table2 run folders to summarise")
-    rows = list(tables[0])
-    if any(list(t) != rows for t in tables):
-        raise ValueError(f"the runs hold different rows: {[list(t) for t in tables]}")
-    f1 = {r: {c: np.array([t[r][c]["scan_f1"]["mean"] for t in tables]) for c in TABLE2_CASES} for r in rows}
-    peak = {}
-    for c in TABLE2_CASES:
-        reports = [json.loads((Path(r) / "k5" / c / "metrics.json").read_text()) for r in runs]
-        peak[c] = np.array([rep["results"]["echo peak"]["all"]["scan_f1"]["mean"] for rep in reports])
-
-    def cell(values: np.ndarray) -> str:
-        return f"{values.mean():.3f} ± {values.std():.3f}"
-
-    names = ", ".join(f"`{Path(r).name}`" for r in runs)
-    lines = [
-        f"# Table 2 layout over {len(runs)} runs ({names})",
-        "",
-        "scan F1 at 0.10 m: mean ± std over the runs of each run's mean over its validation windows "
-        "(the episodes its early stopping read).",
-        "",
-        "| input | " + " | ".join(TABLE2_CASES) + " |",
-        "|---|---|---|---|",
-    ]
-    lines += [f"| {r} | " + " | ".join(cell(f1[r][c]) for c in TABLE2_CASES) + " |" for r in rows]
-    lines += ["| echo-peak baseline | " + " | ".join(cell(peak[c]) for c in TABLE2_CASES) + " |", ""]
-    pairs = [(r, rows[0]) for r in rows[1:-1]] + [(rows[-1], rows[-2])]  # longer windows; fine-tuning
-    lines += [
-        "Paired differences per run (same windows):",
-        "",
-        "| | case | " + " | ".join(Path(r).name for r in runs) + " |",
-    ]
-    lines += ["|---" * (2 + len(runs)) + "|"]
-    for b, a in pairs:
-        for c in TABLE2_CASES:
-            lines.append(f"| {b} minus {a} | {c} | " + " | ".join(f"{d:+.3f}" for d in f1[b][c] - f1[a][c]) + " |")
-    (out / "table2.md").write_text("\n".join(lines) + "\n")
-    summary = {r: {c: _spread(v.tolist()) for c, v in f1[r].items()} for r in rows}
-    summary["echo peak"] = {c: _spread(v.tolist()) for c, v in peak.items()}
-    (out / "table2.json").write_text(json.dumps(summary, indent=1))
-    return summary

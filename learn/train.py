@@ -14,7 +14,6 @@ that epoch are read at it, and the checkpoint stores it for evaluate, predict an
 
 from __future__ import annotations
 
-import dataclasses
 import math
 import os
 import time
@@ -27,12 +26,21 @@ import torch.nn.functional as F
 from tqdm.auto import tqdm
 
 from .augment import augmented_batch
-from .config import MONITORS, LearnConfig, TrainConfig, to_record
+from .config import MONITORS, LearnConfig, TrainConfig, to_record, with_grid
 from .data import FORMAT_VERSION, Frames, Windows, load_frames, split_groups, torch_device, validation_split
 from .evaluate import calibrate_on_predictions, model_predictor, predict_batches, score_predictions
+from .inputs import regular_file
 from .models import build_model, parameter_count, run_model
 from .progress import epoch_line, sizes_line, write_fold_summary
-from .runs import run_folder, save_epoch, save_history, start_state, write_run_config, write_summary
+from .runs import (
+    check_out_beside_data,
+    run_folder,
+    save_epoch,
+    save_history,
+    start_state,
+    write_run_config,
+    write_summary,
+)
 from .tensorboard import TensorBoardLog, summary_writer
 
 
@@ -151,8 +159,12 @@ def train(
     """
     if tensorboard:
         summary_writer()  # a missing extra is refused before anything is written
-    if init_from is not None and not Path(init_from).is_file():
-        raise FileNotFoundError(f"--init-from checkpoint {init_from} does not exist")
+    if isinstance(folds, bool) or not isinstance(folds, int) or folds < 1:
+        raise ValueError(f"--folds must be an integer >= 1 (1: no cross-validation), got {folds!r}")
+    if init_from is not None:
+        regular_file(init_from, "--init-from checkpoint")  # not a folder or a FIFO (torch.load would block)
+    if not isinstance(data, Frames):
+        check_out_beside_data(Path(out), Path(data))
     protected = (init_from, *inputs)  # what --overwrite must not delete with the old run
     with run_folder(Path(out), resume=resume, overwrite=overwrite, inputs=protected):  # one run at a time
         each = {"resume": resume, "progress": progress, "init_from": init_from, "tensorboard": tensorboard}
@@ -170,6 +182,7 @@ def _train_in(data, out: Path, config: LearnConfig, *, device: str, folds: int, 
     config = with_grid(config, frames)
     windows = Windows(frames, config.data, dev, odometry=config.model.uses_odometry)
     groups = windows.episode if config.train.split_by == "episode" else windows.scenario
+    _check_enough_groups(groups, folds, config.train.split_by, frames.info["folder"])
     each |= {"config": config, "dist_info": dist_info}
     if folds > 1:
         fold_of = split_groups(groups, folds, seed=config.train.split_seed_or_seed)
@@ -188,21 +201,6 @@ def _train_in(data, out: Path, config: LearnConfig, *, device: str, folds: int, 
         dist.barrier()  # rank 0 writes the summaries last; leaving without this aborts gloo ranks at exit
         dist.destroy_process_group()
     return result
-
-
-def with_grid(config: LearnConfig, frames: Frames) -> LearnConfig:
-    """`config` with a model with memory told the polar grid it resamples on (the data's),
-    refused where it was given another one."""
-    if not config.model.uses_odometry:
-        return config
-    r, a = frames.range_m, frames.azimuth_rad
-    even = np.allclose(np.diff(r), r[1] - r[0], rtol=1e-3) and np.allclose(np.diff(a), a[1] - a[0], rtol=1e-3)
-    if len(r) < 2 or len(a) < 2 or not even:
-        raise ValueError(f"{frames.info['folder']}: polar_memory needs evenly spaced range and azimuth bins")
-    extent = (float(r[0]), float(r[-1]), float(a[0]), float(a[-1]))
-    if config.model.extent is not None and not np.allclose(config.model.extent, extent, atol=1e-6):
-        raise ValueError(f"model.extent {config.model.extent} is not the grid of {frames.info['folder']} ({extent})")
-    return dataclasses.replace(config, model=dataclasses.replace(config.model, extent=extent))
 
 
 def _train_one(
@@ -256,6 +254,17 @@ def _train_one(
         if board:
             board.close()
     return write_summary(out, state, recipe, meta, len(train_idx), len(val_idx)) if dist_info.main else {}
+
+
+def _check_enough_groups(groups: np.ndarray, folds: int, split_by: str, folder: str) -> None:
+    """Refuse a dataset with too few episodes (or scenarios) to hold some out, naming the count."""
+    count, needed = len(np.unique(groups)), max(folds, 2)
+    if count < needed:
+        what = "--folds " + str(folds) if folds > 1 else "a validation split"
+        raise ValueError(
+            f"{folder} holds {count} {split_by}{'s' if count != 1 else ''} with whole windows; {what} needs at "
+            f"least {needed} (validation holds whole {split_by}s out): generate more episodes, or fewer --folds"
+        )
 
 
 @dataclass

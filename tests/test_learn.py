@@ -527,7 +527,8 @@ def test_config_option_starts_from_a_recorded_run(tmp_path, capsys):
     del older["train_config"]["augment"], older["model_config"]["row_contrast"]
     path.write_text(json.dumps(older))
     assert read_run_config(path) == dataclasses.replace(recorded, augment=AugmentConfig.none(), model=MODEL)
-    for content, words in (("{", "is not JSON"), ('{"model_config": {}}', "not this version's"), ("[]", "not a run")):
+    broken = (("{", "is not valid JSON"), ('{"model_config": {}}', "not this version's"), ("[]", "holds a JSON list"))
+    for content, words in broken:
         path.write_text(content)
         assert main(["train", "--data", "d", "--out", str(tmp_path / "o"), "--config", str(path)]) == 2
         err = capsys.readouterr().err

@@ -262,7 +262,7 @@ def test_every_field_of_both_trees_reads_its_own_value_back(cli):
         ("learn", "train=fast", "train is a section without presets: give train.field=value"),
         ("acoustic_sim", "processing.grid=1", "processing.grid is a section without presets"),
         ("acoustic_sim", "processing.speed_of_sound=nan", "ProcessingConfig.speed_of_sound must be finite"),
-        ("learn", "train.pos_weight=nan", "lr and pos_weight must be finite and > 0, got 0.0001 and nan"),
+        ("learn", "train.pos_weight=nan", "train.pos_weight must be a finite number > 0, got nan"),
         ("acoustic_sim", "tracer.max_bounces=11", "0..10"),
         ("learn", "model.frames=3", "model.frames and data.frames must agree: set the window length with --frames"),
     ],
