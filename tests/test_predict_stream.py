@@ -231,3 +231,24 @@ def test_bag_quaternions_round_trip():
     rz[:, 0, 0], rz[:, 0, 1], rz[:, 1, 0], rz[:, 1, 1], rz[:, 2, 2] = c, -s, s, c, 1
     want = np.stack([0 * yaw, 0 * yaw, np.sin(yaw / 2), np.cos(yaw / 2)], -1)
     np.testing.assert_allclose(matrix_quaternion(rz), want, atol=1e-12)
+
+
+def test_bag_poses_are_the_transforms_at_the_frames_or_between_them():
+    """A frame stamped between two /tf transforms gets their linear blend (1/4 of the way: x 0.5 m,
+    yaw 0.1 rad of 0.4); one stamped as a transform gets it; frames outside the /tf's span, or
+    a /tf to another frame, give no poses and say why."""
+    from types import SimpleNamespace as Msg
+
+    from learn.bag import _poses
+    from learn.odometry import planar
+
+    def transform(x, yaw):
+        return Msg(translation=Msg(x=x, y=0.0, z=0.3), rotation=Msg(x=0.0, y=0.0, z=np.sin(yaw / 2), w=np.cos(yaw / 2)))
+
+    tf = [(0, "odom", "sensor", transform(0.0, 0.0)), (4, "odom", "sensor", transform(2.0, 0.4))]
+    pose, parent, note = _poses(tf, "sensor", np.array([0, 1, 4]))
+    assert parent == "odom" and note == ""
+    np.testing.assert_allclose(planar(pose), [[0, 0, 0], [0.5, 0, 0.1], [2.0, 0, 0.4]], atol=5e-4)  # nlerp: 0.0997 rad
+    np.testing.assert_allclose(pose[:, 2, 3], 0.3)
+    assert _poses(tf, "sensor", np.array([1, 5]))[2] == "1 of 2 sonar frames lie outside the time span of its /tf"
+    assert _poses(tf, "sonar", np.array([1]))[0] is None
