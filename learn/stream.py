@@ -180,7 +180,6 @@ class Stream:
                 f"energyscape has shape {tuple(image.shape)}, but the model reads {self.grid[0]} ranges x "
                 f"{self.grid[1]} azimuths (beamform on the checkpoint's grid)"
             )
-        image = image.to(self.device)
-        if not bool(torch.isfinite(image).all()):
+        if not bool(torch.isfinite(image).all()):  # checked where it is (the host's, mostly): no wait on a GPU
             raise ValueError(f"energyscape of frame {self.count} holds NaN or inf values: pass finite energyscapes")
-        return image
+        return image.to(self.device)
