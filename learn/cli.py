@@ -73,6 +73,8 @@ def _predict(args) -> int:
     from .predict import predict, prediction_summary
 
     t0 = time.perf_counter()
+    if args.stream:  # frame by frame with state, as a robot runs it (learn.stream)
+        from .stream_predict import predict_stream as predict
     out = predict(
         args.checkpoint,
         args.input,
@@ -85,7 +87,7 @@ def _predict(args) -> int:
         progress=not args.quiet,
     )
     summary = prediction_summary(out, args.input, time.perf_counter() - t0)
-    print(summary + (f"; and {args.mcap} (/scan_pred)" if args.mcap else ""))
+    print(summary + (f"; and {args.mcap} (/scan_pred{' and /tf' if args.stream else ''})" if args.mcap else ""))
     return 0
 
 
@@ -249,6 +251,12 @@ def build_parser(base=None) -> argparse.ArgumentParser:
     p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     p.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
     p.add_argument("--quiet", action="store_true", help="no progress bar (the summary line stays)")
+    p.add_argument(
+        "--stream",
+        action="store_true",
+        help="run frame by frame with state, as a robot would (a model with memory needs poses); --input may "
+        "also be an MCAP bag with /sonar/energyscape and /tf; --mcap then holds /tf too",
+    )
     _threshold_option(p)
     p.set_defaults(handler=_predict)
     p = sub.add_parser("export", formatter_class=fmt, parents=[common], **COMMANDS["export"])

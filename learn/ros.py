@@ -69,26 +69,28 @@ def write_scans(out: str | Path, ranges: np.ndarray, stamps: np.ndarray, range_m
         raise MissingExtra("--mcap needs the `ros` extra: pip install -e '.[ros]'") from None
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    azimuth_rad, range_m = np.asarray(azimuth_rad, np.float64), np.asarray(range_m, np.float64)
     with open(out, "wb") as stream:
         writer = Writer(stream)
         schema = writer.register_msgdef("sensor_msgs/msg/LaserScan", LASER_SCAN)
         for k, (scan, stamp) in enumerate(zip(ranges, stamps, strict=True)):
-            message = {
-                "header": {
-                    "stamp": {"sec": int(stamp) // 10**9, "nanosec": int(stamp) % 10**9},
-                    "frame_id": SENSOR_FRAME,
-                },
-                "angle_min": float(azimuth_rad[0]),
-                "angle_max": float(azimuth_rad[-1]),
-                "angle_increment": float((azimuth_rad[-1] - azimuth_rad[0]) / (len(azimuth_rad) - 1)),
-                "time_increment": 0.0,
-                "scan_time": FRAME_S,
-                "range_min": float(range_m[0]),
-                "range_max": float(range_m[-1]),
-                "ranges": np.asarray(scan, np.float32).tolist(),
-                "intensities": [],
-            }
+            message = laser_scan(scan, int(stamp), range_m, azimuth_rad)
             writer.write_message("/scan_pred", schema, message, log_time=int(stamp), sequence=k)
         writer.finish()
     return out
+
+
+def laser_scan(scan, stamp: int, range_m, azimuth_rad, frame: str = SENSOR_FRAME) -> dict:
+    """One LaserScan message: `scan` (A,) ranges [m] (inf = no return) at `stamp` [ns] in `frame`."""
+    azimuth_rad, range_m = np.asarray(azimuth_rad, np.float64), np.asarray(range_m, np.float64)
+    return {
+        "header": {"stamp": {"sec": stamp // 10**9, "nanosec": stamp % 10**9}, "frame_id": frame},
+        "angle_min": float(azimuth_rad[0]),
+        "angle_max": float(azimuth_rad[-1]),
+        "angle_increment": float((azimuth_rad[-1] - azimuth_rad[0]) / (len(azimuth_rad) - 1)),
+        "time_increment": 0.0,
+        "scan_time": FRAME_S,
+        "range_min": float(range_m[0]),
+        "range_max": float(range_m[-1]),
+        "ranges": np.asarray(scan, np.float32).tolist(),
+        "intensities": [],
+    }
