@@ -24,7 +24,7 @@ from clitools.outputs import atomic_output, check_output
 
 from .checkpoint import load_checkpoint
 from .data import DataConfig, Frames, Windows, load_frames, recorded_path
-from .evaluate import check_grid, model_predictor, return_threshold
+from .evaluate import check_grid, model_predictor, model_windows, return_threshold
 from .inputs import check_fits, npy_header
 from .scan import first_return_ranges
 
@@ -109,14 +109,15 @@ def predict(
     frames = read_input(source, ckpt)
     check_grid(frames, ckpt)
     config = DataConfig(**ckpt["data_config"])
-    windows = Windows(frames, config, device)
+    windows = model_windows(frames, ckpt, device)  # with each frame's motion for a model with memory
     run = model_predictor(model)
     preds, ranges = [], []
     bar = tqdm(total=len(windows), desc="predicting", unit="win", disable=not progress, leave=False)
     with torch.no_grad(), bar:
         for start in range(0, len(windows), batch_size):
-            x, _ = windows.batch(np.arange(start, min(start + batch_size, len(windows))))
-            bar.update(len(x))
+            chunk = np.arange(start, min(start + batch_size, len(windows)))
+            x, _ = windows.batch(chunk)
+            bar.update(len(chunk))
             image = run(x).float().clamp(0, 1)[:, 0].half()  # as saved: the scans read the saved images
             ranges.append(first_return_ranges(image.float(), frames.range_m, threshold=threshold).float().cpu().numpy())
             preds.append(image.cpu().numpy())
@@ -161,10 +162,11 @@ def _plot(path: Path, windows: Windows, images: np.ndarray, threshold: float) ->
     rows, offset = [], windows.config.label_offset
     for i in np.unique(np.linspace(0, len(windows) - 1, 4).round().astype(int)):
         x, y = windows.batch([i])
+        frames = x[0] if isinstance(x, tuple) else x  # a model with memory also reads the motion
         rows.append(
             {
                 "title": f"frame {windows.starts[i] + offset}",
-                "sonar": x[0, 0, offset].cpu().numpy(),
+                "sonar": frames[0, 0, windows.config.anchor].cpu().numpy(),
                 "truth": y[0, 0].cpu().numpy(),
                 "pred": images[i].astype(np.float32),
             }

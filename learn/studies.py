@@ -24,8 +24,8 @@ from clitools.outputs import atomic_folder, atomic_output, check_name
 
 from .checkpoint import load_checkpoint, read_checkpoint
 from .config import LearnConfig, from_record
-from .data import DataConfig, Windows, load_frames, recorded_path, shard_paths
-from .evaluate import evaluate, model_predictor, return_threshold
+from .data import load_frames, recorded_path, shard_paths
+from .evaluate import evaluate, model_predictor, model_windows, return_threshold
 from .models import ModelConfig
 from .summaries import TABLE2_CASES, distinct_folders, number_at, read_record, spread, study_table
 from .summaries import seeds_summary as seeds_summary  # re-exported: the studies' summaries
@@ -202,7 +202,7 @@ def typical_windows(runs: dict[str, Path], test: str, frames, out: Path, *, devi
             )
         f1, window = scores[(len(scores) - 1) // 2]
         model, ckpt = load_checkpoint(run / "best.pt", device)
-        windows = Windows(frames, DataConfig(**ckpt["data_config"]), device)
+        windows = model_windows(frames, ckpt, device)
         x, y = windows.batch([window])
         with torch.no_grad():
             pred = model_predictor(model)(x).float().clamp(0, 1)
@@ -210,7 +210,7 @@ def typical_windows(runs: dict[str, Path], test: str, frames, out: Path, *, devi
             {
                 "title": f"trained on {name}: {frames.scenarios[windows.scenario[window]]}, window {window}",
                 "caption": f"its median scan F1 on {test}: {f1:.2f} (of {len(scores)} windows)",
-                "sonar": x[0, 0, windows.config.label_offset].cpu().numpy(),
+                "sonar": (x[0] if isinstance(x, tuple) else x)[0, 0, windows.config.anchor].cpu().numpy(),
                 "truth": y[0, 0].cpu().numpy(),
                 "pred": pred[0, 0].cpu().numpy(),
                 "threshold": return_threshold(ckpt),
