@@ -60,9 +60,12 @@ class Stream:
         device: Where to run; None: where the model's weights are.
         threshold: Return threshold in (0, 1] overriding the checkpoint's calibrated one.
         amp: bfloat16 autocast on a GPU, as `learn predict` runs.
+        graphs: On a GPU, replay each step's network and readout as one CUDA graph.
     """
 
-    def __init__(self, model: torch.nn.Module, ckpt: dict, device=None, *, threshold=None, amp: bool = True):
+    def __init__(
+        self, model: torch.nn.Module, ckpt: dict, device=None, *, threshold=None, amp: bool = True, graphs: bool = True
+    ):
         from .evaluate import model_predictor, return_threshold
 
         weights = next(iter(model.parameters()), None)
@@ -75,6 +78,7 @@ class Stream:
         self.azimuth_rad = np.asarray(ckpt["azimuth_rad"], dtype=np.float64)
         self.grid = (len(self.range_m), len(self.azimuth_rad))
         self._run = model_predictor(self.model, amp=amp)
+        self.graphs, self._graph = graphs, None
         self._range = torch.as_tensor(self.range_m, device=self.device)
         offsets = self.config.offsets
         self.capacity = int(offsets[-1] - offsets[0] + 1)  # frames the oldest read lies behind the newest, and it
@@ -146,9 +150,37 @@ class Stream:
             motion = np.concatenate([relative(poses, pose), present[:, None]], axis=1)
             x = (x, torch.as_tensor(motion[None], dtype=torch.float32, device=self.device))
         with torch.no_grad():
-            image = self._run(x).float().clamp(0, 1)[:, 0].half()  # as predict saves it: its scans read these
-            ranges = first_return_ranges(image.float(), self._range, threshold=self.threshold).float()
+            image, ranges = self._graphed(x) if self.device.type == "cuda" and self.graphs else self._readout(x)
         return StreamResult(label_frame, ranges[0].cpu().numpy(), image[0].cpu().numpy(), pose)
+
+    def _readout(self, x) -> tuple[torch.Tensor, torch.Tensor]:
+        """The network's image (as predict saves it, float16: its scans read these) and scan."""
+        image = self._run(x).float().clamp(0, 1)[:, 0].half()
+        return image, first_return_ranges(image.float(), self._range, threshold=self.threshold).float()
+
+    def _graphed(self, x) -> tuple[torch.Tensor, torch.Tensor]:
+        """`_readout` replayed as one CUDA graph: at batch 1 the small network's ~100 kernel
+        launches, not its arithmetic, are what a step waits for. Captured at the first step on
+        inputs of fixed shape, which every later step copies its own into."""
+        inputs = x if isinstance(x, tuple) else (x,)
+        if self._graph is None:
+            self._static = [t.clone() for t in inputs]
+            side = torch.cuda.Stream(self.device)
+            side.wait_stream(torch.cuda.current_stream(self.device))
+            with torch.cuda.stream(side):  # warm-up outside the graph: cuDNN picks its kernels
+                for _ in range(3):
+                    self._readout(self._packed())
+            torch.cuda.current_stream(self.device).wait_stream(side)
+            self._graph = torch.cuda.CUDAGraph()
+            with torch.cuda.graph(self._graph):
+                self._out = self._readout(self._packed())
+        for static, given in zip(self._static, inputs, strict=True):
+            static.copy_(given)
+        self._graph.replay()
+        return self._out
+
+    def _packed(self):
+        return tuple(self._static) if len(self._static) > 1 else self._static[0]
 
     def _check_pose(self, pose) -> np.ndarray | None:
         if pose is None:
