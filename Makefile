@@ -9,12 +9,15 @@ TORCH_SPEC ?= torch==2.13.0
 OUT ?= out
 DEVICE ?= cpu
 # The demo's size: a small multipath dataset and a few CPU minutes of training (a smoke run), and a
-# fresh drive (suite seed 2026: scenes neither model saw) on which the shipped pretrained model and
-# the smoke run are scored side by side.
+# fresh drive (suite seed 2026: scenes neither model saw) on which the shipped pretrained model, the
+# smoke run and the study's K = 5 and memory models are scored side by side, with the occupancy grids.
 DEMO_FRAMES ?= 300
 DEMO_DRIVE_FRAMES ?= 200
 DEMO_TRAIN ?= --epochs 4 --lr 2e-3 --loss bce --val-fraction 0.34 --overwrite
 PRETRAINED ?= learn/pretrained/polar_unet_k5.pt
+# issue 39's study, seed 0 (randomised suite, 3 bounces): K = 5 and the model with memory of the drive
+MEMORY ?= learn/pretrained/polar_memory_k5.pt
+K5_RANDOMISED ?= learn/pretrained/polar_unet_k5_randomised.pt
 
 .PHONY: demo test lint system-deps clean
 
@@ -41,8 +44,11 @@ demo: $(VENV)/.installed
 	$(PY) -m acoustic_sim generate --suite paper --frames $(DEMO_FRAMES) --workers 2 --device $(DEVICE) --out $(OUT)/data
 	$(PY) -m acoustic_sim generate --suite paper --frames $(DEMO_DRIVE_FRAMES) --seed 2026 --shards 2 --workers 2 --device $(DEVICE) --out $(OUT)/drive
 	$(PY) -m learn train --data $(OUT)/data --out $(OUT)/run --model polar_unet $(DEMO_TRAIN) --device $(DEVICE)
-	$(PY) -m learn evaluate --checkpoint pretrained=$(PRETRAINED) --checkpoint "smoke run=$(OUT)/run/best.pt" --data $(OUT)/drive --out $(OUT)/report --device $(DEVICE) --overwrite
-	@echo "beside the report: $(OUT)/report/examples.png (the pretrained model on the fresh drive), the smoke run's"
+	$(PY) -m learn evaluate --checkpoint pretrained=$(PRETRAINED) --checkpoint "smoke run=$(OUT)/run/best.pt" \
+	  --checkpoint "k5 randomised=$(K5_RANDOMISED)" --checkpoint "memory=$(MEMORY)" \
+	  --data $(OUT)/drive --out $(OUT)/report --device $(DEVICE) --overwrite
+	@echo "beside the report: $(OUT)/report/examples.png (the pretrained model on the fresh drive), examples_memory.png"
+	@echo "(the model with memory, trained on the randomised suite beside 'k5 randomised'), the smoke run's"
 	@echo "curves $(OUT)/run/curves.png, the dataset card $(OUT)/data/README.md and the scene pictures $(OUT)/*.png"
 
 test: $(VENV)/.installed
