@@ -20,9 +20,10 @@ from typing import Literal
 
 import numpy as np
 
-from clitools.limits import check_memory
-
 from .air import chirp, speed_of_sound
+from .config_checks import ConfigError as ConfigError  # re-exported: where readers look for it
+from .config_checks import check_finite as check_finite
+from .config_checks import check_memory_for
 
 NoiseKind = Literal["none", "gaussian", "uniform"]
 NOISE_KINDS: tuple[str, ...] = typing.get_args(NoiseKind)
@@ -32,37 +33,6 @@ Normalise = Literal[None, "max", "db"]
 NORMALISE: tuple[str | None, ...] = typing.get_args(Normalise)
 MAX_BOUNCES = 10
 """Most secondary reflections a path may have (the tracer's kernels store MAX_BOUNCES + 1 planes)."""
-
-
-class ConfigError(ValueError):
-    """A configuration value that is missing, non-finite or out of range."""
-
-
-def check_memory_for(needed: float, what: str, advice: str) -> None:
-    """Refuse a config whose sizes need more memory than this machine has free (ConfigError with
-    both figures, before anything is allocated); `what` names the fields, `advice` says what to
-    give instead. Each class counts the bytes the simulator holds per unit of its sizes, at least."""
-    try:
-        check_memory(needed, what=what, advice=advice)
-    except ValueError as err:
-        raise ConfigError(str(err)) from None
-
-
-def check_finite(config) -> None:
-    """Refuse NaN and inf in every float field of a config dataclass (and in float tuples and
-    arrays), naming the field: comparisons with NaN are False, so range checks alone let it pass."""
-    for f in dataclasses.fields(config):
-        value = getattr(config, f.name)
-        if isinstance(value, float | np.floating):
-            numbers = np.float64(value)
-        elif isinstance(value, np.ndarray) and value.dtype.kind in "fc":
-            numbers = value
-        elif isinstance(value, tuple | list) and value and all(isinstance(v, float | int) for v in np.ravel(value)):
-            numbers = np.asarray(value, dtype=np.float64)
-        else:
-            continue  # ints, strings, flags, nested configs (checked when built), tables of other things
-        if not np.isfinite(numbers).all():
-            raise ConfigError(f"{type(config).__name__}.{f.name} must be finite, got {value!r}")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -316,6 +286,12 @@ class SonarConfig:
             raise ValueError("microphones_m are all at one point; an array needs microphones at distinct positions")
         if self.record_samples < self.chirp.sample_count:
             raise ValueError(f"record_samples {self.record_samples:,} < the call's {self.chirp.sample_count:,} samples")
+        reach = self.atmosphere.speed_of_sound * self.record_samples / self.chirp.sample_rate_hz  # [m] of path
+        if (gap := float(np.linalg.norm(mics - np.asarray(self.emitter_m), axis=1).min())) >= reach:  # silent pings
+            raise ValueError(
+                f"emitter_m is {gap:.3g} m from the nearest microphone, beyond the {reach:.3g} m of path "
+                "a recording of record_samples holds: no echo could arrive; put the emitter at the array"
+            )
         check_memory_for(  # int64 impulses and float32 signals per mic; absorption filters (complex128): 128 B
             self.record_samples * (12 * len(mics) + 128),
             f"SonarConfig.record_samples {self.record_samples:,} ({len(mics)} microphones) for one ping",

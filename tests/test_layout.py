@@ -131,7 +131,7 @@ KERNELS = "acoustic_sim.engine.kernels"
 # What each part of the simulator may import of the simulator (besides itself and the package's
 # public names in acoustic_sim/__init__.py, which only re-export the engine and configuration).
 # The base is the configuration and what it is built from (air, array), devices and small helpers.
-BASE = ("config", "air", "array", "settings", "devices", "extras", "user_warning")
+BASE = ("config", "config_checks", "air", "array", "settings", "devices", "extras", "user_warning")
 MAY_IMPORT = {
     "base": {"base"},
     "engine": {"base", "engine"},

@@ -111,7 +111,13 @@ def test_train_checkpoint_resume_and_evaluate(tiny_dataset, tmp_path):
         summary = train(tiny_dataset, run, none, resume=True, progress=False)
     assert summary["epochs"] == 4
     report = evaluate(run / "best.pt", tiny_dataset, run / "eval", timing=False)
-    assert report["split"] == "val" and set(report["results"]) == {"model", "echo peak", "empty"}
+    assert report["split"] == "val" and set(report["results"]) == {
+        "model",
+        "echo peak",
+        "empty",
+        "occupancy grid (echo peak)",
+        "occupancy grid (model)",
+    }
     assert np.isfinite(report["results"]["model"]["all"]["ssim"]["mean"])
     text = (run / "eval" / "report.md").read_text()
     assert (run / "eval" / "examples.png").exists() and "scan F1 @0.10 m" in text

@@ -50,6 +50,7 @@ REFUSED = [
     ("seed-beyond-int64", f"{RENDER} --seed 1180591620717411303424 --out {{tmp}}/a.png", "--seed must lie in"),
     # settings that leave nothing to compute: were h5py's, numpy's or the beamformer's words
     ("grid-without-bins", f"{RENDER} --set processing.grid.range_bin_m=10 --out {{tmp}}/a.png", "no range bin"),
+    ("emitter-beyond-record", f"{RENDER} --set sonar.emitter_m=[1e9,0,0] --out {{tmp}}/a.png", "no echo could arrive"),
     ("call-of-one-sample", f"{RENDER} --set sonar.chirp.duration_s=1e-12 --out {{tmp}}/a.png", "1 sample"),
     ("array-at-a-point", f"{RENDER} --set sonar.microphones_m=[[0,0,0],[0,0,0]] --out {{tmp}}/a.png", "one point"),
     (
