@@ -154,6 +154,24 @@ def tabulate(band, has, family_of, found: dict[str, np.ndarray]) -> dict:
     return table
 
 
+SENSITIVITY = ((HEARD_DEG, 0.05), (HEARD_DEG, 0.15), (20.0, NEAR_M), (40.0, NEAR_M))  # (heard_deg, near_m)
+
+
+def sensitivity(ranges, azimuth, pose, episode, label_frames, sets, band, has) -> list[dict]:
+    """Share of returns heard within the model's frames per band at other (heard_deg, near_m)."""
+    rows = []
+    for heard_deg, near_m in SENSITIVITY:
+        found = heard(
+            ranges, azimuth, pose, episode, label_frames, {"model": sets["model"]}, heard_deg=heard_deg, near_m=near_m
+        )
+        shares = {
+            name: float(found["model"][has & (band == i)].mean()) if (has & (band == i)).any() else float("nan")
+            for i, name in enumerate(BAND_NAMES)
+        }
+        rows.append({"heard_deg": heard_deg, "near_m": near_m, "model": shares})
+    return rows
+
+
 def recall_split(band, has, heard_by_model: np.ndarray, hits: list[np.ndarray]) -> dict:
     """{band: {"heard", "unheard": mean recall over the models}} of the returns heard within the
     model's frames and of those not (nan where a band has none)."""
@@ -168,8 +186,22 @@ def recall_split(band, has, heard_by_model: np.ndarray, hits: list[np.ndarray]) 
     return rows
 
 
+def halves(angle: np.ndarray, has: np.ndarray, found: dict[str, np.ndarray]) -> dict:
+    """The 30-50 degree band split at 40 degrees: {half: {"returns", name: share heard}} (how much of
+    what is heard lies just past the 30-degree limit)."""
+    rows = {}
+    for lo, hi in ((30, 40), (40, 50)):
+        with np.errstate(invalid="ignore"):
+            sel = has & (angle >= lo) & (angle < hi)
+        row = {"returns": int(sel.sum())}
+        rows[f"{lo}-{hi} deg"] = row | {
+            s: float(h[sel].mean()) if sel.any() else float("nan") for s, h in found.items()
+        }
+    return rows
+
+
 def report(
-    name: str, table: dict, config: DataConfig, sets: dict, seconds: tuple, prov: dict, models=(), split=None
+    name: str, table: dict, config: DataConfig, sets: dict, seconds: tuple, prov: dict, models=(), split=None, others=()
 ) -> list[str]:
     """The markdown: all windows by band, each family's bands, then (with models) their recall split."""
     model = ", ".join(f"t{o:+d}" if o else "t" for o in sets["model"])
@@ -194,12 +226,17 @@ def report(
         "",
         "## All windows",
         "",
+        "Share of each band's returns heard from each set ('of which' rows: the 30-50 band split at 40 degrees).",
+        "",
         "| incidence at t | returns (share) | K = 5 | model | span | before | drive |",
         "|---|---|---|---|---|---|---|",
     ]
-    for band, row in table["all"].items():
+    total = sum(row["returns"] for row in table["all"].values())
+    named = [(band, row) for band, row in table["all"].items()]
+    named[2:2] = [(f"of which {band}", row) for band, row in table["all_30_50_halves"].items()]
+    for band, row in named:
         shares = " | ".join(f"{row[s]:.2f}" for s in ("window", "model", "span", "before", "drive"))
-        lines.append(f"| {band} | {row['returns']} ({100 * row['share_of_returns']:.0f} %) | {shares} |")
+        lines.append(f"| {band} | {row['returns']} ({100 * row['returns'] / max(total, 1):.0f} %) | {shares} |")
     lines += [
         "",
         "## Per scenario family",
@@ -209,9 +246,26 @@ def report(
         "| family | " + " | ".join(BAND_NAMES) + " |",
         "|---|" + "---|" * len(BAND_NAMES),
     ]
-    for family, rows in table.items():
+    for family, rows in ((f, r) for f, r in table.items() if f != "all_30_50_halves"):
         cells = [f"{r['window']:.2f} / {r['model']:.2f} / {r['before']:.2f} ({r['returns']})" for r in rows.values()]
         lines.append(f"| {family} | " + " | ".join(cells) + " |")
+    if others:
+        lines += [
+            "",
+            "## Sensitivity",
+            "",
+            "Share heard within the model's frames, all windows, with another incidence limit or distance.",
+            "",
+            "| heard below | within | " + " | ".join(BAND_NAMES) + " |",
+            "|---|---|" + "---|" * len(BAND_NAMES),
+        ]
+        row = table["all"]
+        lines.append(
+            f"| {HEARD_DEG:g} deg | {NEAR_M} m | " + " | ".join(f"{row[b]['model']:.2f}" for b in BAND_NAMES) + " |"
+        )
+        for other in others:
+            cells = " | ".join(f"{other['model'][b]:.2f}" for b in BAND_NAMES)
+            lines.append(f"| {other['heard_deg']:g} deg | {other['near_m']} m | {cells} |")
     if split:
         lines += [
             "",
@@ -265,10 +319,13 @@ def main() -> None:
     sets = frame_sets(config, drive_frames)
     heard_from = heard(ranges, azimuth, frames.pose, frames.episode, label_frames, sets)
     true = ranges[label_frames]
-    band = band_of(incidence_deg(true, azimuth))
+    angle = incidence_deg(true, azimuth)
+    band = band_of(angle)
     family_of = np.asarray(frames.scenarios)[windows.scenario]
     has = np.isfinite(true)
     table = tabulate(band, has, family_of, heard_from)
+    table["all_30_50_halves"] = halves(angle, has, heard_from)
+    others = sensitivity(ranges, azimuth, frames.pose, frames.episode, label_frames, sets, band, has)
     geometry_seconds = time.perf_counter() - begun  # reading the data and finding what was heard
     hits = []
     for path in args.model:
@@ -286,7 +343,7 @@ def main() -> None:
     seconds = time.perf_counter() - begun
     prov = provenance(args.device if hits else "cpu")
     models = [relative(m) for m in args.model]
-    lines = report(name, table, config, sets, (geometry_seconds, seconds), prov, models, split)
+    lines = report(name, table, config, sets, (geometry_seconds, seconds), prov, models, split, others)
     args.out.write_text("\n".join(lines) + "\n")
     record = {
         "test": name,
@@ -300,6 +357,7 @@ def main() -> None:
         "table": table,
         "models": models,
         "recall_heard_or_not": split,
+        "sensitivity": others,
     }
     write_json(args.out.with_suffix(".json"), record, "cpu")
     print("\n".join(lines))
