@@ -190,7 +190,8 @@ def test_evaluate_compares_checkpoints_side_by_side(tiny_dataset, tmp_path, caps
         train(tiny_dataset, run, recipe(epochs=1, seed=seed), progress=False)
     named = {"first": a / "best.pt", "second": b / "best.pt"}
     report = evaluate([f"{k}={v}" for k, v in named.items()], tiny_dataset, tmp_path / "cmp", split="all", timing=False)
-    assert list(report["results"]) == ["first", "second", "echo peak", "empty"]
+    grids = ["occupancy grid (echo peak)", "occupancy grid (first)"]  # fed by the first model without memory
+    assert list(report["results"]) == ["first", "second", "echo peak", "empty", *grids]
     assert report["thresholds"]["second"] == torch.load(b / "best.pt", weights_only=True)["threshold"]
     recorded = {k: os.path.relpath(v) for k, v in named.items()}  # relative to the working folder: no machine path
     assert report["windows"] == 12 and report["checkpoints"] == recorded
@@ -198,7 +199,7 @@ def test_evaluate_compares_checkpoints_side_by_side(tiny_dataset, tmp_path, caps
     assert f"| second | `{recorded['second']}` |" in text and "examples_second.png" in text
     assert (tmp_path / "cmp" / "examples.png").exists() and (tmp_path / "cmp" / "examples_second.png").exists()
     rows = list(csv.DictReader(open(tmp_path / "cmp" / "per_window.csv")))
-    assert len(rows) == 4 * 12 and rows[0]["predictor"] == "first" and list(rows[0])[4] == "scan_f1"
+    assert len(rows) == 6 * 12 and rows[0]["predictor"] == "first" and list(rows[0])[4] == "scan_f1"
     second = [float(r["scan_f1"]) for r in rows if r["predictor"] == "second"]
     assert np.mean(second) == pytest.approx(report["results"]["second"]["all"]["scan_f1"]["mean"], abs=1e-5)
     capsys.readouterr()

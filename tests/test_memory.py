@@ -174,3 +174,56 @@ def test_memory_finds_a_wall_heard_only_before_the_turn_and_needs_the_pose():
     assert recall > 0.8, recall
     assert wrong_pose_recall < 0.3, wrong_pose_recall
     assert false_cells < 1.0, false_cells
+
+
+def _shard(folder, poses: np.ndarray, config: dict):
+    """A 12-frame shard written by the simulator's shard writer (nothing simulated)."""
+    import dataclasses
+
+    from acoustic_sim.config import SimConfig
+    from acoustic_sim.datasets.shards import ShardFrames, write_shard
+
+    grid = dataclasses.replace(SimConfig().processing.grid, range_max_m=0.5, azimuth_min_deg=-5, azimuth_max_deg=5)
+    shape, count = grid.shape, len(poses)
+    frames = ShardFrames(
+        energyscape=[np.ones((count, *shape))],
+        lidar_ranges=[np.full((count, 5), 1.0)],
+        lidar_image=[np.zeros((count, *shape))],
+        pose=[poses],
+        time=[np.arange(count) * 0.1],
+        episode=[np.zeros(count)],
+        scenario=[np.zeros(count)],
+    )
+    attrs = {
+        "plan_id": "x",
+        "variant": "",
+        "shard": 0,
+        "config": config,
+        "episodes": [{"index": 0}],
+        "scenarios": ["a"],
+    }
+    folder.mkdir(parents=True)
+    write_shard(folder / "shard-00000.h5", frames, attrs=attrs, range_m=grid.range_m, azimuth_rad=grid.azimuth_rad)
+    return folder
+
+
+def test_poses_reach_the_windows_and_a_recording_without_odometry_has_none(tmp_path):
+    """A shard's 4 x 4 poses become planar poses of its frames; a CHIRP import that had no
+    odometry (its config says the poses are identities) has none, and a model with memory is
+    refused on it with a line that says why, while a model without memory reads it."""
+    from learn.data import DataError, load_frames
+
+    yaw = np.linspace(0, 1, 12)
+    poses = np.tile(np.eye(4), (12, 1, 1))
+    poses[:, 0, 0], poses[:, 0, 1], poses[:, 1, 0], poses[:, 1, 1] = np.cos(yaw), -np.sin(yaw), np.sin(yaw), np.cos(yaw)
+    poses[:, 0, 3], poses[:, 1, 3] = np.arange(12) * 0.03, 1.0
+    frames = load_frames(_shard(tmp_path / "sim", poses, {}))
+    np.testing.assert_allclose(frames.pose, np.c_[np.arange(12) * 0.03, np.ones(12), yaw], atol=1e-12)
+    imported = {"poses": "identity (no odometry synced to the pings)"}
+    frames = load_frames(_shard(tmp_path / "rec", np.tile(np.eye(4), (12, 1, 1)), imported))
+    assert frames.pose is None
+    config = DataConfig(frames=1, label="last", history=2)
+    with pytest.raises(DataError, match="holds no poses"):
+        Windows(frames, config, odometry=True)
+    x, _ = Windows(frames, DataConfig(frames=1, label="last")).batch([0, 1])
+    assert x.shape[:3] == (2, 1, 1)

@@ -68,7 +68,7 @@ def test_example_rows_run_from_poor_to_good():
         scenario=np.zeros(10, int),
         batch=lambda idx: (torch.zeros(1, 1, 1, 2, 2), torch.zeros(1, 1, 2, 2)),
     )
-    predictors = {"model": (lambda x: torch.zeros(1, 1, 2, 2), 0.5)}
+    predictors = {"model": (lambda x: torch.zeros(1, 1, 2, 2), 0.5, windows)}
     frames = SimpleNamespace(scenarios=["office"])
     rows = _example_rows(predictors, "model", "model", per_window, windows, np.arange(10), frames, 4)
     shown = [float(f1[int(row["title"].rpartition("window ")[2])]) for row in rows]
