@@ -32,7 +32,7 @@ from .metrics import image_metrics
 from .models import ModelConfig, predict_image
 from .odometry import OdometryNoise, noisy_drive
 from .report import example_file, report_markdown, write_per_scenario, write_per_window
-from .scan import CALIBRATION_THRESHOLDS, scan_f1_sweep
+from .scan import CALIBRATION_THRESHOLDS, echo_peak_image, scan_f1_sweep
 
 ECHO_PEAK_LEVEL = 0.75  # normalised input (40 dB floor): within 10 dB of the frame's peak
 BASELINE_THRESHOLD = 0.5  # baselines predict 0/1 images: any threshold in (0, 1] reads them alike
@@ -128,11 +128,7 @@ def echo_peak_predictor(label_offset: int) -> Callable:
     """The classic sonar readout: one return per beam at its strongest echo, if strong enough."""
 
     def predict(x):
-        frame = x[:, :, label_offset]  # (B, 1, R, A)
-        peak, where = frame.max(dim=2, keepdim=True)
-        image = torch.zeros_like(frame)
-        image.scatter_(2, where, (peak >= ECHO_PEAK_LEVEL).float())
-        return image
+        return echo_peak_image(x[:, :, label_offset].float(), ECHO_PEAK_LEVEL)  # (B, 1, R, A)
 
     return predict
 

@@ -4,7 +4,7 @@ a learned memory, on the same windows and the same odometry.
 Two grids (`learn.occupancy`), each a fresh log-odds grid per drive in the world frame, read out
 as a scan from the label frame's pose after that frame's scan went in:
 - fed with the echo peak of every frame (the strongest echo of each beam, if strong enough: the
-  classic sonar readout, `learn.evaluate.echo_peak_predictor`);
+  classic sonar readout, `learn.scan.echo_peak_image`, as `learn.evaluate`'s echo-peak baseline);
 - fed with a model's scan of every window's label frame (a model without memory, read at its
   calibrated threshold), so the grid adds memory to it.
 Their images are made once for all windows of the drives scored, and handed to the scoring as a
@@ -20,7 +20,7 @@ import torch
 
 from .data import Windows, normalise
 from .occupancy import occupancy_scans
-from .scan import first_return_ranges
+from .scan import echo_peak_image, first_return_ranges
 
 
 class WindowImages:
@@ -76,9 +76,7 @@ def _echo_peak_scans(windows: Windows, rows: np.ndarray, level: float, batch: in
     range_m = torch.as_tensor(frames.range_m, device=windows.device)
     for start in range(0, len(rows), batch):
         energy = torch.from_numpy(frames.energyscape[rows[start : start + batch]]).to(windows.device)
-        x = normalise(energy, windows.config.floor_db)  # (B, R, A)
-        peak, where = x.max(dim=1, keepdim=True)
-        image = torch.zeros_like(x).scatter_(1, where, (peak >= level).to(x.dtype))
+        image = echo_peak_image(normalise(energy, windows.config.floor_db), level)  # (B, R, A)
         out.append(first_return_ranges(image, range_m).cpu().numpy())
     return np.concatenate(out)
 

@@ -49,6 +49,13 @@ def first_return_ranges(image: torch.Tensor, range_m: torch.Tensor, *, threshold
     return torch.where(hit, r[:, None], torch.inf).amin(dim=-2)
 
 
+def echo_peak_image(frames: torch.Tensor, level: float) -> torch.Tensor:
+    """The classic sonar readout of normalised energyscapes (..., R, A): a 0/1 image with each
+    beam's strongest cell set where it reaches `level`."""
+    peak, where = frames.max(dim=-2, keepdim=True)
+    return torch.zeros_like(frames).scatter_(-2, where, (peak >= level).to(frames.dtype))
+
+
 def first_return_sweep(image: torch.Tensor, range_m: torch.Tensor, thresholds) -> torch.Tensor:
     """`first_return_ranges` at many thresholds at once.
 
