@@ -14,7 +14,7 @@ import numpy as np
 from clitools import counted
 
 from .plan import ShardTask
-from .shards import FORMAT, FORMAT_VERSION
+from .shards import FORMAT, FORMAT_VERSION, energyscapes
 
 
 @dataclass(frozen=True)
@@ -84,7 +84,7 @@ def write_card(folder: Path, manifest: dict, tables: tuple[FactTable, ...] = ())
     from ..config import PolarGrid
     from ..render import render_examples
 
-    examples, seen = [], set()
+    examples, stack, seen = [], [], set()
     for entry in manifest["shards"]:
         with h5py.File(folder / entry["file"], "r") as f:
             names = json.loads(f.attrs["scenarios"])
@@ -95,18 +95,29 @@ def write_card(folder: Path, manifest: dict, tables: tuple[FactTable, ...] = ())
                     continue
                 seen.add(name)
                 k = min(i + 5, len(episode) - 1) if episode[min(i + 5, len(episode) - 1)] == episode[i] else i
-                energy, lidar = f["energyscape"][k], f["lidar/image"][k]
-                elevations = np.atleast_1d(manifest["sim"]["processing"]["elevation_deg"])
-                if energy.ndim == 3:  # one image per elevation: the card shows the first
-                    energy, lidar = energy[0], lidar[0] if lidar.ndim == 3 else lidar
-                    name = f"{name} at {elevations[0]:g} deg elevation"
-                examples.append((f"{name}, frame {k}", energy, lidar))
-    render_examples(examples, PolarGrid(**manifest["sim"]["processing"]["grid"]), folder / "card.png")  # the run's grid
+                (energy,), elevations = energyscapes(f, slice(k, k + 1))
+                lidar = f["lidar/image"][k]
+                level = int(np.argmin(np.abs(elevations)))  # the LiDAR's plane
+                if len(elevations) > 1:
+                    name = f"{name} at {elevations[level]:g} deg elevation"
+                    if not stack:  # the first example at every elevation, highest first
+                        stack = [(f"frame {k} at {e:g} deg", energy[j], lidar) for j, e in enumerate(elevations)][::-1]
+                examples.append((f"{name}, frame {k}", energy[level], lidar))
+    grid = PolarGrid(**manifest["sim"]["processing"]["grid"])  # the run's grid
+    render_examples(examples, grid, folder / "card.png")
+    if stack:
+        render_examples(stack, grid, folder / "card_elevations.png")
     title = manifest["suite"] + (f" / {manifest['variant']}" if manifest["variant"] else "")
     rows = "\n".join(f"| {name} | {count:,} |" for name, count in manifest["scenarios"].items())
     facts = "".join(_table_text(table) for table in tables)
     counts = f"{counted(manifest['frames'], 'frame')} in {counted(manifest['episodes'], 'episode')} (robot drives), "
     counts += counted(len(manifest["shards"]), "shard")
+    stack_text = (
+        "\nOne frame at each of its elevations (the level slice is the LiDAR's plane; floor echoes lie below, "
+        "the ceiling above):\n\n![one frame at every elevation](card_elevations.png)\n"
+        if stack
+        else ""
+    )
     text = f"""# Dataset: {title}
 
 {manifest["description"]}
@@ -116,15 +127,15 @@ seed {manifest["seed"]}, {FORMAT} format version {FORMAT_VERSION}. Made by `pyth
 rerunning the same command resumes or verifies it.
 
 ![example frames: energyscape (dB) with the LiDAR label on top](card.png)
-
+{stack_text}
 | scenario | frames |
 |---|---|
 {rows}
 {facts}
-Each `shard-*.h5` holds `energyscape` (frame, range, azimuth) float16, `lidar/ranges`,
-`lidar/image` (the label), `pose`, `time`, `episode`, `scenario`, and the axes `range_m`,
-`azimuth_rad`; its attributes hold every config as JSON and one record per episode (its scene,
-seed and draws). Read it with h5py:
+Each `shard-*.h5` holds `energyscape` (frame, elevation, range, azimuth) float16, `lidar/ranges`,
+`lidar/image` (the label, frame x range x azimuth), `pose`, `time`, `episode`, `scenario`, and the
+axes `elevation_deg`, `range_m`, `azimuth_rad`; its attributes hold every config as JSON and one
+record per episode (its scene, seed and draws). Read it with h5py:
 
 ```python
 import h5py

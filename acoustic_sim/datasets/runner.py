@@ -37,11 +37,13 @@ class ShardHeader:
         config: The settings its arrays come from (JSON-able), its `config` attribute.
         scenarios: Scenario names, indexed by its `scenario` array.
         grid: The energyscape's polar grid (its `range_m` and `azimuth_rad` axes).
+        elevation_deg: The beams' elevations [deg] (its `elevation_deg` axis).
     """
 
     config: dict
     scenarios: list[str]
     grid: PolarGrid
+    elevation_deg: tuple[float, ...] = (0.0,)
 
 
 class Renderer(Protocol):
@@ -57,10 +59,11 @@ class Renderer(Protocol):
         self, task: ShardTask, prepared: Any, *, device: str, on_frames: Callable[[int], None] | None, seconds: dict
     ) -> tuple[dict, dict]:
         """One prepared episode on `device` -> (arrays, record). Arrays, frame first: "energyscape"
-        (frame, range, azimuth), "lidar_ranges" (frame, beam) [m], "lidar_image" (frame, range,
-        azimuth), "pose" (frame, 4, 4), "time" (frame,) [s], and "signals" and "arrivals" where the
-        task keeps them; record: the episode's JSON record for its shard. Calls `on_frames(n)` as
-        frames are done and adds the seconds of its parts ("prepare", "lidar", "sonar") to `seconds`."""
+        (frame, range, azimuth) or (frame, elevation, range, azimuth), "lidar_ranges" (frame, beam)
+        [m], "lidar_image" (frame, range, azimuth), "pose" (frame, 4, 4), "time" (frame,) [s], and
+        "signals" and "arrivals" where the task keeps them; record: the episode's JSON record for
+        its shard. Calls `on_frames(n)` as frames are done and adds the seconds of its parts
+        ("prepare", "lidar", "sonar") to `seconds`."""
 
     def shard_header(self, task: ShardTask) -> ShardHeader:
         """The task's shard's settings, scenario names and grid."""
@@ -215,4 +218,11 @@ def _write_shard(shard: _Shard, header: ShardHeader, device: str) -> None:
     }
     Path(task.path).parent.mkdir(parents=True, exist_ok=True)
     grid = header.grid
-    write_shard(Path(task.path), shard.frames, attrs=attrs, range_m=grid.range_m, azimuth_rad=grid.azimuth_rad)
+    write_shard(
+        Path(task.path),
+        shard.frames,
+        attrs=attrs,
+        range_m=grid.range_m,
+        azimuth_rad=grid.azimuth_rad,
+        elevation_deg=header.elevation_deg,
+    )

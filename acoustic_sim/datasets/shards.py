@@ -8,7 +8,8 @@ Layout (all plain HDF5, readable with h5py or MATLAB's h5read):
 
     shard-00000.h5   attrs: format, format_version, frame_count, plan_id, suite, variant,
                             config (JSON), episodes (JSON), scenarios (JSON), package_version
-      energyscape     float16 (frame, range, azimuth)   beamformed echo envelope
+      energyscape     float16 (frame, elevation, range, azimuth)   beamformed echo envelope
+      elevation_deg   float64 (elevation,) the beams' elevations [deg] (one: a horizontal slice)
       lidar/ranges    float32 (frame, beam) [m], miss = inf
       lidar/image     uint8   (frame, range, azimuth)   1 where a LiDAR return falls
       pose            float64 (frame, 4, 4) sensor-to-world
@@ -35,7 +36,8 @@ from clitools.limits import input_file
 from clitools.outputs import KeptErrorFile
 
 FORMAT = "sonar2lidar-dataset"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: energyscape (frame, elevation, range, azimuth) and elevation_deg
+READABLE_VERSIONS = (1, 2)  # 1: energyscape (frame, range, azimuth), one slice at 0 deg
 CHECKSUM = {"fletcher32": True}  # an HDF5 built-in filter: h5py and MATLAB verify it on every read
 COMPRESSION = {"compression": "gzip", "compression_opts": 1, "shuffle": True, **CHECKSUM}  # MATLAB reads gzip
 
@@ -63,14 +65,23 @@ class ShardFrames:
         return sum(len(e) for e in self.episode)
 
 
-def write_shard(path: Path, frames: ShardFrames, *, attrs: dict, range_m: np.ndarray, azimuth_rad: np.ndarray) -> None:
+def write_shard(
+    path: Path,
+    frames: ShardFrames,
+    *,
+    attrs: dict,
+    range_m: np.ndarray,
+    azimuth_rad: np.ndarray,
+    elevation_deg=(0.0,),
+) -> None:
     """Write a complete shard: to `<name>.tmp` first, then an atomic rename onto `path`. On any
-    error (a full or read-only disk) the file is closed and the temporary removed."""
+    error (a full or read-only disk) the file is closed and the temporary removed. Energyscapes
+    come (frame, elevation, range, azimuth), or (frame, range, azimuth) for one elevation."""
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     try:
         with KeptErrorFile(tmp) as sink:  # HDF5 crashes after a failed write: it never sees one
-            _write(sink, frames, attrs=attrs, range_m=range_m, azimuth_rad=azimuth_rad)
+            _write(sink, frames, attrs=attrs, axes=(np.atleast_1d(elevation_deg), range_m, azimuth_rad))
         sink.raise_kept(path)
     except BaseException:
         tmp.unlink(missing_ok=True)
@@ -78,17 +89,28 @@ def write_shard(path: Path, frames: ShardFrames, *, attrs: dict, range_m: np.nda
     os.replace(tmp, path)
 
 
-def _write(tmp: Path | KeptErrorFile, frames: ShardFrames, *, attrs: dict, range_m, azimuth_rad) -> None:
+def _write(tmp: Path | KeptErrorFile, frames: ShardFrames, *, attrs: dict, axes: tuple[np.ndarray, ...]) -> None:
     cat = np.concatenate
+    energyscape = cat(frames.energyscape).astype(np.float16)
+    if energyscape.ndim == 3:
+        energyscape = energyscape[:, None]
+    if energyscape.shape[1:] != tuple(map(len, axes)):
+        raise ValueError(
+            f"energyscapes of shape {energyscape.shape} do not match (elevation, range, azimuth) axes of "
+            f"{tuple(map(len, axes))}"
+        )
+    elevation_deg, range_m, azimuth_rad = axes
     with h5py.File(tmp, "w") as f:
         f.attrs["format"] = FORMAT
         f.attrs["format_version"] = FORMAT_VERSION
         f.attrs["frame_count"] = frames.frame_count
         for key, value in attrs.items():
             f.attrs[key] = json.dumps(value) if isinstance(value, dict | list) else value
-        escape = _rows(f, "energyscape", cat(frames.energyscape).astype(np.float16))
-        escape.attrs["dims"] = "frame, range, azimuth"
+        escape = _rows(f, "energyscape", energyscape)
+        escape.attrs["dims"] = "frame, elevation, range, azimuth"
         escape.attrs["description"] = "beamformed echo envelope (linear, pressure re the call at 1 m)"
+        elevation = f.create_dataset("elevation_deg", data=np.asarray(elevation_deg, np.float64), **CHECKSUM)
+        elevation.attrs["units"] = "deg, 0 level, + up"
         f.create_dataset("range_m", data=range_m, **CHECKSUM).attrs["units"] = "m"
         f.create_dataset("azimuth_rad", data=azimuth_rad, **CHECKSUM).attrs["units"] = "rad, 0 ahead, + to the left"
         ranges = f.create_dataset("lidar/ranges", data=cat(frames.lidar_ranges).astype(np.float32), **COMPRESSION)
@@ -143,8 +165,10 @@ def read_attrs(path: Path) -> dict:
     if attrs.get("format") != FORMAT:
         raise DatasetError(f"{path} is not a {FORMAT} shard (format attribute {attrs.get('format')!r})")
     version = int(attrs.get("format_version", -1))
-    if version != FORMAT_VERSION:
-        raise DatasetError(f"{path} has format_version {version}; this version of sonar2lidar reads {FORMAT_VERSION}")
+    if version not in READABLE_VERSIONS:
+        raise DatasetError(
+            f"{path} has format_version {version}; this version of sonar2lidar reads {READABLE_VERSIONS}"
+        )
     if missing or lengths != {int(attrs.get("frame_count", -1))}:
         raise DatasetError(f"{path} is incomplete or corrupt (missing {missing}, frame counts {sorted(lengths)})")
     for key in ("config", "episodes", "scenarios"):
@@ -214,6 +238,15 @@ def finite_poses(f: h5py.File, path: Path) -> np.ndarray:
     if len(bad):
         raise DatasetError(f"{path}: the pose of frame {bad[0]} is not finite; the shard is damaged")
     return poses
+
+
+def energyscapes(f: h5py.File, rows=slice(None)) -> tuple[np.ndarray, np.ndarray]:
+    """A shard's energyscapes (frames, elevation, range, azimuth) and their elevations (E,) [deg],
+    from either layout (format 1 held one slice at 0 deg, (frame, range, azimuth))."""
+    energy = f["energyscape"][rows]
+    if "elevation_deg" not in f:
+        return energy[:, None], np.zeros(1)
+    return energy, f["elevation_deg"][:]
 
 
 def verify_shard(path: Path) -> None:
