@@ -382,7 +382,7 @@ class ProcessingConfig:
         grid: Output range x azimuth grid.
         speed_of_sound: Assumed for the steering delays and the range axis [m/s] (the sensor
             assumes 343 m/s whatever the air).
-        elevation_deg: Elevation of the beams [deg]; a tuple gives one image per elevation.
+        elevation_deg: Elevation of the beams [deg]; an increasing tuple gives one image per elevation.
         lowpass_hz: Zero-phase low-pass of the envelope [Hz]; None: off.
         normalise: None; "max" scales each ping to a peak of 1; "db": 20 log10 of that.
     """
@@ -407,6 +407,8 @@ class ProcessingConfig:
             raise ValueError(f"speed_of_sound must be positive, got {self.speed_of_sound}")
         if not np.all(np.abs(self.elevation_deg) <= 90) or np.size(self.elevation_deg) == 0:
             raise ValueError("elevation_deg must be an angle or a non-empty sequence of angles in [-90, 90]")
+        if np.any(np.diff(np.atleast_1d(self.elevation_deg)) <= 0):  # one order for shards and the models that read them
+            raise ValueError(f"elevation_deg must increase from the lowest beam up, got {list(self.elevation_deg)}")
         if self.lowpass_hz is not None and not self.lowpass_hz > 0:
             raise ValueError(f"lowpass_hz must be positive (or None), got {self.lowpass_hz}")
 

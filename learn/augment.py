@@ -76,33 +76,35 @@ class AugmentConfig:
 def augmented_batch(windows: Windows, indices, config: AugmentConfig, generator: torch.Generator):
     """`windows.batch(indices)` with this window's draws applied: (x, y) as `Windows.batch` gives
     them, the frames in [0, 1]; a mirrored window's motion is mirrored too, and drifts."""
-    energy, y, motion = windows.raw(indices)  # (B, N, R, A) linear, (B, R, A), (B, N, 4) or None
-    b, _, r, _ = energy.shape
+    energy, y, motion = windows.raw(indices)  # (B, N, E, R, A) linear, (B, R, A), (B, N, 4) or None
+    b, r = energy.shape[0], energy.shape[-2]
     dev = energy.device
+    per_window = (b, 1, 1, 1, 1)
 
     def uniform(*shape):
         return torch.rand(*shape, generator=generator, device=dev)
 
     if config.range_tilt_db:
-        tilt = (2 * uniform(b, 1, 1, 1) - 1) * config.range_tilt_db * torch.linspace(0, 1, r, device=dev)[:, None]
+        tilt = (2 * uniform(*per_window) - 1) * config.range_tilt_db * torch.linspace(0, 1, r, device=dev)[:, None]
         energy = energy * 10.0 ** (tilt / 20.0)
-    floor = windows.config.floor_db + (2 * uniform(b, 1, 1, 1) - 1) * config.floor_jitter_db
+    floor = windows.config.floor_db + (2 * uniform(*per_window) - 1) * config.floor_jitter_db
     x = normalise(energy, floor.clamp_min(1.0))
     if config.band_masks:
         rows = torch.arange(r, device=dev)
         for _ in range(config.band_masks):
-            start = uniform(b, 1, 1, 1) * r
-            width = uniform(b, 1, 1, 1) * (r / 10)
+            start = uniform(*per_window) * r
+            width = uniform(*per_window) * (r / 10)
             x = torch.where((rows[:, None] >= start) & (rows[:, None] < start + width), 0.0, x)
     if config.mirror:
         flip = uniform(b) < config.mirror
-        x = torch.where(flip[:, None, None, None], x.flip(-1), x)
+        x = torch.where(flip[:, None, None, None, None], x.flip(-1), x)
         y = torch.where(flip[:, None, None], y.flip(-1), y)
         if motion is not None:  # the mirror image of a drive turns the other way: y and yaw change sign
             sign = torch.tensor([1.0, -1.0, -1.0, 1.0], device=dev)
             motion = torch.where(flip[:, None, None], motion * sign, motion)
+    x = x.transpose(1, 2)  # (B, E, N, R, A), as Windows.batch gives it
     if motion is None:
-        return x[:, None], y[:, None]
+        return x, y[:, None]
     noise = OdometryNoise.from_drift(config.odometry_drift)
     moved = noisy_window(motion[..., :3], windows.config.anchor, noise, generator)
-    return (x[:, None], torch.cat([moved, motion[..., 3:]], -1)), y[:, None]
+    return (x, torch.cat([moved, motion[..., 3:]], -1)), y[:, None]

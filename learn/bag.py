@@ -116,7 +116,7 @@ def read_bag(path: str | Path, range_m, azimuth_rad) -> Recording:
     transforms, parent, note = _poses(tf, sensor, stamps)
     episode = np.cumsum(np.r_[0, np.diff(stamps) >= DRIVE_GAP_S * 1e9]).astype(np.int64)
     frames = Frames(
-        energyscape=energy,
+        energyscape=energy[:, None],  # one elevation: the level slice
         label=np.zeros(energy.shape, np.uint8),
         episode=episode,
         scenario=np.zeros(len(stamps), np.int64),

@@ -20,9 +20,10 @@ from pathlib import Path
 import torch
 
 from .config import LearnConfig, from_record
-from .data import FORMAT_VERSION, DataConfig, torch_device
+from .data import DataConfig, torch_device
 from .inputs import check_fits, regular_file
 from .models import ModelConfig, build_model, check_model_size
+from .shardfile import READABLE_VERSIONS
 
 # What a resumed run may change: how long it runs and how its steps execute, not what it learns.
 RESUME_MAY_CHANGE = ("epochs", "patience", "max_minutes", "amp", "cuda_graphs")
@@ -108,9 +109,9 @@ def read_checkpoint(path: str | Path, device: str | torch.device = "cpu", *, rol
         ) from None
     meta = ckpt.get("dataset") if isinstance(ckpt, dict) else None
     version = meta.get("format_version") if isinstance(meta, dict) else None
-    if version != FORMAT_VERSION:
+    if version not in READABLE_VERSIONS:  # format 1's models read the level slice: elevation_deg's default
         raise ValueError(
-            f"{role} {path} is not a learn checkpoint for dataset format {FORMAT_VERSION} (found {version})"
+            f"{role} {path} is not a learn checkpoint for dataset formats {READABLE_VERSIONS} (found {version})"
         )
     missing = [k for k in ("model", "model_config", "data_config") if not isinstance(ckpt.get(k), dict)]
     if missing:

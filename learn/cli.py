@@ -102,6 +102,7 @@ def _export(args) -> int:
         frames=ckpt["data_config"]["frames"],
         range_count=len(ckpt["range_m"]),
         azimuth_count=len(ckpt["azimuth_rad"]),
+        elevations=len(ckpt["model_config"].get("elevation_deg", (0.0,))),
         threshold=args.threshold if args.threshold is not None else ckpt.get("threshold"),
         verbose=args.verbose,
         overwrite=args.overwrite,

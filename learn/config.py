@@ -212,15 +212,22 @@ def read_run_config(path: str | Path) -> LearnConfig:
 
 
 def with_grid(config: LearnConfig, frames: Frames) -> LearnConfig:
-    """`config` with a model with memory told the polar grid it resamples on (the data's),
-    refused where it was given another one."""
+    """`config` with the model told the elevations it reads (the data's) and, for a model with
+    memory, the polar grid it resamples on; refused where it was given others."""
+    folder = frames.info["folder"]
+    given = config.model.elevation_deg
+    if given != ModelConfig().elevation_deg and given != frames.elevation_deg:
+        raise ValueError(
+            f"model.elevation_deg {list(given)} is not the elevations of {folder} ({list(frames.elevation_deg)})"
+        )
+    model = dataclasses.replace(config.model, elevation_deg=frames.elevation_deg)
     if not config.model.uses_odometry:
-        return config
+        return dataclasses.replace(config, model=model)
     r, a = frames.range_m, frames.azimuth_rad
     even = np.allclose(np.diff(r), r[1] - r[0], rtol=1e-3) and np.allclose(np.diff(a), a[1] - a[0], rtol=1e-3)
     if len(r) < 2 or len(a) < 2 or not even:
-        raise ValueError(f"{frames.info['folder']}: polar_memory needs evenly spaced range and azimuth bins")
+        raise ValueError(f"{folder}: polar_memory needs evenly spaced range and azimuth bins")
     extent = (float(r[0]), float(r[-1]), float(a[0]), float(a[-1]))
     if config.model.extent is not None and not np.allclose(config.model.extent, extent, atol=1e-6):
-        raise ValueError(f"model.extent {config.model.extent} is not the grid of {frames.info['folder']} ({extent})")
-    return dataclasses.replace(config, model=dataclasses.replace(config.model, extent=extent))
+        raise ValueError(f"model.extent {config.model.extent} is not the grid of {folder} ({extent})")
+    return dataclasses.replace(config, model=dataclasses.replace(model, extent=extent))

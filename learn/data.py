@@ -1,7 +1,7 @@
 """Dataset shards -> windows of K energyscapes and their LiDAR label (no warp: shards are HDF5).
 
 The whole dataset is held in memory (float16 energyscapes, uint8 labels: ~1 GB per 12,500
-frames), so batches are gathered by indexing, on the GPU when training there. A window is K
+frames of one elevation), so batches are gathered by indexing, on the GPU when training there. A window is K
 consecutive frames of one episode; its label is the LiDAR image at the middle frame (as in the
 paper) or the last one. Folds split by episode (every episode is its own random scene, so
 validation scenes are never seen in training) or by scenario family.
@@ -9,6 +9,7 @@ validation scenes are never seen in training) or by scenario family.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import typing
 from dataclasses import dataclass
@@ -119,12 +120,14 @@ class Frames:
     """Every frame of a dataset folder, in memory.
 
     Attributes:
-        energyscape: (T, R, A) float16, as stored.
+        energyscape: (T, E, R, A) float16, as stored (E elevation beams; 1: the level slice, which
+            may also be given as (T, R, A)).
         label: (T, R, A) uint8 LiDAR image.
         episode: (T,) int64 episode index (unique across the dataset).
         scenario: (T,) int64 index into `scenarios`.
         scenarios: Scenario names.
         range_m, azimuth_rad: Axis coordinates (R,), (A,).
+        elevation_deg: The beams' elevations (E,) [deg], increasing.
         info: Folder, manifest fields (suite, variant, plan_id) and the shards' configs.
         pose: (T, 3) float64 planar sensor poses (x, y [m], yaw [rad], `learn.odometry`) as
             odometry reports them; None where the data has none (a recording without odometry,
@@ -140,9 +143,36 @@ class Frames:
     azimuth_rad: np.ndarray
     info: dict
     pose: np.ndarray | None = None
+    elevation_deg: tuple[float, ...] = (0.0,)
+
+    def __post_init__(self) -> None:
+        self.elevation_deg = tuple(float(e) for e in self.elevation_deg)
+        if self.energyscape.ndim == 3 and len(self.elevation_deg) == 1:  # (T, R, A): the one slice
+            self.energyscape = self.energyscape[:, None]
+        if self.energyscape.ndim != 4 or self.energyscape.shape[1] != len(self.elevation_deg):
+            raise ValueError(
+                f"energyscape must be (T, E, R, A) with E = {len(self.elevation_deg)} elevations "
+                f"{list(self.elevation_deg)}, got shape {self.energyscape.shape}"
+            )
 
     def __len__(self) -> int:
         return len(self.episode)
+
+    @property
+    def level(self) -> int:
+        """Index of the elevation nearest 0 deg: the LiDAR's plane, which the echo peak reads."""
+        return int(np.argmin(np.abs(self.elevation_deg)))
+
+
+def level_slice(frames: Frames) -> Frames:
+    """The frames' elevation nearest 0 deg alone (E = 1, no copy): what a planar sonar image
+    holds, and what the classical readouts (echo peak, occupancy grids) read."""
+    if len(frames.elevation_deg) == 1:
+        return frames
+    k = frames.level
+    return dataclasses.replace(
+        frames, energyscape=frames.energyscape[:, k : k + 1], elevation_deg=frames.elevation_deg[k : k + 1]
+    )
 
 
 def shard_paths(folder: str | Path) -> list[Path]:
@@ -177,14 +207,21 @@ def load_frames(folder: str | Path) -> Frames:
     for header in headers[1:]:
         if (header.range_count, header.azimuth_count) != (first.range_count, first.azimuth_count):
             raise DataError(f"{header.path} uses another range/azimuth grid than {first.path}")
+        if header.elevation_deg != first.elevation_deg:
+            raise DataError(
+                f"{header.path} holds elevations {list(header.elevation_deg)} deg, {first.path} "
+                f"{list(first.elevation_deg)}: one dataset is beamformed at one set of elevations"
+            )
     total, shape = sum(h.frames for h in headers), (first.range_count, first.azimuth_count)
-    held = total * (shape[0] * shape[1] * 3 + 16)  # float16 energyscape, uint8 label, two int64
+    elevations = len(first.elevation_deg)
+    held = total * (shape[0] * shape[1] * (2 * elevations + 1) + 16)  # float16 energyscape, uint8 label, two int64
     check_fits(
         held + 2 * max(h.read_bytes for h in headers),  # and one shard's arrays as read, then converted
-        f"{folder} ({len(headers)} shards, {total:,} frames of {shape[0]} x {shape[1]})",
+        f"{folder} ({len(headers)} shards, {total:,} frames of {elevations} x {shape[0]} x {shape[1]})",
         "read fewer shards (a folder holding some of them) or use a machine with more memory",
     )
-    energyscape, label = np.empty((total, *shape), np.float16), np.empty((total, *shape), np.uint8)
+    energyscape = np.empty((total, elevations, *shape), np.float16)
+    label = np.empty((total, *shape), np.uint8)
     episode, scenario = np.empty(total, np.int64), np.empty(total, np.int64)
     pose: np.ndarray | None = np.empty((total, 3))
     names, seen, grid, start = [], {}, None, 0
@@ -206,7 +243,7 @@ def load_frames(folder: str | Path) -> Frames:
         start += header.frames
     info |= {k: manifest.get(k) for k in ("suite", "variant", "physics")}
     info |= {"plan_id": first.plan_id, "config": first.config}
-    return Frames(energyscape, label, episode, scenario, names, grid[0], grid[1], info, pose)
+    return Frames(energyscape, label, episode, scenario, names, grid[0], grid[1], info, pose, first.elevation_deg)
 
 
 def _manifest(folder: Path) -> dict:
@@ -250,10 +287,11 @@ def _run(header: ShardHeader) -> str:
 
 
 def normalise(energyscape: torch.Tensor, floor_db: float | torch.Tensor) -> torch.Tensor:
-    """Energyscapes (..., R, A) -> dB below each image's peak, floored at -floor_db, in [0, 1]
-    (`floor_db` may be a tensor that broadcasts: one floor per window)."""
+    """Energyscapes (..., E, R, A) -> dB below each frame's peak over all its elevations (a floor
+    echo below stays that much stronger than a wall at the level), floored at -floor_db, in
+    [0, 1] (`floor_db` may be a tensor that broadcasts: one floor per window)."""
     e = energyscape.float().clamp_min(0.0)
-    peak = e.amax(dim=(-2, -1), keepdim=True).clamp_min(1e-12)
+    peak = e.amax(dim=(-3, -2, -1), keepdim=True).clamp_min(1e-12)
     db = 20.0 * torch.log10((e / peak).clamp_min(10.0 ** (-floor_db / 20.0)))
     return 1.0 + db / floor_db
 
@@ -282,10 +320,10 @@ def torch_device(name: str | torch.device) -> torch.device:
 class Windows:
     """Windows of a dataset on a device: `batch(indices)` -> (x, y (B, 1, R, A)).
 
-    x is the frames (B, 1, N, R, A) normalised (N = history + K, oldest first; absent history
-    frames are 0), or with `odometry` the pair (frames, motion): motion (B, N, 4) holds each
-    frame's pose in the label frame's sensor frame (x, y [m], yaw [rad]) and 1 where the frame is
-    there (0 for history before the drive began).
+    x is the frames (B, E, N, R, A) normalised (E elevations, the models' channels; N = history
+    + K, oldest first; absent history frames are 0), or with `odometry` the pair (frames,
+    motion): motion (B, N, 4) holds each frame's pose in the label frame's sensor frame (x, y
+    [m], yaw [rad]) and 1 where the frame is there (0 for history before the drive began).
 
     Args:
         frames: The dataset (see `load_frames`).
@@ -337,18 +375,18 @@ class Windows:
 
     def batch(self, indices):
         energy, y, motion = self.raw(indices)
-        x = normalise(energy, self.config.floor_db)[:, None]
+        x = normalise(energy, self.config.floor_db).transpose(1, 2)
         return ((x, motion) if self.odometry else x), y[:, None]
 
     def raw(self, indices) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-        """Energyscapes as stored (B, N, R, A) (0 where absent), labels (B, R, A), and motion
+        """Energyscapes as stored (B, N, E, R, A) (0 where absent), labels (B, R, A), and motion
         (B, N, 4) or None (see the class docstring), before normalisation."""
         index = torch.as_tensor(indices, device=self.device, dtype=torch.int64)
         start = self._starts[index]
         frame = start[:, None] + self._offsets  # (B, N)
         present = frame >= self._first[index][:, None]
         frame = torch.maximum(frame, self._first[index][:, None])
-        energy = self._energyscape[frame] * present[:, :, None, None]
+        energy = self._energyscape[frame] * present[:, :, None, None, None]
         label = self._label[start + self.config.label_offset].float()
         if not self.odometry:
             return energy, label, None

@@ -26,7 +26,7 @@ import torch
 from tqdm.auto import tqdm
 
 from .checkpoint import load_checkpoint
-from .data import DataConfig, Frames, Windows, load_frames, recorded_path
+from .data import DataConfig, Frames, Windows, level_slice, load_frames, recorded_path
 from .grid_baselines import grid_predictors
 from .metrics import image_metrics
 from .models import ModelConfig, predict_image
@@ -258,7 +258,8 @@ def evaluate(
     if odometry_noise is not None and odometry_noise.active:
         frames = with_noisy_odometry(frames, odometry_noise, seed=odometry_seed)
     data_config = DataConfig(**ckpt["data_config"])
-    windows = Windows(frames, plain_windows(data_config), device)  # the baselines' (and every model's) windows
+    # the baselines' windows (and every model's on one elevation): the level slice, as a planar sonar has it
+    windows = Windows(level_slice(frames), plain_windows(data_config), device)
     for name, (_, c) in models.items():
         check_grid(frames, c, name)
         theirs = DataConfig(**c["data_config"])
@@ -271,8 +272,10 @@ def evaluate(
     out.mkdir(parents=True, exist_ok=True)
     scenario = windows.scenario[indices]
     predictors = {}
+    held = windows if windows.frames is frames else None  # one copy of the frames on the device
     for name, (m, c) in models.items():
-        their_windows = model_windows(frames, c, device, share=windows)
+        their_windows = model_windows(frames, c, device, share=held)
+        held = held or their_windows
         predictors[name] = (model_predictor(m), return_threshold(c, threshold, str(named[name])), their_windows)
     predictors["echo peak"] = (echo_peak_predictor(data_config.label_offset), BASELINE_THRESHOLD, windows)
     predictors["empty"] = (empty_predictor, BASELINE_THRESHOLD, windows)
@@ -341,13 +344,26 @@ def with_noisy_odometry(frames: Frames, noise: OdometryNoise, *, seed: int) -> F
     return dataclasses.replace(frames, pose=pose)
 
 
+def _elevation_text(elevation_deg) -> str:
+    values = ", ".join(f"{e:g}" for e in elevation_deg)
+    return f"{len(elevation_deg)} elevation{'s' if len(elevation_deg) > 1 else ''} ({values} deg)"
+
+
 def _grid_text(range_m, azimuth_rad) -> str:
     r, a = np.asarray(range_m), np.rad2deg(np.asarray(azimuth_rad))
     return f"{len(r)} ranges {r[0]:.3f}..{r[-1]:.3f} m x {len(a)} azimuths {a[0]:.1f}..{a[-1]:.1f} deg"
 
 
 def check_grid(frames: Frames, ckpt: dict, name: str = "the model") -> None:
-    """Refuse data on another range/azimuth grid than the checkpoint's, naming both."""
+    """Refuse data on another range/azimuth grid or at other elevations than the checkpoint's,
+    naming both."""
+    trained = tuple(ckpt["model_config"].get("elevation_deg", (0.0,)))  # before elevations: the level slice
+    if tuple(frames.elevation_deg) != trained:
+        raise ValueError(
+            f"{frames.info.get('folder')} holds energyscapes at {_elevation_text(frames.elevation_deg)}, but {name} "
+            f"was trained on {_elevation_text(trained)}: give it data beamformed at those elevations "
+            "(processing.elevation_deg)"
+        )
     same = len(frames.range_m) == len(ckpt["range_m"]) and len(frames.azimuth_rad) == len(ckpt["azimuth_rad"])
     if not (
         same and np.allclose(frames.range_m, ckpt["range_m"]) and np.allclose(frames.azimuth_rad, ckpt["azimuth_rad"])

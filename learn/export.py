@@ -2,11 +2,12 @@
 
     info = export_onnx(model, "runs/unet/model.onnx", frames=5)  # {"path", "max_abs_diff", "opset", ...}
 
-The ONNX graph takes float32 energyscapes (batch, 1, K, R, A) named "energyscapes" (a model with
-memory: (batch, 1, N, R, A), its history first, and "motion" (batch, N, 4), each frame's pose in the
-label frame and whether it is there, as `learn.data.Windows` gives them) and returns
-the model's raw output (batch, 1, R, A) named "output": the image for "image" models (clip it
-to [0, 1]), logits for "logits" models (apply a sigmoid). The batch dimension is dynamic; K, R and A are fixed.
+The ONNX graph takes float32 energyscapes (batch, E, K, R, A) named "energyscapes", E the
+elevations the model was trained on (a model with memory: (batch, E, N, R, A), its history
+first, and "motion" (batch, N, 4), each frame's pose in the label frame and whether it is there,
+as `learn.data.Windows` gives them) and returns the model's raw output (batch, 1, R, A) named
+"output": the image for "image" models (clip it to [0, 1]), logits for "logits" models (apply a
+sigmoid). The batch dimension is dynamic; E, K, R and A are fixed.
 The file's metadata carries "output_kind" ("image" or "logits") and "return_threshold": a cell
 of the image at or above it is a return, and the nearest such cell of each azimuth column is the
 beam's range, as `learn predict` reads it.
@@ -50,6 +51,7 @@ def export_onnx(
     frames: int,
     range_count: int = 240,
     azimuth_count: int = 181,
+    elevations: int = 1,
     check: bool = True,
     threshold: float | None = None,
     verbose: bool = False,
@@ -68,6 +70,7 @@ def export_onnx(
         frames: Window length K.
         range_count: Range bins R.
         azimuth_count: Azimuth bins A.
+        elevations: Elevation beams E of each frame (`ModelConfig.elevations`).
         check: Compare onnxruntime with torch.
         threshold: The model's return threshold on the [0, 1] image (the checkpoint's calibrated
             one), written to the metadata; None writes none.
@@ -88,18 +91,17 @@ def export_onnx(
     path = check_output(path, overwrite=overwrite, inputs=inputs)
     if threshold is not None and not 0 < threshold <= 1:
         raise ValueError(f"the return threshold must lie in (0, 1], got {threshold}")
-    shape = (frames, range_count, azimuth_count)
+    shape = (elevations, frames, range_count, azimuth_count)
     with atomic_output(path, overwrite=overwrite, inputs=inputs) as tmp:
         info = _export_checked(model, tmp, shape, check=check, threshold=threshold, verbose=verbose)
     return info | {"path": str(path)}
 
 
 def _export_checked(model: nn.Module, path: Path, shape: tuple, *, check: bool, threshold, verbose: bool) -> dict:
-    """`export_onnx` into `path` (its temporary file); `shape` is (K, R, A)."""
+    """`export_onnx` into `path` (its temporary file); `shape` is (E, K, R, A)."""
     onnx, onnxruntime = _import_onnx()
-    frames, range_count, azimuth_count = shape
     device = next(model.parameters()).device
-    sample, names = _sample_inputs(model, frames, range_count, azimuth_count)
+    sample, names = _sample_inputs(model, *shape)
 
     was_training = model.training
     model.eval()
@@ -152,12 +154,12 @@ def _export_checked(model: nn.Module, path: Path, shape: tuple, *, check: bool, 
     return info
 
 
-def _sample_inputs(model: nn.Module, frames: int, range_count: int, azimuth_count: int):
+def _sample_inputs(model: nn.Module, elevations: int, frames: int, range_count: int, azimuth_count: int):
     """Inputs the export traces and checks with, and their names: energyscapes, and for a model
     with memory the motion of each frame (some absent, some turned and moved)."""
     draw = torch.Generator().manual_seed(0)
     n = frames + getattr(model, "history", 0)
-    x = torch.rand(2, 1, n, range_count, azimuth_count, generator=draw)
+    x = torch.rand(2, elevations, n, range_count, azimuth_count, generator=draw)
     if not getattr(model, "odometry", False):
         return (x,), ["energyscapes"]
     motion = torch.rand(2, n, 4, generator=draw) - 0.5  # up to 0.5 m and 0.5 rad away

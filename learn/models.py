@@ -1,4 +1,5 @@
-"""Networks that turn K energyscapes into a LiDAR image: energyscapes (B, 1, K, R, A) -> (B, 1, R, A).
+"""Networks that turn K energyscapes into a LiDAR image: energyscapes (B, E, K, R, A) -> (B, 1, R, A),
+E the elevation beams of each frame (1: the level slice).
 
     model = build_model(ModelConfig(name="polar_unet", frames=5))
     image = predict_image(model, x)  # (B, 1, R, A), in [0, 1] for logit models
@@ -17,6 +18,7 @@ Every model has a class attribute `output`: "image" (forward returns the image) 
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -46,6 +48,10 @@ class ModelConfig:
         history: polar_memory only: frames before the window it reads (`DataConfig.history`).
         extent: polar_memory only: the polar grid it resamples on, first and last range bin centre
             [m] and first and last azimuth centre [rad]; `learn train` sets it from the data.
+        elevation_deg: The elevations [deg] of the energyscapes it reads, increasing: each is an
+            input channel of every frame (the planar array resolves elevation: a floor echo
+            below, the ceiling above, a wall at the level); `learn train` sets it from the data,
+            and data beamformed at other elevations is refused.
     """
 
     name: str = "polar_unet"
@@ -54,6 +60,7 @@ class ModelConfig:
     row_contrast: bool = False
     history: int = 0
     extent: tuple[float, float, float, float] | None = None
+    elevation_deg: tuple[float, ...] = (0.0,)
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or self.name not in MODEL_NAMES:
@@ -85,6 +92,20 @@ class ModelConfig:
                     f"increasing and finite, got {self.extent!r}"
                 )
             object.__setattr__(self, "extent", tuple(float(v) for v in extent))
+        elevations = self.elevation_deg
+        if not (
+            isinstance(elevations, list | tuple)
+            and elevations
+            and all(isinstance(v, Real) and not isinstance(v, bool) and abs(v) <= 90 for v in elevations)
+            and all(b > a for a, b in itertools.pairwise(elevations))
+        ):
+            raise ValueError(f"elevation_deg must be increasing angles in [-90, 90] deg, got {elevations!r}")
+        object.__setattr__(self, "elevation_deg", tuple(float(v) for v in elevations))
+
+    @property
+    def elevations(self) -> int:
+        """Elevation beams a frame has: the input channels of each frame."""
+        return len(self.elevation_deg)
 
     @property
     def uses_odometry(self) -> bool:
@@ -131,17 +152,18 @@ class PaperNet(nn.Module):
 
     Args:
         frames: Window length K (odd).
+        elevations: Elevation beams E of each frame: the input channels of its first convolution.
     """
 
     output = "image"
 
-    def __init__(self, frames: int = 5):
+    def __init__(self, frames: int = 5, elevations: int = 1):
         super().__init__()
         if frames < 1 or frames % 2 == 0:
             raise ValueError(f"PaperNet needs an odd number of frames >= 1, got {frames}")
         k, p = frames, (frames - 1) // 2  # time kernel depth and the padding that keeps K frames
         self.frames = frames
-        self.conv_1 = nn.Conv3d(1, 20, (k, 13, 5), stride=(1, 5, 2), padding=(p, 6, 2))
+        self.conv_1 = nn.Conv3d(elevations, 20, (k, 13, 5), stride=(1, 5, 2), padding=(p, 6, 2))
         self.conv_2 = nn.Conv3d(20, 40, (k, 15, 5), padding=(p, 7, 2))
         self.conv_3 = nn.Conv3d(40, 80, (k, 15, 5), padding=(p, 7, 2))
         self.residual_1 = PaperResidual(80, (k, 25, 5), padding=(p, 12, 2))
@@ -152,7 +174,7 @@ class PaperNet(nn.Module):
         self.head = nn.Conv3d(20, 1, 1)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """Energyscapes (B, 1, K, R, A) -> lidar image (B, 1, R, A), unbounded (trained towards 0/1)."""
+        """Energyscapes (B, E, K, R, A) -> lidar image (B, 1, R, A), unbounded (trained towards 0/1)."""
         _, _, _, r, a = x.shape
         h = F.relu(self.conv_1(x))  # (B, 20, K, R', A'), R' = ceil(R / 5), A' = ceil(A / 2)
         h = F.relu(self.conv_2(h))
@@ -171,8 +193,10 @@ class PaperNet(nn.Module):
 # The model registry: a name -> a builder from ModelConfig. It drives `build_model`, the CLI's
 # --model choices and ModelConfig's check; a new network is one line here.
 MODELS: dict[str, Callable[[ModelConfig], nn.Module]] = {
-    "paper": lambda config: PaperNet(frames=config.frames),
-    "polar_unet": lambda config: PolarUNet(frames=config.frames, width=config.width, row_contrast=config.row_contrast),
+    "paper": lambda config: PaperNet(frames=config.frames, elevations=config.elevations),
+    "polar_unet": lambda config: PolarUNet(
+        frames=config.frames, width=config.width, row_contrast=config.row_contrast, elevations=config.elevations
+    ),
     "polar_memory": lambda config: _polar_memory(config),
 }
 
@@ -182,7 +206,9 @@ def _polar_memory(config: ModelConfig) -> nn.Module:
 
     if config.extent is None:
         raise ValueError("polar_memory needs the polar grid it resamples on (model.extent): `learn train` sets it")
-    return PolarMemory(config.frames, config.history, config.width, config.row_contrast, config.extent)
+    return PolarMemory(
+        config.frames, config.history, config.width, config.row_contrast, config.extent, elevations=config.elevations
+    )
 
 
 MODEL_NAMES = tuple(MODELS)

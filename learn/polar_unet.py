@@ -1,4 +1,4 @@
-"""Our network: a polar-aware 2D UNet, energyscapes (B, 1, K, R, A) -> logits (B, 1, R, A).
+"""Our network: a polar-aware 2D UNet, energyscapes (B, E, K, R, A) -> logits (B, 1, R, A).
 
 Its parts (polar padding, convolutions, the dilated context) are shared with the model with
 memory (`learn.memory`), which reads warped frames with the same UNet.
@@ -60,9 +60,9 @@ class PolarContext(nn.Module):
 
 
 class PolarUNet(nn.Module):
-    """A polar-aware 2D UNet: (B, 1, K, R, A) energyscapes -> (B, 1, R, A) logits; 230,145 parameters at width 16.
+    """A polar-aware 2D UNet: (B, E, K, R, A) energyscapes -> (B, 1, R, A) logits; 230,145 parameters at width 16.
 
-    The K frames are input channels (time is short and already aligned; 3D kernels would cost
+    The K frames at each of E elevations are input channels (time is short and already aligned; 3D kernels would cost
     K times more), plus two coordinate channels, range 0..1 and azimuth -1..1: echo strength,
     beam width and the sonar's blind zones depend on where a cell is, which a plain convolution
     cannot know. Three levels (widths w, 2w, 4w) joined by 2x2 max-pooling and bilinear upsampling
@@ -73,16 +73,17 @@ class PolarUNet(nn.Module):
         frames: Window length K.
         width: Channel count w of the first level.
         row_contrast: Add each frame less its per-range-row median over azimuth (see ModelConfig).
+        elevations: Elevation beams E of each frame.
     """
 
     output = "logits"
 
-    def __init__(self, frames: int = 5, width: int = 16, row_contrast: bool = False):
+    def __init__(self, frames: int = 5, width: int = 16, row_contrast: bool = False, elevations: int = 1):
         super().__init__()
         w = width
         self.frames = frames
         self.row_contrast = row_contrast
-        self.enc_0 = polar_block(frames * (2 if row_contrast else 1) + 2, w)
+        self.enc_0 = polar_block(elevations * frames * (2 if row_contrast else 1) + 2, w)
         self.enc_1 = polar_block(w, 2 * w)
         self.enc_2 = polar_block(2 * w, 4 * w)
         self.context = PolarContext(4 * w)
@@ -94,11 +95,12 @@ class PolarUNet(nn.Module):
         nn.init.constant_(self.head.bias, math.log(0.01 / 0.99))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """Energyscapes (B, 1, K, R, A) -> logits of the lidar image (B, 1, R, A)."""
+        """Energyscapes (B, E, K, R, A) -> logits of the lidar image (B, 1, R, A)."""
         b, _, _, r, a = x.shape
         rng = torch.linspace(0.0, 1.0, r, device=x.device, dtype=x.dtype).view(1, 1, r, 1).expand(b, 1, r, a)
         azi = torch.linspace(-1.0, 1.0, a, device=x.device, dtype=x.dtype).view(1, 1, 1, a).expand(b, 1, r, a)
-        frames = [x[:, 0], row_contrast(x[:, 0])] if self.row_contrast else [x[:, 0]]  # (B, K or 2K, R, A)
+        channels = x.flatten(1, 2)  # (B, E K, R, A), elevation-major
+        frames = [channels, row_contrast(channels)] if self.row_contrast else [channels]  # (B, EK or 2EK, R, A)
         h0 = self.enc_0(torch.cat([*frames, rng, azi], dim=1))  # (B, w, R, A)
         h1 = self.enc_1(F.max_pool2d(h0, 2, ceil_mode=True))  # (B, 2w, ceil(R/2), ceil(A/2))
         h2 = self.context(self.enc_2(F.max_pool2d(h1, 2, ceil_mode=True)))  # (B, 4w, R/4, A/4)

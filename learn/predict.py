@@ -35,25 +35,32 @@ def read_input(source: Path, ckpt: dict) -> Frames:
         return _frames_from_array(source, ckpt)
     if source.suffix == ".npz" or source.is_file():
         raise ValueError(
-            f"--input {source} is a file, not a .npy: give a dataset folder, or energyscapes (N, R, A) saved with "
-            "numpy.save as a .npy"
+            f"--input {source} is a file, not a .npy: give a dataset folder, or energyscapes (N, R, A) (or (N, E, R, "
+            "A) at the model's E elevations) saved with numpy.save as a .npy"
         )
     return load_frames(source)
 
 
 def _frames_from_array(path: Path, ckpt: dict) -> Frames:
-    """Energyscapes (N, R, A) of a `.npy`, held as float32: each is normalised to its own peak
-    (`learn.data.normalise`), so any scale is right, and float32 holds any that float16 cannot
-    (above 65,504). Header, size and values are checked before and after reading."""
+    """Energyscapes (N, R, A), or (N, E, R, A) at the checkpoint's elevations, of a `.npy`, held
+    as float32: each is normalised to its own peak (`learn.data.normalise`), so any scale is
+    right, and float32 holds any that float16 cannot (above 65,504). Header, size and values are
+    checked before and after reading."""
     shape, dtype = npy_header(path, "--input")  # a regular file whose header fits its size
     if dtype.kind not in "fiu":
         raise ValueError(f"--input {path}: energyscapes must be real numbers, got dtype {dtype}")
     grid = (len(ckpt["range_m"]), len(ckpt["azimuth_rad"]))
-    if len(shape) != 3 or shape[1:] != grid:
-        raise ValueError(f"--input {path}: expected energyscapes (N, {grid[0]}, {grid[1]}), got {shape}")
+    elevation_deg = tuple(ckpt["model_config"].get("elevation_deg", (0.0,)))
+    frame = (len(elevation_deg), *grid)
+    if not (shape[1:] == frame or (len(elevation_deg) == 1 and shape[1:] == grid)) or len(shape) < 3:
+        expected = f"(N, {grid[0]}, {grid[1]})" if len(frame) == 1 else f"(N, {', '.join(map(str, frame))})"
+        raise ValueError(f"--input {path}: expected energyscapes {expected}, got {shape}")
     n = shape[0]
     check_fits(
-        n * grid[0] * grid[1] * (4 + 1 + 4),  # float32 frames, uint8 labels, one batch's worth at most again
+        n
+        * grid[0]
+        * grid[1]
+        * (4 * len(elevation_deg) + 1 + 4),  # float32 frames, uint8 labels, one batch's worth at most again
         f"--input {path} ({n:,} energyscapes of {grid[0]} x {grid[1]})",
         "predict a shorter stretch at a time (split the array)",
     )
@@ -67,7 +74,7 @@ def _frames_from_array(path: Path, ckpt: dict) -> Frames:
         }.get(dtype, "pass finite energyscapes")
         raise ValueError(f"--input {path}: {bad:,} of its values are NaN or inf: {hint}")
     return Frames(
-        energyscape=energyscape,
+        energyscape=energyscape.reshape(n, *frame),
         label=np.zeros((n, *grid), np.uint8),
         episode=np.zeros(n, np.int64),
         scenario=np.zeros(n, np.int64),
@@ -75,6 +82,7 @@ def _frames_from_array(path: Path, ckpt: dict) -> Frames:
         range_m=np.asarray(ckpt["range_m"], dtype=np.float64),
         azimuth_rad=np.asarray(ckpt["azimuth_rad"], dtype=np.float64),
         info={"folder": recorded_path(path)},
+        elevation_deg=elevation_deg,
     )
 
 

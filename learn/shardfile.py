@@ -24,7 +24,8 @@ from .inputs import regular_file
 from .odometry import planar
 
 FORMAT = "sonar2lidar-dataset"  # written by acoustic_sim.datasets.shards; the file format is the interface
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # written by this version: energyscape (frame, elevation, range, azimuth), elevation_deg
+READABLE_VERSIONS = (1, 2)  # 1: energyscape (frame, range, azimuth), one slice at 0 deg elevation
 FLOAT16_MAX = float(np.finfo(np.float16).max)  # 65,504
 # The datasets read and their dtype kinds (numpy: f float, i/u integer, b bool)
 READ = {
@@ -35,7 +36,11 @@ READ = {
     "range_m": "f",
     "azimuth_rad": "f",
 }
-ALSO_READ = {"time": "f", "pose": "f"}  # frame times (learn.ros for `predict --mcap`), sensor poses (memory)
+ALSO_READ = {
+    "time": "f",
+    "pose": "f",
+    "elevation_deg": "f",
+}  # frame times (learn.ros for `predict --mcap`), sensor poses (memory)
 MIN_GRID_CELLS = 7  # learn.metrics.ssim's window: a smaller grid fails in every validation
 REDO = "regenerate it with `python -m acoustic_sim generate`, or move it out of the folder"
 
@@ -51,7 +56,8 @@ class ShardHeader:
     Attributes:
         path: The shard.
         plan_id, variant, index: The run (plan), physics variant and shard number that wrote it.
-        frames, range_count, azimuth_count: Energyscape shape (T, R, A).
+        frames, range_count, azimuth_count: Energyscape shape (T, E, R, A) without E.
+        elevation_deg: The beams' elevations (E,) [deg]; (0.0,) for format 1's one level slice.
         scenarios: Scenario names the `scenario` dataset indexes.
         config: The settings it was simulated with.
         file_id: (device, inode): two names of one file (a link) share it.
@@ -69,11 +75,12 @@ class ShardHeader:
     config: dict
     file_id: tuple[int, int]
     read_bytes: int
+    elevation_deg: tuple[float, ...] = (0.0,)
 
 
 @dataclass
 class ShardArrays:
-    """A shard's arrays as the learner holds them: energyscape (T, R, A) float16, label (T, R, A)
+    """A shard's arrays as the learner holds them: energyscape (T, E, R, A) float16, label (T, R, A)
     uint8, episode and scenario (T,) int64, range_m (R,) [m], azimuth_rad (A,) [rad], pose (T, 3)
     planar sensor poses (x [m], y [m], yaw [rad]; `learn.odometry`), None where the shard has none."""
 
@@ -113,9 +120,11 @@ def _header(f: h5py.File, path: Path) -> ShardHeader:
         raise DataError(f"{path} is not a {FORMAT} shard (its format attribute is {fmt!r})")
     raw = f.attrs.get("format_version")
     version = _integer(raw)
-    if version != FORMAT_VERSION:
+    if version not in READABLE_VERSIONS:
         found = version if version is not None else repr(raw)
-        raise DataError(f"{path} has format_version {found}; this learner reads {FORMAT_VERSION}")
+        raise DataError(
+            f"{path} has format_version {found}; this learner reads {', '.join(map(str, READABLE_VERSIONS))}"
+        )
     _refuse_foreign_storage(f, path)
     sets = {name: _dataset(f, name, path) for name in READ}
     for name in ALSO_READ:
@@ -128,23 +137,30 @@ def _header(f: h5py.File, path: Path) -> ShardHeader:
     if not scenarios or not all(isinstance(s, str) for s in scenarios):
         raise DataError(f"{path}: the scenarios attribute is not a list of scenario names: {REDO}")
     energyscape, label = sets["energyscape"], sets["lidar/image"]
-    frames_shape = (len(energyscape),) if energyscape.ndim else ()
+    elevation_deg = _elevations(f, path, version)
+    layout = "(frame, range, azimuth)" if version == 1 else f"(frame, {len(elevation_deg)} elevations, range, azimuth)"
+    fits = (
+        energyscape.ndim == 3 if version == 1 else energyscape.ndim == 4 and energyscape.shape[1] == len(elevation_deg)
+    )
+    if not fits:
+        raise DataError(f"{path}: energyscape has shape {energyscape.shape}, expected {layout}: {REDO}")
+    frame_shape = (energyscape.shape[0], *energyscape.shape[-2:])  # (T, R, A)
+    frames_shape = frame_shape[:1]
     shapes = {
-        "energyscape": (energyscape.ndim == 3, "(frame, range, azimuth)"),
-        "lidar/image": (label.shape == energyscape.shape, f"{energyscape.shape}, as energyscape"),
+        "lidar/image": (label.shape == frame_shape, f"{frame_shape}, energyscape's frames, ranges and azimuths"),
         "episode": (sets["episode"].shape == frames_shape, f"{frames_shape}, one per frame"),
         "scenario": (sets["scenario"].shape == frames_shape, f"{frames_shape}, one per frame"),
-        "range_m": (sets["range_m"].shape == energyscape.shape[1:2], f"{energyscape.shape[1:2]}, energyscape's ranges"),
-        "azimuth_rad": (sets["azimuth_rad"].shape == energyscape.shape[2:], f"{energyscape.shape[2:]}, its azimuths"),
+        "range_m": (sets["range_m"].shape == frame_shape[1:2], f"{frame_shape[1:2]}, energyscape's ranges"),
+        "azimuth_rad": (sets["azimuth_rad"].shape == frame_shape[2:], f"{frame_shape[2:]}, its azimuths"),
     }
     for name, (fits, expected) in shapes.items():
         if not fits:
             raise DataError(f"{path}: {name} has shape {sets[name].shape}, expected {expected}: {REDO}")
-    if energyscape.shape[0] == 0:
+    if frame_shape[0] == 0:
         raise DataError(f"{path} holds no frames (an empty shard): {REDO}")
-    if min(energyscape.shape[1:]) < MIN_GRID_CELLS:
+    if min(frame_shape[1:]) < MIN_GRID_CELLS:
         raise DataError(
-            f"{path}: its grid of {energyscape.shape[1]} ranges x {energyscape.shape[2]} azimuths is smaller than the "
+            f"{path}: its grid of {frame_shape[1]} ranges x {frame_shape[2]} azimuths is smaller than the "
             f"{MIN_GRID_CELLS} x {MIN_GRID_CELLS} cells the image metrics (SSIM's window) need: {REDO}"
         )
     stat = os.stat(path)
@@ -153,14 +169,28 @@ def _header(f: h5py.File, path: Path) -> ShardHeader:
         plan_id=plan_id,
         variant=variant,
         index=_integer(index),
-        frames=energyscape.shape[0],
-        range_count=energyscape.shape[1],
-        azimuth_count=energyscape.shape[2],
+        frames=frame_shape[0],
+        range_count=frame_shape[1],
+        azimuth_count=frame_shape[2],
         scenarios=scenarios,
         config=_json_attr(f, "config", path, dict),
         file_id=(stat.st_dev, stat.st_ino),
         read_bytes=energyscape.size * energyscape.dtype.itemsize + label.size * label.dtype.itemsize,
+        elevation_deg=elevation_deg,
     )
+
+
+def _elevations(f: h5py.File, path: Path, version: int) -> tuple[float, ...]:
+    """The beams' elevations [deg]: format 1 holds one level slice; format 2 says which, each
+    finite, in [-90, 90] and increasing (the order models read them in)."""
+    if version == 1:
+        return (0.0,)
+    if "elevation_deg" not in f:
+        raise DataError(f"{path} (format 2) has no elevation_deg axis: {REDO}")
+    values = _dataset(f, "elevation_deg", path)[()]
+    if values.ndim != 1 or not len(values) or not np.all(np.abs(values) <= 90) or np.any(np.diff(values) <= 0):
+        raise DataError(f"{path}: elevation_deg {values!r} is not increasing angles in [-90, 90] deg: {REDO}")
+    return tuple(float(v) for v in values)
 
 
 def _refuse_foreign_storage(f: h5py.File, path: Path) -> None:
@@ -225,8 +255,11 @@ def read_arrays(header: ShardHeader, seen_episodes: dict[int, Path]) -> ShardArr
         axis = arrays[name]
         if not (np.isfinite(axis).all() and (np.diff(axis) > 0).all()):
             raise DataError(f"{path}: {name} is not a finite, increasing axis: {REDO}")
+    energyscape = arrays["energyscape"]
     return ShardArrays(
-        energyscape=as_float16(arrays["energyscape"], f"{path}: energyscape", REDO),
+        energyscape=as_float16(
+            energyscape[:, None] if energyscape.ndim == 3 else energyscape, f"{path}: energyscape", REDO
+        ),
         label=_labels(arrays["lidar/image"], path),
         episode=_episodes(arrays["episode"], path, seen_episodes),
         scenario=_scenarios(arrays["scenario"], header),

@@ -77,6 +77,8 @@ class Stream:
         self.range_m = np.asarray(ckpt["range_m"], dtype=np.float64)
         self.azimuth_rad = np.asarray(ckpt["azimuth_rad"], dtype=np.float64)
         self.grid = (len(self.range_m), len(self.azimuth_rad))
+        self.elevation_deg = ModelConfig(**ckpt["model_config"]).elevation_deg
+        self.shape = (len(self.elevation_deg), *self.grid)  # one frame: (E, R, A)
         self._run = model_predictor(self.model, amp=amp)
         self.graphs, self._graph = graphs, None
         self._range = torch.as_tensor(self.range_m, device=self.device)
@@ -85,8 +87,8 @@ class Stream:
         self._offsets = offsets - offsets[-1]  # each frame read, relative to the newest (0 is the newest)
         # One slot more than the ring: it holds the image of an absent frame, which Windows makes
         # as the normalised image of zeros.
-        self._frames = torch.zeros(self.capacity + 1, *self.grid, device=self.device)
-        self._frames[self.capacity] = normalise(torch.zeros(self.grid, device=self.device), self.config.floor_db)
+        self._frames = torch.zeros(self.capacity + 1, *self.shape, device=self.device)
+        self._frames[self.capacity] = normalise(torch.zeros(self.shape, device=self.device), self.config.floor_db)
         self._poses = np.zeros((self.capacity, 3))
         self._posed = np.zeros(self.capacity, bool)  # whether the frame in each slot came with a pose
         self.reset()
@@ -114,8 +116,9 @@ class Stream:
         while the first window is not complete (the first K - 1 frames of a drive).
 
         Args:
-            energyscape: (R, A) energyscape on the checkpoint's grid, as beamformed (any scale:
-                each frame is normalised to its own peak), a numpy array or tensor.
+            energyscape: (R, A) energyscape on the checkpoint's grid, or (E, R, A) at the
+                checkpoint's E elevations, as beamformed (any scale: each frame is normalised to
+                its own peak), a numpy array or tensor.
             pose: The sensor's odometry pose: (x [m], y [m], yaw [rad]) or a 4 x 4
                 sensor-to-odom matrix; None for a model without memory.
 
@@ -141,7 +144,7 @@ class Stream:
         frame = newest + self._offsets  # each frame the window reads, counted from the drive's start
         present = frame >= 0
         slots = np.where(present, frame % self.capacity, self.capacity)
-        x = self._frames[torch.as_tensor(slots, device=self.device)][None, None]  # (1, 1, N, R, A)
+        x = self._frames[torch.as_tensor(slots, device=self.device)][None].transpose(1, 2)  # (1, E, N, R, A)
         label_frame, anchor = newest - self.delay, self.config.anchor
         ring = slots % self.capacity
         pose = self._poses[ring[anchor]].copy() if self._posed[ring[anchor]] else None
@@ -207,10 +210,14 @@ class Stream:
         image = torch.as_tensor(energyscape)
         if image.is_complex() or image.dtype == torch.bool:
             raise ValueError(f"energyscape must hold real numbers, got {image.dtype}")
-        if tuple(image.shape) != self.grid:
+        if tuple(image.shape) == self.grid and self.shape[0] == 1:
+            image = image[None]
+        if tuple(image.shape) != self.shape:
+            elevations = ", ".join(f"{e:g}" for e in self.elevation_deg)
             raise ValueError(
-                f"energyscape has shape {tuple(image.shape)}, but the model reads {self.grid[0]} ranges x "
-                f"{self.grid[1]} azimuths (beamform on the checkpoint's grid)"
+                f"energyscape has shape {tuple(image.shape)}, but the model reads {self.shape[0]} elevation(s) "
+                f"({elevations} deg) x {self.grid[0]} ranges x {self.grid[1]} azimuths (beamform on the checkpoint's "
+                "grid and elevations)"
             )
         if not bool(torch.isfinite(image).all()):  # checked where it is (the host's, mostly): no wait on a GPU
             raise ValueError(f"energyscape of frame {self.count} holds NaN or inf values: pass finite energyscapes")

@@ -140,7 +140,7 @@ def _plot(path: Path, frames, config: DataConfig, labelled, images, threshold: f
     rows = []
     for i in np.unique(np.linspace(0, len(labelled) - 1, 4).round().astype(int)):
         frame = int(labelled[i])
-        sonar = normalise(torch.from_numpy(np.asarray(frames.energyscape[frame])), config.floor_db)
+        sonar = normalise(torch.from_numpy(np.asarray(frames.energyscape[frame])), config.floor_db)[frames.level]
         rows.append(
             {
                 "title": f"frame {frame}",
