@@ -299,7 +299,7 @@ def _export(args) -> int:
     from .formats.mcap_export import export_mcap
 
     done = export_mcap(args.dataset, args.out, overwrite=args.overwrite)
-    print(f"{done['frames']} frames of {args.dataset} -> {done['out']} (/scan, /sonar/energyscape, /tf)")
+    print(f"{done['frames']} frames of {args.dataset} -> {done['out']} ({', '.join(done['topics'])})")
     return 0
 
 

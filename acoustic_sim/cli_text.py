@@ -61,7 +61,9 @@ COMMANDS = {
         "help": "write a dataset for robotics tools (MCAP of ROS 2 messages) or the eRTIS lab (CHIRP)",
         "description": "mcap: every frame of a dataset folder as ROS 2 messages in an MCAP file, without a ROS "
         "install (extra `ros`): sensor_msgs/LaserScan on /scan, sensor_msgs/Image (32FC1, range x azimuth) on "
-        "/sonar/energyscape, tf2_msgs/TFMessage world -> sensor on /tf, stamped with the drive's times. "
+        "/sonar/energyscape (a dataset of several elevations: one topic per elevation, "
+        "/sonar/energyscape/elevation_m20_deg ...), tf2_msgs/TFMessage world -> sensor on /tf, stamped with the "
+        "drive's times. "
         "Open it in Foxglove. chirp: a dataset generated with --signals as one CHIRP file (.h5, the eRTIS "
         "lab's format; cosys-chirppy reads it): the microphone signals with the array's positions and "
         "sample rate, the call, the LiDAR as x, y, z, intensity points, the poses as odometry, Unix times "

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from acoustic_sim.cli import main
+from acoustic_sim.datasets.shards import FORMAT_VERSION
 from acoustic_sim.formats.mcap_export import EPISODE_GAP_S, STAMP_START_S
 
 chirppy = pytest.importorskip("chirppy")  # the `chirp` extra, installed by the `test` extra
@@ -40,6 +41,15 @@ def exported(signals_dataset, tmp_path_factory):
 def imported(exported, device):
     out = exported.parent / "rec"
     assert main(["import", str(exported), "--format", "chirp", "--out", str(out), "--device", device]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def imported_elevations(exported, device):
+    """The export imported again with one image per elevation at -20, 0 and 20 deg."""
+    out = exported.parent / "rec_elevations"
+    argv = ["import", str(exported), "--format", "chirp", "--out", str(out), "--device", device]
+    assert main([*argv, "--set", "processing.elevation_deg=[-20,0,20]"]) == 0
     return out
 
 
@@ -96,7 +106,9 @@ def test_import_gives_back_the_energyscapes_and_labels(signals_dataset, imported
     from acoustic_sim.engine.beamform import energyscape
 
     keys = ("energyscape", "lidar/image", "lidar/ranges", "pose", "time", "episode")
-    truth, got = read(signals_dataset, *keys, "signals"), read(imported, *keys)
+    truth, got = read(signals_dataset, *keys, "signals"), read(imported, *keys, "elevation_deg")
+    assert got["energyscape"].shape == (16, 1, 240, 181) and list(got["elevation_deg"]) == [0.0, 0.0]  # two shards
+    truth["energyscape"], got["energyscape"] = truth["energyscape"][:, 0], got["energyscape"][:, 0]
     np.testing.assert_array_equal(got["lidar/image"], truth["lidar/image"])
     assert truth["lidar/image"].sum() > 16 * 100  # scans with returns on the grid
     np.testing.assert_allclose(got["lidar/ranges"], truth["lidar/ranges"], rtol=1e-6)
@@ -111,6 +123,35 @@ def test_import_gives_back_the_energyscapes_and_labels(signals_dataset, imported
     assert np.all(np.abs(got["energyscape"].astype(np.float32) - stored) <= 2e-3 * peak)
     manifest = json.loads((imported / "manifest.json").read_text())
     assert manifest["frames"] == 16 and manifest["import"]["lidar"] == "lidar_00"
+    assert manifest["format_version"] == FORMAT_VERSION and not (imported / "card_elevations.png").exists()
+
+
+def test_import_images_each_elevation(signals_dataset, imported, imported_elevations, device):
+    """`--set processing.elevation_deg=[-20,0,20]`: shards (format 2) of (ping, 3, range, azimuth)
+    with elevation_deg [-20, 0, 20]; the 0 deg slice is the default import's, bit for bit, and each
+    slice is our processing of the stored signals at that one elevation (so none is swapped); the
+    card draws a ping at every elevation."""
+    from acoustic_sim.config import SimConfig
+    from acoustic_sim.engine.beamform import energyscape
+
+    for path in sorted(imported_elevations.glob("shard-*.h5")):
+        with h5py.File(path, "r") as f:
+            assert f.attrs["format_version"] == FORMAT_VERSION == 2
+            assert f["energyscape"].shape == (8, 3, 240, 181) and f["energyscape"].dtype == np.float16
+            np.testing.assert_array_equal(f["elevation_deg"][:], [-20.0, 0.0, 20.0])
+    got, level = read(imported_elevations, "energyscape")["energyscape"], read(imported, "energyscape")["energyscape"]
+    np.testing.assert_array_equal(got[:, 1], level[:, 0])
+    signals, rig = read(signals_dataset, "signals")["signals"].astype(np.float32), SimConfig()
+    for j, elevation in ((0, -20.0), (2, 20.0)):
+        processing = dataclasses.replace(rig.processing, elevation_deg=elevation)
+        alone = energyscape(signals, rig.sonar, processing, device=device).astype(np.float16)
+        np.testing.assert_array_equal(got[:, j], alone)
+    assert not np.array_equal(got[:, 0], got[:, 2])  # the two outer slices differ: a swap would show
+    manifest = json.loads((imported_elevations / "manifest.json").read_text())
+    elevations = manifest["sim"]["processing"]["elevation_deg"]
+    assert manifest["format_version"] == FORMAT_VERSION and elevations == [-20.0, 0.0, 20.0]
+    assert (imported_elevations / "card_elevations.png").is_file()
+    assert "card_elevations.png" in (imported_elevations / "README.md").read_text()
 
 
 def test_learn_evaluate_scores_the_imported_recording(imported, tmp_path):

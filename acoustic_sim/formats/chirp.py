@@ -23,8 +23,10 @@ Export writes one file per dataset with `format`, `format_version`, `reference_s
 Times are the drive's, stamped as `mcap_export.frame_stamps` stamps them.
 
 Import processes the reference sensor's signals with our processing (`beamform.energyscape`, the
-rig's call and grid) using the file's microphone positions and sample rate; a sample rate other
-than the call's is refused (set `--set sonar.chirp.*` to the call that was recorded). The LiDAR
+rig's call, grid and elevations) using the file's microphone positions and sample rate; a sample
+rate other than the call's is refused (set `--set sonar.chirp.*` to the call that was recorded).
+`--set processing.elevation_deg=[-20,0,20]` gives each ping one image per elevation, as generate
+does: shards of (ping, elevation, range, azimuth) with their `elevation_deg` axis. The LiDAR
 label is a 2D scan taken from the 3D points: moved into the sonar's frame with the file's
 transforms, the points within `plane_tolerance_m` of the sonar's plane (|z|) are binned to the
 beams of the rig's LiDAR azimuths (nearest beam, elevation 0) and each beam keeps its nearest
@@ -267,14 +269,12 @@ def episodes_of(stamps: np.ndarray, gap_s: float) -> np.ndarray:
 
 
 def _check_import(path: Path, out: Path, rig) -> None:
-    """Refuse, before reading any ping, an --out that is not empty, more than one elevation and a
-    file that is not CHIRP or does not hold its own data (`chirp_input.check_file`)."""
+    """Refuse, before reading any ping, an --out that is not empty and a file that is not CHIRP or
+    does not hold its own data (`chirp_input.check_file`)."""
     if out.exists() and not out.is_dir():
         raise ValueError(f"--out {out} is a file; give a new folder for the dataset")
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"--out {out} is not an empty folder; choose a new one")
-    if np.ndim(rig.processing.elevation_deg):
-        raise ValueError("import writes one energyscape per ping: set processing.elevation_deg to one angle")
     chirp_input.check_file(path)
 
 
@@ -296,16 +296,18 @@ def _recorded_sonar(sonar: SonarConfig, mics: np.ndarray, samples: int, source: 
 
 
 def _energyscapes(acoustic, sonar: SonarConfig, processing, path: Path, *, device) -> np.ndarray:
-    """Our processing of every ping of the sensor, BLOCK pings at once: float16 (pings, R, A);
-    signals it refuses (NaN, overflowing) are named by file, sensor and pings."""
+    """Our processing of every ping of the sensor, BLOCK pings at once: float16 (pings, E, R, A),
+    E the elevations of `processing` (1 for one angle); signals it refuses (NaN, overflowing) are
+    named by file, sensor and pings."""
     from ..engine.beamform import energyscape
 
-    count = acoustic.signals.shape[0]
-    energy = np.empty((count, *processing.grid.shape), np.float16)
+    count, shape = acoustic.signals.shape[0], (np.size(processing.elevation_deg), *processing.grid.shape)
+    energy = np.empty((count, *shape), np.float16)
     for first in range(0, count, BLOCK):  # (ping, sample, mic) -> (ping, mic, sample)
         block = np.asarray(acoustic.signals[first : first + BLOCK], dtype=np.float32).transpose(0, 2, 1)
         try:
-            energy[first : first + len(block)] = energyscape(block, sonar, processing, device=device)
+            images = energyscape(block, sonar, processing, device=device)  # (n, R, A) or (n, E, R, A)
+            energy[first : first + len(block)] = images.reshape(len(block), *shape)
         except ValueError as err:
             last = first + len(block) - 1
             raise ValueError(f"{path}: {acoustic.name}'s pings {first}..{last}: {err}") from None
@@ -361,8 +363,8 @@ def import_chirp(
     Args:
         path: The CHIRP file.
         out: A new or empty folder.
-        rig: `SimConfig` whose call (sonar.chirp), processing (grid) and LiDAR azimuths are used;
-            the file gives the microphone positions and the sample rate.
+        rig: `SimConfig` whose call (sonar.chirp), processing (grid, elevations) and LiDAR
+            azimuths are used; the file gives the microphone positions and the sample rate.
         plane_tolerance_m: Half-height of the slab around the sonar's plane (z = 0) whose LiDAR
             points make the 2D scan [m].
         episode_gap_s: A longer pause between pings starts a new episode [s].
@@ -400,7 +402,13 @@ def import_chirp(
     plan_id = hashlib.sha256(json.dumps([source, options, rig.to_dict()], default=str).encode()).hexdigest()[:16]
     config = {"source": source, "import": options, "poses": pose_source, "sim": rig.to_dict()}
     pings = ImportedPings(
-        stamps, energy, ranges, lidar_image(ranges, planar, grid), poses, episodes_of(stamps, episode_gap_s)
+        stamps=stamps,
+        energyscape=energy,
+        elevation_deg=np.atleast_1d(rig.processing.elevation_deg).astype(np.float64),
+        lidar_ranges=ranges,
+        lidar_image=lidar_image(ranges, planar, grid),
+        pose=poses,
+        episode=episodes_of(stamps, episode_gap_s),
     )
     try:
         with atomic_folder(out, overwrite=False, inputs=[path]) as stage:  # nothing under `out` until all is written

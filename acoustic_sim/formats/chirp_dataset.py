@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..datasets.shards import ShardFrames, write_shard
+from ..datasets.shards import FORMAT, FORMAT_VERSION, ShardFrames, write_shard
 
 
 @dataclass(frozen=True)
@@ -18,7 +18,8 @@ class ImportedPings:
     """Every ping of a recording as our shards hold it (first axis: ping)."""
 
     stamps: np.ndarray  # Unix time [s], float64
-    energyscape: np.ndarray  # float16 (pings, R, A)
+    energyscape: np.ndarray  # float16 (pings, E, R, A)
+    elevation_deg: np.ndarray  # the E images' elevations [deg], float64 (E,)
     lidar_ranges: np.ndarray  # [m] float32 (pings, beams), inf = no return
     lidar_image: np.ndarray  # the label (pings, R, A)
     pose: np.ndarray  # sonar-to-odom (pings, 4, 4)
@@ -54,7 +55,14 @@ def write_shards(out: Path, pings: ImportedPings, grid, config: dict, *, plan_id
             "scenarios": [scenario],
         }
         file = out / f"shard-{k:05d}.h5"
-        write_shard(file, shard, attrs=attrs, range_m=grid.range_m, azimuth_rad=grid.azimuth_rad)
+        write_shard(
+            file,
+            shard,
+            attrs=attrs,
+            range_m=grid.range_m,
+            azimuth_rad=grid.azimuth_rad,
+            elevation_deg=pings.elevation_deg,
+        )
         entries.append({"file": file.name, "frames": len(frames), "episodes": [k], "bytes": file.stat().st_size})
     return entries
 
@@ -65,8 +73,8 @@ def write_manifest(
     """manifest.json: the dataset's shards, where its pings came from and how they were imported."""
     source = config["source"]
     manifest = {
-        "format": "sonar2lidar-dataset",
-        "format_version": 1,
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
         "plan_id": plan_id,
         "suite": "chirp",
         "variant": "",
@@ -85,15 +93,32 @@ def write_manifest(
 def write_card(
     out: Path, pings: ImportedPings, grid, config: dict, *, lidar: str | None, microphones: int, rate_hz: float
 ) -> None:
-    """card.png (three pings with their labels) and a README.md that says what was imported how."""
+    """card.png (three pings at the level elevation, with their labels), for several elevations
+    card_elevations.png (the middle ping at each, highest first), and a README.md that says what
+    was imported how."""
     from ..render import render_examples
 
-    count, options = len(pings.stamps), config["import"]
+    count, options, elevations = len(pings.stamps), config["import"], pings.elevation_deg
+    level = int(np.argmin(np.abs(elevations)))  # the LiDAR's plane
+    at = f" at {elevations[level]:g} deg" if len(elevations) > 1 else ""
     shown = [
-        (f"ping {i}", pings.energyscape[i], pings.lidar_image[i])
+        (f"ping {i}{at}", pings.energyscape[i, level], pings.lidar_image[i])
         for i in np.unique(np.linspace(0, count - 1, 3).round().astype(int))
     ]
     render_examples(shown, grid, out / "card.png")
+    stack = ""
+    if len(elevations) > 1:
+        middle = count // 2
+        rows = [
+            (f"ping {middle} at {elevations[j]:g} deg", pings.energyscape[middle, j], pings.lidar_image[middle])
+            for j in np.argsort(-elevations, kind="stable")
+        ]
+        render_examples(rows, grid, out / "card_elevations.png")
+        stack = (
+            f"\nEach ping is imaged at {len(elevations)} elevations ({', '.join(f'{e:g}' for e in elevations)} deg; "
+            "`elevation_deg` in each shard); one ping at each, highest first:\n\n"
+            "![one ping at every elevation](card_elevations.png)\n"
+        )
     returns = np.isfinite(pings.lidar_ranges).sum(axis=1)
     (out / "README.md").write_text(
         f"# Dataset: the CHIRP recording {config['source']['file']}\n\n{count:,} pings in {pings.episode[-1] + 1} "
@@ -102,5 +127,5 @@ def write_card(
         f"{rate_hz / 1e3:g} kHz and our call; LiDAR labels from the points of {lidar or 'no LiDAR'} within "
         f"{options['plane_tolerance_m']:g} m of the sonar's plane ({returns.mean():.0f} returns per scan on average); "
         f"poses: {config['poses']}.\n\n"
-        "![pings: energyscape (dB) with the LiDAR label on top](card.png)\n"
+        f"![pings: energyscape (dB){at} with the LiDAR label on top](card.png)\n{stack}"
     )

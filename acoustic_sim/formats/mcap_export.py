@@ -6,8 +6,12 @@
 Per frame: `sensor_msgs/LaserScan` on /scan (the LiDAR's ranges), `sensor_msgs/Image` on
 /sonar/energyscape (32FC1: row i is range bin i from near to far, column j azimuth j of the grid
 from its minimum, -90 deg on the right) and `tf2_msgs/TFMessage` on /tf (world -> sensor, the
-frame's pose). Stamps: the drive's own times after a fixed start (STAMP_START_S, 2023-11-14),
-the episodes one after another with a second between them, so the file always reads the same.
+frame's pose). A dataset of several elevations (`processing.elevation_deg` a list) gets one Image
+topic per elevation instead, named by `energyscape_topics` (-20, 0, 20 deg:
+/sonar/energyscape/elevation_m20_deg, .../elevation_0_deg, .../elevation_20_deg); a dataset of
+one elevation, at whatever angle, keeps /sonar/energyscape. Stamps: the drive's own times after a
+fixed start (STAMP_START_S, 2023-11-14), the episodes one after another with a second between
+them, so the file always reads the same.
 """
 
 from __future__ import annotations
@@ -19,9 +23,10 @@ import numpy as np
 
 from clitools.outputs import atomic_output, check_output
 
-from ..datasets.shards import check_outside, finite_poses, one_run_shards
+from ..datasets.shards import DatasetError, check_outside, energyscapes, finite_poses, one_run_shards
 from ..extras import MissingExtra
 
+ENERGYSCAPE_TOPIC = "/sonar/energyscape"
 STAMP_START_S = 1_700_000_000
 EPISODE_GAP_S = 1.0
 WORLD_FRAME, SENSOR_FRAME = "world", "sensor"
@@ -80,10 +85,41 @@ def frame_stamps(episode: np.ndarray, time_s: np.ndarray) -> np.ndarray:
     return stamps
 
 
+def energyscape_topics(elevation_deg) -> list[str]:
+    """The Image topic of each elevation [deg]: ENERGYSCAPE_TOPIC for one elevation (the layout of
+    datasets before elevations), else ENERGYSCAPE_TOPIC/elevation_<angle>_deg per elevation, the
+    angle in its shortest exact decimal with `m` for its minus and `p` for its point (ROS names
+    hold letters, digits and underscores): -20 -> elevation_m20_deg, 12.5 -> elevation_12p5_deg."""
+    if len(elevation_deg) == 1:
+        return [ENERGYSCAPE_TOPIC]
+    angles = (np.format_float_positional(float(e) + 0.0, trim="-") for e in elevation_deg)  # + 0.0: no "-0"
+    return [f"{ENERGYSCAPE_TOPIC}/elevation_{a.replace('-', 'm').replace('.', 'p')}_deg" for a in angles]
+
+
+def _image_topics(shards: list[Path]) -> list[str]:
+    """The Image topics of a run's energyscapes, refused naming the shard when an angle repeats (two
+    images, one topic) or its elevations are not those of the first shard."""
+    import h5py
+
+    first = None
+    for path in shards:
+        with h5py.File(path, "r") as f:
+            elevations = tuple(float(e) for e in energyscapes(f, slice(0, 0))[1])  # the axis alone, either format
+        if len(set(elevations)) < len(elevations):
+            raise DatasetError(
+                f"{path}: its elevation_deg {list(elevations)} repeats an angle; MCAP export writes one Image topic "
+                "per elevation, so generate the dataset with distinct angles"
+            )
+        if first is not None and elevations != first:
+            raise DatasetError(f"{path} holds elevations {list(elevations)} [deg], its run's first shard {list(first)}")
+        first = elevations
+    return energyscape_topics(first)
+
+
 def export_mcap(dataset: str | Path, out: str | Path, *, overwrite: bool = False) -> dict:
     """Write every frame of a dataset folder (shard-*.h5 in order) as ROS 2 messages to `out`,
     under a temporary name renamed when whole (`clitools.outputs`): an existing file is replaced
-    only with `overwrite`, a file of the dataset never."""
+    only with `overwrite`, a file of the dataset never. Returns what was written, with its topics."""
     try:
         from mcap_ros2.writer import Writer
     except ImportError:
@@ -101,7 +137,7 @@ def export_mcap(dataset: str | Path, out: str | Path, *, overwrite: bool = False
             drive += [((i, int(e)), float(t)) for e, t in zip(f["episode"][:], f["time"][:], strict=True)]
     keys = {key: n for n, key in enumerate(dict.fromkeys(k for k, _ in drive))}
     stamps = frame_stamps(np.array([keys[k] for k, _ in drive]), np.array([t for _, t in drive]))
-    frames = 0
+    frames, images = 0, _image_topics(shards)  # one Image topic per elevation
     with atomic_output(out, overwrite=overwrite, inputs=[folder]) as tmp, open(tmp, "wb") as stream:
         writer = Writer(stream)
         schemas = {
@@ -115,7 +151,8 @@ def export_mcap(dataset: str | Path, out: str | Path, *, overwrite: bool = False
         for path in shards:
             with h5py.File(path, "r") as f:
                 lidar = json.loads(f.attrs["config"])["sim"]["lidar"]
-                ranges, energy, poses = f["lidar/ranges"][:], f["energyscape"][:], finite_poses(f, path)
+                ranges, poses = f["lidar/ranges"][:], finite_poses(f, path)
+                energy = energyscapes(f)[0]  # (frame, elevation, range, azimuth), either format
             step = np.deg2rad((lidar["azimuth_max_deg"] - lidar["azimuth_min_deg"]) / (lidar["azimuth_count"] - 1))
             quaternions = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x, y, z, w
             for k in range(len(ranges)):
@@ -132,16 +169,7 @@ def export_mcap(dataset: str | Path, out: str | Path, *, overwrite: bool = False
                     "ranges": ranges[k].astype(np.float32).tolist(),
                     "intensities": [],
                 }
-                image = energy[k].astype("<f4")
-                sonar = {
-                    "header": _header(stamp, SENSOR_FRAME),
-                    "height": image.shape[0],
-                    "width": image.shape[1],
-                    "encoding": "32FC1",
-                    "is_bigendian": 0,
-                    "step": image.shape[1] * 4,
-                    "data": image.tobytes(),
-                }
+                sonar = [(topic, _image(energy[k, j], stamp)) for j, topic in enumerate(images)]
                 x, y, z = (float(v) for v in poses[k, :3, 3])
                 qx, qy, qz, qw = (float(v) for v in quaternions[k])
                 transform = {
@@ -155,9 +183,23 @@ def export_mcap(dataset: str | Path, out: str | Path, *, overwrite: bool = False
                 for topic, schema, message in (
                     ("/tf", "tf2_msgs/msg/TFMessage", {"transforms": [transform]}),
                     ("/scan", "sensor_msgs/msg/LaserScan", scan),
-                    ("/sonar/energyscape", "sensor_msgs/msg/Image", sonar),
+                    *((topic, "sensor_msgs/msg/Image", image) for topic, image in sonar),
                 ):
                     writer.write_message(topic, schemas[schema], message, log_time=stamp, sequence=frames)
                 frames += 1
         writer.finish()
-    return {"out": str(out), "frames": frames, "shards": len(shards)}
+    return {"out": str(out), "frames": frames, "shards": len(shards), "topics": ["/scan", *images, "/tf"]}
+
+
+def _image(energy: np.ndarray, stamp_ns: int) -> dict:
+    """A sensor_msgs/Image of one energyscape (range, azimuth): 32FC1, little-endian, a row per range bin."""
+    image = energy.astype("<f4")
+    return {
+        "header": _header(stamp_ns, SENSOR_FRAME),
+        "height": image.shape[0],
+        "width": image.shape[1],
+        "encoding": "32FC1",
+        "is_bigendian": 0,
+        "step": image.shape[1] * 4,
+        "data": image.tobytes(),
+    }
