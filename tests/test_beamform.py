@@ -201,12 +201,14 @@ def test_default_elevation_is_the_zero_slice_of_any_elevation_sequence(device):
 
 def test_default_energyscape_matches_the_stored_reference(device):
     """The default processing of reference_ping() equals the energyscape main made before issue 40
-    (tests/reference/default_energyscape.npy) within 1e-5 of its peak: float32 rounding of another
-    device or summation order passes, a changed kernel, filter or steering does not."""
+    (tests/reference/default_energyscape.npy) within 1e-4 of its peak. Float32 rounding passes on any
+    device (the same chain in float64 differs from the CPU's by 1.8e-5 of the peak); another envelope
+    filter window (7e-3), a steering or range scale off by 1e-4 (3e-4, 2e-3) or a lost range
+    interpolation do not."""
     got = energyscape(reference_ping(), CONFIG, device=device)[0, ::REFERENCE_STRIDE, ::REFERENCE_STRIDE]
     want = np.load(DEFAULT_REFERENCE)
     assert got.shape == want.shape
-    np.testing.assert_allclose(got, want, rtol=0, atol=1e-5 * want.max())
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-4 * want.max())
 
 
 def test_bad_signals():
