@@ -1,7 +1,7 @@
 """What elevation beams cost: energyscapes/s at E = 1, 3 and 5 elevations, end to end and beamforming alone.
 
     python benchmarks/bench_elevation.py --device cuda:0
-    python benchmarks/bench_elevation.py --device cpu --pings 2 --rays 2000 --repeats 1 --out /tmp/e
+    python benchmarks/bench_elevation.py --device cpu --pings 2 --rays 2000 --repeats 1 --out out/elevation
 
 Reference office, max_bounces=3, as `bench_sonar.py`'s headline row. For each elevation count E
 (`ProcessingConfig.elevation_deg`: the default scalar 0 for E = 1, then beams 15 deg apart centred
