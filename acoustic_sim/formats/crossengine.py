@@ -205,10 +205,11 @@ class CrossEngineRenderer:
         rng = np.random.default_rng(episode.seed)
         room = draw_room(episode.scenario_name, rng)
         rough = None
-        if settings := task.suite["config"]["engine"].get("rough_walls"):  # a child: the rest draws as specular
-            corners = np.asarray(room.corners)
+        if settings := task.suite["config"]["engine"].get("rough_walls"):
+            # the drive's first child generator (as rng.spawn(1)): rng's own draws stay the specular set's
+            child = np.random.default_rng(np.random.SeedSequence(episode.seed).spawn(1)[0])
             draws = {"density_per_m2": settings["density_per_m2"], "scattering_range": settings["scattering_range"]}
-            rough = draw_rough_walls(corners, room.height_m, room.wall_reflection, rng.spawn(1)[0], **draws)
+            rough = draw_rough_walls(np.asarray(room.corners), room.height_m, room.wall_reflection, child, **draws)
         poses = trajectory(
             planner_scene(room),
             frames=episode.frames,

@@ -15,7 +15,8 @@ whose pressure is p0(t - r / c) / r (pyroomacoustics' convention) thus gives at 
 with a ~ N(0, 1), whose mean energy summed over a plane wall is Lambert's. The walls span floor to
 ceiling, so whether a microphone sees a scatterer is decided in the floor plan: a scatterer
 contributes when the segment from the sensor to it crosses no other wall (the L, T, U and
-junction rooms are not convex). Floor and ceiling stay specular.
+junction rooms are not convex). Floor and ceiling stay specular; emitter and microphones are
+omnidirectional and the air lossless, as in the image-source engine the echoes are added to.
 
 Each (scatterer, microphone) pair's exact delay becomes a band-limited impulse: linear
 interpolation on a grid `OVERSAMPLING` times finer than the recording, then an ideal low-pass to
