@@ -148,7 +148,7 @@ def _generate_dataset(args) -> int:
     from .datasets.generate import generate
     from .datasets.suites import load_suite
 
-    if args.suite == "crossengine":
+    if args.suite in ("crossengine", "crossengine_rough"):
         return _generate_crossengine(args)
     suite = load_suite(args.suite)
     if args.max_bounces is not None:
@@ -213,7 +213,7 @@ def _generate_crossengine(args) -> int:
     own = {"--max-bounces": args.max_bounces, "--set": args.set, "--shards": args.shards, "--signals": args.signals}
     own |= {"--arrivals": args.arrivals, "--ray-address": args.ray_address, "--variants": args.variants}
     if given := [k for k, v in own.items() if v not in (None, False)]:
-        raise ValueError(f"the crossengine test set is another engine's: {', '.join(given)} does not apply to it")
+        raise ValueError(f"the {args.suite} test set is another engine's: {', '.join(given)} does not apply to it")
     summary = generate_crossengine(
         args.out,
         frames=1000 if args.frames is None else args.frames,  # --frames 0 is refused, not the default
@@ -221,6 +221,7 @@ def _generate_crossengine(args) -> int:
         device=args.device,
         workers=args.workers,
         progress=not args.quiet,
+        rough=args.suite == "crossengine_rough",
     )
     return _report(summary)
 
@@ -364,7 +365,9 @@ def build_parser() -> argparse.ArgumentParser:
     }
     gen = sub.add_parser("generate", formatter_class=HelpFormatter, **text)
     gen.add_argument(
-        "--suite", required=True, help=f"one of {sorted(SUITES)}, crossengine, or a suite file (.toml/.json)"
+        "--suite",
+        required=True,
+        help=f"one of {sorted(SUITES)}, crossengine, crossengine_rough, or a suite file (.toml/.json)",
     )
     gen.add_argument("--out", required=True, help="output folder")
     gen.add_argument("--frames", type=int, default=None, help="frames per variant (default: the suite's)")

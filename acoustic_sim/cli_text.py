@@ -35,7 +35,8 @@ COMMANDS = {
         "with manifest.json and a dataset card (README.md, card.png) per dataset; a progress bar counts the "
         "frames. Rerunning the same command skips finished shards. Suites: {suites}; crossengine: a test set "
         "from another engine (pyroomacoustics' image sources in empty L, T, U, junction and hall rooms; 1,000 "
-        "frames by default; scoring only).",
+        "frames by default; scoring only); crossengine_rough: the same with rough walls (diffuse backscatter "
+        "from random wall scatterers).",
         "epilog": examples(
             "python -m acoustic_sim generate --suite tiny --out data/tiny",
             "python -m acoustic_sim generate --suite paper --frames 12500 --workers 4 --device cuda:0 --out data/paper",

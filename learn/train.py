@@ -177,8 +177,8 @@ def _train_in(data, out: Path, config: LearnConfig, *, device: str, folds: int, 
     if dev.type == "cpu":
         torch.set_flush_denormal(True)  # denormal gradients make CPU steps many times slower
     frames = data if isinstance(data, Frames) else load_frames(data)
-    if frames.info.get("suite") == "crossengine":
-        raise ValueError(f"{frames.info['folder']} is the crossengine test set: score models on it, never train on it")
+    if (suite := frames.info.get("suite")) in ("crossengine", "crossengine_rough"):
+        raise ValueError(f"{frames.info['folder']} is the {suite} test set: score models on it, never train on it")
     config = with_grid(config, frames)
     windows = Windows(frames, config.data, dev, odometry=config.model.uses_odometry)
     groups = windows.episode if config.train.split_by == "episode" else windows.scenario

@@ -1,6 +1,9 @@
 """The crossengine test set (pyroomacoustics' image sources): its LiDAR truth against the floor
-plan, its echoes at the nearest wall, and a dataset that scores models but never trains them."""
+plan, its echoes at the nearest wall, and a dataset that scores models but never trains them; its
+rough-wall variant (`crossengine_rough`): scatterer echoes against pyroomacoustics and Lambert's
+law, occlusion in the floor plan, oblique walls that echo, and the specular set left as it was."""
 
+import dataclasses
 import json
 
 import numpy as np
@@ -19,6 +22,7 @@ from acoustic_sim.formats.crossengine import (
     record_ping,
     scan_floor_plan,
 )
+from acoustic_sim.formats.rough_walls import band_limited_echoes, draw_rough_walls, in_sight, scatterer_paths
 from scenes import pose, trajectory
 
 from .crafted import damage_energyscape_chunk
@@ -138,3 +142,173 @@ def test_the_test_set_is_made_resumed_and_repaired_as_generate_does(tmp_path, de
     np.testing.assert_array_equal(repaired.label, original.label)
     with pytest.raises(DatasetError, match="other settings"):
         generate_crossengine(out, frames=6, seed=2, device=device, progress=False, episode_frames=3)
+
+
+def test_the_specular_recording_is_what_it_was():
+    """The specular variant did not change with the rough one: two pings in a fixed room from a
+    fixed generator give the checksums measured on the specular code before the rough variant
+    was added (sha256 of both pings' float32 bytes then: d0607dda53d6...bcdb1effe4db91e29). A change
+    of the generator's draws (the noise) or of the walls' reflection moves them by far more than
+    the tolerance."""
+    room = _room(floor_reflection=0.7, ceiling_reflection=0.6, snr_db=25.0)
+    sonar, rng = SonarConfig.ertis(), np.random.default_rng(11)
+    first = record_ping(room, pose(2.0, 1.5, 0.4, 0.3), sonar, rng).astype(np.float64)
+    second = record_ping(room, pose(2.5, 1.0, -0.2, 0.3), sonar, rng).astype(np.float64)
+    weights = np.random.default_rng(0).standard_normal(first.shape)
+    assert np.sum(first**2) == pytest.approx(6404103.60487108, rel=1e-6)
+    assert np.sum(first * weights) == pytest.approx(-3799.3043049748, rel=1e-6)
+    assert np.sum(second * weights) == pytest.approx(-3740.8963908838846, rel=1e-6)
+
+
+def test_scatterer_echoes_are_pyroomacoustics_direct_paths():
+    """`band_limited_echoes` of one path (delay r / c, gain 1 / r) is what pyroomacoustics records
+    for the direct path of a source r away (anechoic: image order 0), at 5 cm, 2.4 m and 5.7 m:
+    same units, same time origin, within 1 % of the peak."""
+    pra = pytest.importorskip("pyroomacoustics")
+    from acoustic_sim.formats.crossengine import SAMPLE_RATE_HZ
+
+    sonar = SonarConfig.ertis()
+    call, samples = sonar.chirp.samples(), sonar.record_samples
+    shell = pra.Room.from_corners(np.array([[0, 0], [10, 0], [10, 10], [0, 10]]).T, fs=SAMPLE_RATE_HZ, max_order=0)
+    shell.extrude(4.0)
+    source, mics = np.array([1.0, 1.0, 1.0]), np.array([[1.05, 1.0, 1.0], [3.0, 2.3, 1.4], [4.1234, 5.77, 1.1]])
+    shell.add_source(source, signal=call)
+    shell.add_microphone_array(mics.T)
+    shell.simulate()
+    start = pra.constants.get("frac_delay_length") // 2
+    reference = shell.mic_array.signals[:, start : start + samples]
+    distance = np.linalg.norm(mics - source, axis=1)
+    ours = band_limited_echoes(
+        (distance / shell.c)[None], 1.0 / distance[None], call, sample_rate_hz=SAMPLE_RATE_HZ, samples=samples
+    )
+    for mic in range(len(mics)):
+        peak = np.abs(reference[mic]).max()
+        assert np.abs(ours[mic, : reference.shape[1]] - reference[mic]).max() < 0.01 * peak
+
+
+def test_scattered_energy_is_lamberts():
+    """Emitter and microphone together 0.5 m from the middle of a 5 m x 5 m wall: the echo energy
+    of its scatterers, sum of gain^2, is Lambert's backscatter from a plane,
+    s R^2 / (2 D^2) = 0.3 * 0.81 / 0.5 = 0.486 (the wall beyond 2.5 m would add 0.2 %); 10,000
+    scatterers per m^2 so that the speckle's spread is under 2 %."""
+    corners = np.array([(0.0, 0.0), (5.0, 0.0), (5.0, 5.0), (0.0, 5.0)])
+    walls = draw_rough_walls(
+        corners, 5.0, 0.9, np.random.default_rng(4), density_per_m2=1e4, scattering_range=(0.3, 0.3)
+    )
+    sensor = np.array([0.5, 2.5, 2.5])
+    index, delay, gain = scatterer_paths(walls, sensor, sensor[None], speed_of_sound=343.0, reach_m=100.0)
+    on_wall = walls.wall[index] == 3  # x = 0
+    assert np.sum(gain[on_wall] ** 2) == pytest.approx(0.3 * 0.81 / (2 * 0.5**2), rel=0.06)
+    np.testing.assert_allclose(delay[:, 0], 2 * np.linalg.norm(walls.position_m[index] - sensor, axis=1) / 343.0)
+
+
+def test_walls_hidden_in_the_floor_plan_are_silent():
+    """In the L room: from (5, 1) the far wall x = 0 and the notch's underside y = 3 are seen;
+    the upper arm's wall y = 5 lies behind the notch, and the notch's wall x = 3 turns its back.
+    From (1, 4) in the upper arm the floor-plan's wall x = 6 at y = 2 hides behind the notch,
+    the wall y = 0 at x = 5 does not."""
+    corners = np.array(L_ROOM)
+    points = np.array([(0.0, 4.0), (4.0, 3.0), (2.0, 5.0), (3.0, 4.0), (6.0, 2.0), (5.0, 0.0)])
+    wall = np.array([5, 2, 4, 3, 1, 0])
+    seen_from_arm = in_sight(corners, wall[:4], points[:4], np.array([5.0, 1.0]))
+    seen_from_upper_arm = in_sight(corners, wall[4:], points[4:], np.array([1.0, 4.0]))
+    assert seen_from_arm.tolist() == [True, True, False, False]
+    assert seen_from_upper_arm.tolist() == [False, True]
+
+
+def test_rough_walls_keep_1_minus_s_of_the_energy_specular():
+    """With rough walls of s = 0.36 (and no scatterers) the walls' image sources are those of a
+    wall with 0.8 of the reflection coefficient; the noise draws are the specular set's."""
+    room = _room(floor_reflection=0.5, snr_db=30.0)
+    sonar, at = SonarConfig.ertis(), pose(2.0, 1.5, 0.4, 0.3)
+    walls = draw_rough_walls(np.array(L_ROOM), 3.0, 0.9, np.random.default_rng(0), scattering_range=(0.36, 0.36))
+    walls = dataclasses.replace(
+        walls, position_m=walls.position_m[:0], wall=walls.wall[:0], amplitude=walls.amplitude[:0]
+    )
+    rough = record_ping(room, at, sonar, np.random.default_rng(0), walls)
+    plain = record_ping(dataclasses.replace(room, wall_reflection=0.9 * 0.8), at, sonar, np.random.default_rng(0))
+    np.testing.assert_allclose(rough, plain, rtol=1e-5, atol=1e-5 * np.abs(plain).max())
+
+
+def _wedge_room() -> tuple:
+    """A 24 m x 22 m hall around the origin with a wedge from its south wall, whose face lies 1.5 m
+    from the origin with its normal towards azimuth -100 degrees, cut to the azimuths -70 to -50
+    (incidence 30 to 50 degrees seen from the origin); the wedge's sides turn their backs on the
+    origin (reflex corners), the hall's walls are beyond the recording's reach."""
+
+    def at(azimuth_deg):
+        return np.array([np.cos(np.deg2rad(azimuth_deg)), np.sin(np.deg2rad(azimuth_deg))])
+
+    near, far = 1.5 / np.cos(np.deg2rad(30)) * at(-70), 1.5 / np.cos(np.deg2rad(50)) * at(-50)
+    down_near = near + (12 + near[1]) / np.sin(np.deg2rad(65)) * at(-65)  # to the south wall y = -12
+    down_far = far + (12 + far[1]) / np.sin(np.deg2rad(55)) * at(-55)
+    corners = [(-10, -12), down_near, near, far, down_far, (14, -12), (14, 10), (-10, 10)]
+    return tuple((round(float(x), 4), round(float(y), 4)) for x, y in corners)
+
+
+def _echo_peaks(image: np.ndarray, range_m: np.ndarray, near_m: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """The classic readout: each beam's strongest cell beyond `near_m` (the emitter's direct sound
+    fills the first 0.4 m of every beam in every variant), a return where it reaches 4x the
+    image's median there (its noise floor). Returns the range [m] and whether it is a return, (A,)."""
+    beyond = image[range_m > near_m]
+    strongest = beyond.argmax(axis=0)
+    return range_m[range_m > near_m][strongest], beyond.max(axis=0) >= 4.0 * np.median(beyond)
+
+
+def test_rough_walls_echo_at_oblique_incidence(device):
+    """A wall face 1.5 m from the sensor seen at 30-50 degrees incidence (azimuth -70 to -50, its
+    foot at -100 off the face; floor and ceiling absorbing, every other wall out of reach): the
+    echo peak finds nothing there in the specular variant (a mirror sends an oblique ping away)
+    and a return in every beam in the rough one (s = 0.25), each on the face's span of ranges,
+    over 40 % (12 of 21 here) within the scoring's 0.1 m of the face in their own beam (the
+    array's ~12 degree beam also hears the brighter, less oblique part of the face), and the
+    strongest within 3 range bins of the face at its azimuth."""
+    corners = _wedge_room()
+    room = _room(plan="hall", corners=corners, floor_reflection=0.0, snr_db=40.0)
+    walls = draw_rough_walls(np.array(corners), 3.0, 0.9, np.random.default_rng(1), scattering_range=(0.25, 0.25))
+    sonar, grid, at = SonarConfig.ertis(), ProcessingConfig().grid, pose(0.0, 0.0, 0.0, 0.3)
+    signals = [record_ping(room, at, sonar, np.random.default_rng(0), rough) for rough in (None, walls)]
+    mirror, rough = energyscape(np.stack(signals), sonar, ProcessingConfig(), device=device)
+    azimuth = np.rad2deg(grid.azimuth_rad)
+    band = (azimuth >= -70.5) & (azimuth <= -49.5)
+    face = 1.5 / np.cos(np.deg2rad(azimuth[band] + 100.0))  # the face's range in each beam of the band
+
+    _, found = _echo_peaks(mirror, grid.range_m)
+    assert not found[band].any()
+    ranges, found = _echo_peaks(rough, grid.range_m)
+    assert found[band].all()
+    assert np.all((ranges[band] > face.min() - 0.1) & (ranges[band] < face.max() + 0.1))
+    assert np.mean(np.abs(ranges[band] - face) <= 0.1) > 0.4
+    beyond = grid.range_m > 0.5  # the direct sound's
+    r, a = np.unravel_index(np.argmax(rough[beyond][:, band]), (beyond.sum(), band.sum()))
+    assert abs(grid.range_m[beyond][r] - face[a]) <= 3 * grid.range_bin_m
+
+
+def test_the_rough_set_is_its_own_suite_on_the_same_drives(tmp_path, device, capsys):
+    """`generate --suite crossengine_rough`: its manifest and card name it and its walls (density,
+    range of s); each episode record holds the drawn s; the rooms, poses and LiDAR truth are
+    those of `crossengine` with the same seed, the echoes are not; `learn train` refuses it."""
+    import h5py
+
+    from acoustic_sim.cli import main
+    from learn.cli import main as learn_main
+
+    rough_out, mirror_out = tmp_path / "rough", tmp_path / "mirror"
+    argv = ["generate", "--suite", "crossengine_rough", "--frames", "2", "--device", device, "--quiet"]
+    assert main([*argv, "--out", str(rough_out)]) == 0
+    generate_crossengine(mirror_out, frames=2, seed=0, device=device, progress=False)
+    manifest = json.loads((rough_out / "manifest.json").read_text())
+    assert manifest["suite"] == "crossengine_rough" and "never train" in manifest["use"]
+    card = (rough_out / "README.md").read_text()
+    assert "rough walls" in card and "500 per m^2" in card and "[0.1, 0.4]" in card
+    with h5py.File(rough_out / "shard-00000.h5") as rough, h5py.File(mirror_out / "shard-00000.h5") as mirror:
+        (record,), (plain,) = json.loads(rough.attrs["episodes"]), json.loads(mirror.attrs["episodes"])
+        assert 0.1 <= record.pop("wall_scattering") <= 0.4 and record.pop("scatterer_density_per_m2") == 500.0
+        assert record.pop("scatterer_count") > 1000 and record == plain
+        np.testing.assert_array_equal(rough["pose"][()], mirror["pose"][()])
+        np.testing.assert_array_equal(rough["lidar/ranges"][()], mirror["lidar/ranges"][()])
+        assert not np.array_equal(rough["energyscape"][()], mirror["energyscape"][()])
+    assert learn_main(["train", "--data", str(rough_out), "--out", str(tmp_path / "run")]) == 2
+    assert "crossengine_rough test set" in capsys.readouterr().err
+    assert main([*argv, "--out", str(rough_out), "--set", "tracer.max_bounces=1"]) == 2
+    assert "--set does not apply" in capsys.readouterr().err

@@ -8,6 +8,12 @@ the like of: for scoring only, never for training, early stopping or choosing a 
 Floor plans (L, T, U, corridor junctions, irregular halls) are the families of our `randomised`
 suite's empty rooms: what differs is the engine that makes their echoes.
 
+Two variants: `crossengine` is image sources alone, so its walls are mirrors (a wall seen
+obliquely sends nothing back); `crossengine_rough` adds the diffuse backscatter of rough walls
+(`rough_walls`: random point scatterers with Lambert amplitudes, scattering coefficient drawn per
+room, the specular echoes keeping the rest of the energy). Both draw the same rooms, drives and
+noise for the same seed (the rough walls come from a child generator).
+
 The set is written by `generate`'s machinery (`datasets.generate.make_dataset`): plan.json, the
 output lock, resuming, rewriting a damaged shard, the manifest and the dataset card are every
 dataset's. What is this module's own: the plan's episodes (`plan_crossengine`: one shard per
@@ -33,6 +39,7 @@ from ..datasets.runner import ShardHeader
 from ..datasets.shards import FORMAT_VERSION
 from ..datasets.suites import DRIVE
 from ..extras import MissingExtra
+from .rough_walls import DENSITY_PER_M2, SCATTERING_RANGE, RoughWalls, draw_rough_walls, scattered_echoes
 
 IMAGE_ORDER = 4  # reflections per path: walls, floor and ceiling alike
 SAMPLE_RATE_HZ = 450_000  # pyroomacoustics wants an integer rate
@@ -41,10 +48,19 @@ DT_S = 0.1
 EPISODE_FRAMES = 100
 ENGINE = "pyroomacoustics image sources"
 SUITE = "crossengine"
+SUITE_ROUGH = "crossengine_rough"
 USE = "scoring only: never train, stop early or choose a threshold on this set"
 DESCRIPTION = (
     "A test set from another engine: pyroomacoustics' image sources (order 4) in empty L, T, U, junction and "
     "hall rooms, recorded by the eRTIS array and processed by our energyscape, with exact LiDAR truth from the "
+    "floor plan. For scoring only: never train, stop early or choose a threshold on it."
+)
+DESCRIPTION_ROUGH = (
+    "A test set from another engine with rough walls: pyroomacoustics' image sources (order 4) plus the diffuse "
+    f"backscatter of random point scatterers on the walls ({DENSITY_PER_M2:g} per m^2, Gaussian amplitudes, "
+    f"Lambert's law; scattering coefficient drawn per room, uniform in [{SCATTERING_RANGE[0]:g}, "
+    f"{SCATTERING_RANGE[1]:g}], the image sources keeping the rest of the walls' echo) in empty L, T, U, junction "
+    "and hall rooms, recorded by the eRTIS array and processed by our energyscape, with exact LiDAR truth from the "
     "floor plan. For scoring only: never train, stop early or choose a threshold on it."
 )
 
@@ -122,10 +138,14 @@ def scan_floor_plan(corners: np.ndarray, poses: np.ndarray, lidar: LidarConfig) 
     return out
 
 
-def record_ping(room: Room, pose: np.ndarray, sonar: SonarConfig, rng: np.random.Generator) -> np.ndarray:
+def record_ping(
+    room: Room, pose: np.ndarray, sonar: SonarConfig, rng: np.random.Generator, rough: RoughWalls | None = None
+) -> np.ndarray:
     """The eRTIS recording of one ping at `pose` in `room` by pyroomacoustics: (mics, samples)
-    float32, sample 0 at the start of the call, with Gaussian noise at the room's SNR."""
+    float32, sample 0 at the start of the call, with Gaussian noise at the room's SNR. With `rough`
+    walls their diffuse echoes are added and the walls' image sources keep 1 - s of the energy."""
     pra = _need_pyroomacoustics()
+    wall_reflection = room.wall_reflection * (1.0 if rough is None else np.sqrt(1.0 - rough.scattering))
 
     def material(reflection: float):  # energy absorbed: 1 - R^2, the same in every band
         return pra.Material(1.0 - reflection**2)
@@ -134,7 +154,7 @@ def record_ping(room: Room, pose: np.ndarray, sonar: SonarConfig, rng: np.random
         np.asarray(room.corners).T,
         fs=SAMPLE_RATE_HZ,
         max_order=IMAGE_ORDER,
-        materials=material(room.wall_reflection),
+        materials=material(wall_reflection),
         air_absorption=False,
         ray_tracing=False,
     )
@@ -143,12 +163,17 @@ def record_ping(room: Room, pose: np.ndarray, sonar: SonarConfig, rng: np.random
         materials={"floor": material(room.floor_reflection), "ceiling": material(room.ceiling_reflection)},
     )
     rotation, position = pose[:3, :3], pose[:3, 3]
-    shell.add_source(rotation @ np.asarray(sonar.emitter_m) + position, signal=sonar.chirp.samples())
-    shell.add_microphone_array((np.asarray(sonar.microphones_m) @ rotation.T + position).T)
+    emitter, call = rotation @ np.asarray(sonar.emitter_m) + position, sonar.chirp.samples()
+    microphones = np.asarray(sonar.microphones_m) @ rotation.T + position
+    shell.add_source(emitter, signal=call)
+    shell.add_microphone_array(microphones.T)
     shell.simulate()
     start = pra.constants.get("frac_delay_length") // 2  # its delay filters shift every path by this
     signals = shell.mic_array.signals[:, start : start + sonar.record_samples]
     signals = np.pad(signals, ((0, 0), (0, sonar.record_samples - signals.shape[1])))
+    if rough is not None:
+        each = {"sample_rate_hz": SAMPLE_RATE_HZ, "speed_of_sound": shell.c, "samples": sonar.record_samples}
+        signals = signals + scattered_echoes(rough, emitter, microphones, call, **each)
     noise = rng.normal(0.0, 1.0, signals.shape) * np.sqrt(np.mean(signals**2)) * 10.0 ** (-room.snr_db / 20.0)
     return (signals + noise).astype(np.float32)
 
@@ -160,13 +185,15 @@ def planner_scene(room: Room):
 
 @dataclass(frozen=True)
 class Drive:
-    """One episode's host half: its room, the robot's poses (N, 4, 4) and the generator its pings'
-    noise is drawn from (it goes on from where the room's draws stopped)."""
+    """One episode's host half: its room, the robot's poses (N, 4, 4), the generator its pings'
+    noise is drawn from (it goes on from where the room's draws stopped) and, in the rough
+    variant, the walls' scatterers."""
 
     episode: Episode
     room: Room
     poses: np.ndarray
     rng: np.random.Generator
+    rough: RoughWalls | None = None
 
 
 class CrossEngineRenderer:
@@ -177,6 +204,12 @@ class CrossEngineRenderer:
     def prepare(self, task: ShardTask, episode: Episode) -> Drive:
         rng = np.random.default_rng(episode.seed)
         room = draw_room(episode.scenario_name, rng)
+        rough = None
+        if settings := task.suite["config"]["engine"].get("rough_walls"):
+            # the drive's first child generator (as rng.spawn(1)): rng's own draws stay the specular set's
+            child = np.random.default_rng(np.random.SeedSequence(episode.seed).spawn(1)[0])
+            draws = {"density_per_m2": settings["density_per_m2"], "scattering_range": settings["scattering_range"]}
+            rough = draw_rough_walls(np.asarray(room.corners), room.height_m, room.wall_reflection, child, **draws)
         poses = trajectory(
             planner_scene(room),
             frames=episode.frames,
@@ -185,7 +218,7 @@ class CrossEngineRenderer:
             sensor_height=room.sensor_height_m,
             seed=episode.seed,
         )
-        return Drive(episode, room, poses, rng)
+        return Drive(episode, room, poses, rng, rough)
 
     def render(self, task: ShardTask, drive: Drive, *, device: str, on_frames, seconds: dict) -> tuple[dict, dict]:
         from ..engine.beamform import energyscape
@@ -195,7 +228,7 @@ class CrossEngineRenderer:
         t0 = time.perf_counter()
         signals = []
         for pose in drive.poses:
-            signals.append(record_ping(drive.room, pose, sonar, drive.rng))
+            signals.append(record_ping(drive.room, pose, sonar, drive.rng, drive.rough))
             if on_frames:
                 on_frames(1)
         image = energyscape(np.stack(signals), sonar, processing, device=device)
@@ -212,7 +245,7 @@ class CrossEngineRenderer:
             "time": np.arange(episode.frames) * DT_S,
         }
         record = {"index": episode.index, "seed": episode.seed, "frames": episode.frames, "scenario": drive.room.plan}
-        return arrays, record | asdict(drive.room)
+        return arrays, record | asdict(drive.room) | (drive.rough.record() if drive.rough else {})
 
     def shard_header(self, task: ShardTask) -> ShardHeader:
         return ShardHeader(task.suite["config"], list(FLOOR_PLANS), ProcessingConfig().grid)
@@ -225,34 +258,47 @@ class CrossEngineRenderer:
             f"sampled at {engine['sample_rate_hz'] / 1e3:g} kHz"
         )
         rooms = "one per drive, drawn by `draw_room` (its episode record holds it: corners, reflections, SNR)"
-        rows = (("echoes", echoes), ("room", rooms), *sensor_facts(config["sim"]))
+        rows = (("echoes", echoes), ("room", rooms))
+        description = DESCRIPTION
+        if rough := engine.get("rough_walls"):
+            description, (low, high) = DESCRIPTION_ROUGH, rough["scattering_range"]
+            walls = (
+                f"rough: {rough['density_per_m2']:g} random point scatterers per m^2 of wall (Gaussian amplitudes, "
+                f"Lambert's law), scattering coefficient uniform in [{low:g}, {high:g}] per room (in its record)"
+            )
+            rows += (("walls", walls),)
+        rows += tuple(sensor_facts(config["sim"]))
         caption = "The rig (another engine's echoes; our array, call, processing and LiDAR):"
         return About(
-            {"description": DESCRIPTION, "use": USE, "engine": engine, "sim": config["sim"]},
+            {"description": description, "use": USE, "engine": engine, "sim": config["sim"]},
             (FactTable(caption, rows),),
         )
 
 
-def _settings(frames: int, seed: int, episode_frames: int) -> dict:
+def _settings(frames: int, seed: int, episode_frames: int, rough: bool) -> dict:
     pra = _need_pyroomacoustics()
     rig = {"lidar": asdict(LidarConfig.hokuyo_ust20lx()), "sonar": asdict(SonarConfig.ertis())}
     rig["processing"] = asdict(ProcessingConfig())
     engine = {"name": ENGINE, "version": pra.__version__, "order": IMAGE_ORDER, "sample_rate_hz": SAMPLE_RATE_HZ}
     engine |= {"speed_m_s": SPEED_M_S, "dt_s": DT_S, "episode_frames": episode_frames, "plans": FLOOR_PLANS}
+    if rough:  # only here, so the specular set's plan (and its plan id) is what it was
+        model = "random point scatterers on the walls, Gaussian amplitudes, Lambert's law"
+        engine["rough_walls"] = {"model": model, "density_per_m2": DENSITY_PER_M2, "scattering_range": SCATTERING_RANGE}
     return {"frames": frames, "seed": seed, "engine": engine, "sim": rig}
 
 
 def plan_crossengine(
-    out: str | Path, *, frames: int, seed: int = 0, episode_frames: int = EPISODE_FRAMES
+    out: str | Path, *, frames: int, seed: int = 0, episode_frames: int = EPISODE_FRAMES, rough: bool = False
 ) -> list[ShardTask]:
     """The test set's shard tasks: one per drive of `episode_frames` frames (the last one shorter),
-    drive i in a room of the floor-plan family i mod 5, each drive seeded from (`seed`, i)."""
+    drive i in a room of the floor-plan family i mod 5, each drive seeded from (`seed`, i); `rough`:
+    the rough-wall variant."""
     if frames < 1 or episode_frames < 1:
         raise ValueError(f"frames and episode_frames must be >= 1, got {frames} and {episode_frames}")
     check_seed(seed, "seed")
-    config = _settings(frames, seed, episode_frames)
+    config = _settings(frames, seed, episode_frames, rough)
     run_id = plan_id(config | {"format_version": FORMAT_VERSION, "scenes_revision": scenes.REVISION})
-    suite = {"name": SUITE, "config": config}
+    suite = {"name": SUITE_ROUGH if rough else SUITE, "config": config}
     tasks = []
     for i, start in enumerate(range(0, frames, episode_frames)):
         kind = i % len(FLOOR_PLANS)
@@ -277,12 +323,13 @@ def generate_crossengine(
     workers: int = 1,
     progress: bool = True,
     episode_frames: int = EPISODE_FRAMES,
+    rough: bool = False,
 ) -> dict:
-    """Write (or finish) the crossengine test set in `out` with generate's machinery
-    (`make_dataset`: plan.json, lock, resume, repair of damaged shards, manifest.json with its
-    `use`, and the dataset card); returns the same summary as `generate`."""
-    tasks = plan_crossengine(out, frames=frames, seed=seed, episode_frames=episode_frames)
-    meta = {"suite": SUITE, "frames": frames, "shards": len(tasks), "seed": seed}
+    """Write (or finish) the crossengine test set (`rough`: its rough-wall variant) in `out` with
+    generate's machinery (`make_dataset`: plan.json, lock, resume, repair of damaged shards,
+    manifest.json with its `use`, and the dataset card); returns the same summary as `generate`."""
+    tasks = plan_crossengine(out, frames=frames, seed=seed, episode_frames=episode_frames, rough=rough)
+    meta = {"suite": tasks[0].suite["name"], "frames": frames, "shards": len(tasks), "seed": seed}
     meta |= {"engine": tasks[0].suite["config"]["engine"], "use": USE}
     return make_dataset(
         tasks, CrossEngineRenderer(), out, plan_meta=meta, device=device, workers=workers, progress=progress
