@@ -148,7 +148,7 @@ def test_suite_settings_are_simulated_and_recorded(tmp_path, device):
     shard = next((tmp_path / "d").glob("shard-*.h5"))
     want = rig(suite.variants[""], suite.settings)
     with h5py.File(shard) as f:
-        assert f["energyscape"].shape == (2, *want.processing.grid.shape) == (2, 140, 91)
+        assert f["energyscape"].shape == (2, 1, *want.processing.grid.shape) == (2, 1, 140, 91)
         np.testing.assert_allclose(f["range_m"][:], 0.21 + 0.02 * np.arange(140))  # 2 cm bins, 0.2-3 m
         np.testing.assert_allclose(f["azimuth_rad"][:], np.deg2rad(np.arange(-90.0, 91.0, 2.0)))
         recorded = json.loads(f.attrs["config"])["sim"]

@@ -82,7 +82,7 @@ def test_the_test_set_scores_models_but_never_trains_them(tmp_path, device, caps
     out = tmp_path / "ce"
     summary = generate_crossengine(out, frames=6, seed=0, device=device, progress=False)
     frames = load_frames(out)
-    assert frames.energyscape.shape == (6, *ProcessingConfig().grid.shape) and frames.label.sum() > 0
+    assert frames.energyscape.shape == (6, 1, *ProcessingConfig().grid.shape) and frames.label.sum() > 0
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["suite"] == "crossengine" and "never train" in manifest["use"]
     assert summary["shards_written"] == 1

@@ -70,7 +70,8 @@ def test_shards_open_with_plain_h5py(reference):
             n = int(f.attrs["frame_count"])
             total += n
             assert f.attrs["format_version"] == FORMAT_VERSION
-            assert f["energyscape"].shape == (n, 240, 181) and f["energyscape"].dtype == np.float16
+            assert f["energyscape"].shape == (n, 1, 240, 181) and f["energyscape"].dtype == np.float16
+            assert f["elevation_deg"][:].tolist() == [0.0]
             assert f["lidar/image"].shape == (n, 240, 181) and f["lidar/image"].dtype == np.uint8
             assert f["lidar/ranges"].shape == (n, 1081) and f["pose"].shape == (n, 4, 4)
             assert f["range_m"].shape == (240,) and f["azimuth_rad"].shape == (181,)

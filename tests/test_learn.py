@@ -46,7 +46,7 @@ def test_windows_take_the_middle_frame_label(tiny_dataset):
     start = windows.starts[7]
     np.testing.assert_array_equal(y[1, 0].numpy(), frames.label[start + 1])
     expected = normalise(torch.from_numpy(frames.energyscape[start : start + 3]), 40.0)
-    torch.testing.assert_close(x[1, 0], expected)
+    torch.testing.assert_close(x[1], expected.transpose(0, 1))  # (E, K, R, A): one elevation
     assert (windows.episode == frames.episode[windows.starts]).all()
 
 
@@ -71,8 +71,8 @@ def test_bad_dataset_folders(tmp_path, tiny_dataset):
     copy.mkdir()
     (copy / "shard-00000.h5").write_bytes((tiny_dataset / "shard-00000.h5").read_bytes())
     with h5py.File(copy / "shard-00000.h5", "a") as f:
-        f.attrs["format_version"] = 2
-    with pytest.raises(DataError, match="format_version 2"):
+        f.attrs["format_version"] = 3
+    with pytest.raises(DataError, match="format_version 3"):
         load_frames(copy)
 
 
@@ -494,6 +494,7 @@ def test_set_reaches_fields_no_option_names_and_the_run_records_them(tiny_datase
         "history_stride": 1,
     }
     model = {"name": "polar_unet", "frames": 3, "width": 4, "row_contrast": True, "history": 0, "extent": None}
+    model["elevation_deg"] = [0.0]  # the data's: one level slice
     assert written["model_config"] == model
     assert written["dataset"]["plan_id"] == load_frames(tiny_dataset).info["plan_id"] and not written["resumed"]
     from learn.cli import _recorded_config, build_parser
