@@ -111,7 +111,8 @@ def read_checkpoint(path: str | Path, device: str | torch.device = "cpu", *, rol
     version = meta.get("format_version") if isinstance(meta, dict) else None
     if version not in READABLE_VERSIONS:  # format 1's models read the level slice: elevation_deg's default
         raise ValueError(
-            f"{role} {path} is not a learn checkpoint for dataset formats {READABLE_VERSIONS} (found {version})"
+            f"{role} {path} is not a learn checkpoint for dataset format "
+            f"{' or '.join(map(str, READABLE_VERSIONS))} (found {version})"
         )
     missing = [k for k in ("model", "model_config", "data_config") if not isinstance(ckpt.get(k), dict)]
     if missing:

@@ -217,7 +217,8 @@ def load_frames(folder: str | Path) -> Frames:
     held = total * (shape[0] * shape[1] * (2 * elevations + 1) + 16)  # float16 energyscape, uint8 label, two int64
     check_fits(
         held + 2 * max(h.read_bytes for h in headers),  # and one shard's arrays as read, then converted
-        f"{folder} ({len(headers)} shards, {total:,} frames of {elevations} x {shape[0]} x {shape[1]})",
+        f"{folder} ({len(headers)} shards, {total:,} frames of {f'{elevations} x ' if elevations > 1 else ''}"
+        f"{shape[0]} x {shape[1]})",
         "read fewer shards (a folder holding some of them) or use a machine with more memory",
     )
     energyscape = np.empty((total, elevations, *shape), np.float16)

@@ -138,7 +138,9 @@ def _header(f: h5py.File, path: Path) -> ShardHeader:
         raise DataError(f"{path}: the scenarios attribute is not a list of scenario names: {REDO}")
     energyscape, label = sets["energyscape"], sets["lidar/image"]
     elevation_deg = _elevations(f, path, version)
-    layout = "(frame, range, azimuth)" if version == 1 else f"(frame, {len(elevation_deg)} elevations, range, azimuth)"
+    layout = (
+        "(frame, range, azimuth)" if version == 1 else f"(frame, elevation, range, azimuth), E = {len(elevation_deg)}"
+    )
     fits = (
         energyscape.ndim == 3 if version == 1 else energyscape.ndim == 4 and energyscape.shape[1] == len(elevation_deg)
     )

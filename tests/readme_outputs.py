@@ -81,8 +81,8 @@ def check_generate(args, cwd: Path, stdout: str, frames: int) -> str:
     extra = ("signals",) if args.signals else ()
     arrays = read_arrays(out, *SHARD_ARRAYS, *extra)
     assert manifest["frames"] == frames == len(arrays["energyscape"])
-    assert arrays["energyscape"].dtype == np.float16 and arrays["energyscape"].shape[1:] == GRID_SHAPE
-    assert arrays["lidar/image"].shape == arrays["energyscape"].shape and arrays["pose"].shape == (frames, 4, 4)
+    assert arrays["energyscape"].dtype == np.float16 and arrays["energyscape"].shape[1:] == (1, *GRID_SHAPE)
+    assert arrays["lidar/image"].shape == (frames, *GRID_SHAPE) and arrays["pose"].shape == (frames, 4, 4)
     assert len(np.unique(arrays["episode"])) == manifest["episodes"]
     if args.signals:
         assert arrays["signals"].shape[:2] == (frames, 32)
@@ -112,7 +112,7 @@ def check_export_mcap(args, cwd: Path) -> str:
     image = first["/sonar/energyscape"]
     assert (image.encoding, image.height, image.width) == ("32FC1", *GRID_SHAPE)
     pixels = np.frombuffer(bytes(image.data), dtype=np.float32).reshape(GRID_SHAPE)
-    np.testing.assert_array_equal(pixels, data["energyscape"][0].astype(np.float32))
+    np.testing.assert_array_equal(pixels, data["energyscape"][0, 0].astype(np.float32))  # its one elevation
     np.testing.assert_array_equal(np.asarray(first["/scan"].ranges, dtype=np.float32), data["lidar/ranges"][0])
     return f"{args.out}: {frames} frames on /scan, /sonar/energyscape and /tf; frame 0 is the dataset's"
 
@@ -147,8 +147,8 @@ def check_import_chirp(args, cwd: Path, source: Path | None) -> str:
         return f"{args.out}: {len(got['energyscape'])} frames"
     want = read_arrays(cwd / source, "energyscape", "lidar/image")
     np.testing.assert_array_equal(got["lidar/image"], want["lidar/image"])
-    error = np.abs(got["energyscape"].astype(np.float32) - want["energyscape"].astype(np.float32)).max(axis=(1, 2))
-    peak = np.abs(want["energyscape"].astype(np.float32)).max(axis=(1, 2))
+    error = np.abs(got["energyscape"].astype(np.float32) - want["energyscape"].astype(np.float32)).max(axis=(1, 2, 3))
+    peak = np.abs(want["energyscape"].astype(np.float32)).max(axis=(1, 2, 3))
     assert np.all(error <= 0.002 * peak), (error / peak).max()
     return f"{args.out}: the labels of {source} exactly, energyscapes within {(error / peak).max():.2%} of the peak"
 

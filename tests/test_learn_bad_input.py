@@ -165,7 +165,7 @@ def test_non_finite_data_and_loss_stop_training(tiny_dataset, tmp_path, monkeypa
     shutil.copytree(tiny_dataset, copy)
     with h5py.File(next(copy.glob("shard-*.h5")), "a") as f:
         data = f["energyscape"][:]
-        data[0, 5, 5] = np.nan
+        data[0, 0, 5, 5] = np.nan
         f["energyscape"][...] = data
     with pytest.raises(DataError, match="NaN or inf"):
         load_frames(copy)

@@ -189,12 +189,12 @@ SHARD_CASES = {
     "external-link": (_external_link, r"time is a link to .*times\.h5:/t"),
     "beyond-float16": (
         lambda s, t: replace(
-            s, "energyscape", np.full((8, *GRID), 1.2e6, np.float32), chunks=(1, *GRID), fletcher32=True
+            s, "energyscape", np.full((8, 1, *GRID), 1.2e6, np.float32), chunks=(1, 1, *GRID), fletcher32=True
         ),
         r"energyscape holds values above float16's 65,504 \(max 1\.2e\+06\)",
     ),
     "nan-energyscape": (
-        lambda s, t: edit(s, "energyscape", lambda a: a.__setitem__((1, 2, 3), np.nan)),
+        lambda s, t: edit(s, "energyscape", lambda a: a.__setitem__((1, 0, 2, 3), np.nan)),
         r"energyscape holds 1 NaN or inf",
     ),
     "missing-dataset": (lambda s, t: delete(s, "range_m"), r"the range_m dataset is missing"),
@@ -231,9 +231,9 @@ def test_a_shard_claiming_billions_of_frames_is_refused_before_allocating(tiny_d
     folder = copy_of(tiny_dataset, tmp_path)
     shard, frames = folder / "shard-00000.h5", 2_000_000_000
     with h5py.File(shard, "a") as f:
-        for name, dtype in (("energyscape", np.float16), ("lidar/image", np.uint8)):
+        for name, dtype, shape in (("energyscape", np.float16, (1, *GRID)), ("lidar/image", np.uint8, GRID)):
             del f[name]
-            f.create_dataset(name, shape=(frames, *GRID), dtype=dtype, chunks=(1, *GRID), fletcher32=True)
+            f.create_dataset(name, shape=(frames, *shape), dtype=dtype, chunks=(1, *shape), fletcher32=True)
         for name in ("episode", "scenario"):
             del f[name]
             f.create_dataset(name, shape=(frames,), dtype=np.int32, chunks=(4096,), fletcher32=True)

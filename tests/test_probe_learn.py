@@ -59,7 +59,7 @@ def first_frames(count):
         for name in ("energyscape", "lidar/image", "episode", "scenario"):
             data = f[name][:count]
             del f[name]
-            chunks = (1, *data.shape[1:]) if data.ndim == 3 else (1,)
+            chunks = (1, *data.shape[1:]) if data.ndim >= 3 else (1,)
             maxshape = (None, *data.shape[1:])
             f.create_dataset(
                 name, shape=data.shape, dtype=data.dtype, chunks=chunks, maxshape=maxshape, fletcher32=True
@@ -71,8 +71,8 @@ def first_frames(count):
 
 
 def one_range_bin(f):
-    for name in ("energyscape", "lidar/image"):
-        replace_dataset(f, name, f[name][:, :1, :])
+    replace_dataset(f, "energyscape", f["energyscape"][:, :, :1, :])
+    replace_dataset(f, "lidar/image", f["lidar/image"][:, :1, :])
     replace_dataset(f, "range_m", f["range_m"][:1])
 
 

@@ -285,7 +285,7 @@ def test_files_that_do_not_fit_are_one_line(coarse, reference, tmp_path, capsys)
     frames5 = {"model_config": ckpt["model_config"] | {"frames": 5}, "data_config": ckpt["data_config"] | {"frames": 5}}
     cases = [  # (option, file, extra options, what the line must say)
         ("--init-from", text, [], "is not a checkpoint this learner can read safely: not a PyTorch file"),
-        ("--init-from", tmp_path / "list.pt", [], "is not a learn checkpoint for dataset format 1 (found None)"),
+        ("--init-from", tmp_path / "list.pt", [], "is not a learn checkpoint for dataset format 1 or 2 (found None)"),
         ("--init-from", best, ["--width", "4"], "holds another model than this run builds (model.width 2 -> 4)"),
         ("--init-from", best, ["--frames", "5"], "(model.frames 3 -> 5)"),
         ("--init-from", crafted("no_model.pt", model=None), [], "is not a whole learn checkpoint: it has no model"),
