@@ -407,7 +407,7 @@ class ProcessingConfig:
             raise ValueError(f"speed_of_sound must be positive, got {self.speed_of_sound}")
         if not np.all(np.abs(self.elevation_deg) <= 90) or np.size(self.elevation_deg) == 0:
             raise ValueError("elevation_deg must be an angle or a non-empty sequence of angles in [-90, 90]")
-        if np.any(np.diff(np.atleast_1d(self.elevation_deg)) <= 0):  # one order for shards and the models that read them
+        if np.any(np.diff(np.atleast_1d(self.elevation_deg)) <= 0):  # one order: shards, models
             raise ValueError(f"elevation_deg must increase from the lowest beam up, got {list(self.elevation_deg)}")
         if self.lowpass_hz is not None and not self.lowpass_hz > 0:
             raise ValueError(f"lowpass_hz must be positive (or None), got {self.lowpass_hz}")

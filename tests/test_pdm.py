@@ -104,6 +104,14 @@ def test_import_pdm_images_point_reflectors_where_they_are(tmp_path, device):
         assert np.corrcoef(a.ravel(), b.ravel())[0, 1] > 0.99
     record_ = json.loads(out.with_suffix(".json").read_text())
     assert record_["pings"] == 2 and record_["decode"]["decimation"] == 10 and out.with_suffix(".png").exists()
+    # Several elevations: (pings, E, R, A), its level slice the planar import's, its picture drawn
+    three = tmp_path / "rec3.npy"
+    command = ["import", *map(str, files), "--format", "pdm", "--out", str(three), "--device", device]
+    assert main([*command, "--set", "processing.elevation_deg=[-20,0,20]"]) == 0
+    stack = np.load(three)
+    assert stack.shape == (2, 3, *images.shape[1:]) and three.with_suffix(".png").exists()
+    np.testing.assert_array_equal(stack[:, 1], images)
+    assert json.loads(three.with_suffix(".json").read_text())["elevation_deg"] == [-20.0, 0.0, 20.0]
     # A stream whose words do not fill the array's channels, or a rate that is no multiple of 450 kHz.
     assert main(["import", str(files[0]), "--format", "pdm", "--out", str(out), "--channels", "16"]) == 2
     assert main(["import", str(files[0]), "--format", "pdm", "--out", str(out), "--pdm-rate", "4e6"]) == 2

@@ -121,11 +121,16 @@ def import_pdm(
     energy = energyscape(pcm, sonar, processing, device=device)
     out.parent.mkdir(parents=True, exist_ok=True)
     np.save(out, energy)
-    grid = processing.grid
-    shown = [(f"ping {i}", energy[i], None) for i in range(min(3, len(energy)))]
+    grid, elevations = processing.grid, np.atleast_1d(processing.elevation_deg)
+    level = int(np.argmin(np.abs(elevations)))  # (pings, E, R, A) for several elevations: draw the level one
+    images = energy if energy.ndim == 3 else energy[:, level]
+    at = "" if energy.ndim == 3 else f" at {elevations[level]:g} deg"
+    shown = [(f"ping {i}{at}", images[i], None) for i in range(min(3, len(energy)))]
     picture = render_examples(shown, grid, out.with_suffix(".png"))
+    dims = "(pings, range, azimuth)" if energy.ndim == 3 else "(pings, elevation, range, azimuth)"
     record = {
-        "what": "energyscapes (pings, range, azimuth) of a raw PDM recording, processed by acoustic_sim",
+        "what": f"energyscapes {dims} of a raw PDM recording, processed by acoustic_sim",
+        "elevation_deg": elevations.tolist(),
         "files": [str(p) for p in paths],
         "pings": len(energy),
         "decode": decode | {"samples_per_ping": samples_per_ping, "pcm_rate_hz": sonar.chirp.sample_rate_hz},
