@@ -81,7 +81,8 @@ def check_generate(args, cwd: Path, stdout: str, frames: int) -> str:
     extra = ("signals",) if args.signals else ()
     arrays = read_arrays(out, *SHARD_ARRAYS, *extra)
     assert manifest["frames"] == frames == len(arrays["energyscape"])
-    assert arrays["energyscape"].dtype == np.float16 and arrays["energyscape"].shape[1:] == (1, *GRID_SHAPE)
+    elevations = np.size(manifest["sim"]["processing"]["elevation_deg"])  # as the command asked
+    assert arrays["energyscape"].dtype == np.float16 and arrays["energyscape"].shape[1:] == (elevations, *GRID_SHAPE)
     assert arrays["lidar/image"].shape == (frames, *GRID_SHAPE) and arrays["pose"].shape == (frames, 4, 4)
     assert len(np.unique(arrays["episode"])) == manifest["episodes"]
     if args.signals:
