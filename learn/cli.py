@@ -94,6 +94,7 @@ def _predict(args) -> int:
 def _export(args) -> int:
     from .checkpoint import load_checkpoint
     from .export import export_onnx
+    from .models import trained_elevations
 
     model, ckpt = load_checkpoint(args.checkpoint)
     info = export_onnx(
@@ -102,7 +103,7 @@ def _export(args) -> int:
         frames=ckpt["data_config"]["frames"],
         range_count=len(ckpt["range_m"]),
         azimuth_count=len(ckpt["azimuth_rad"]),
-        elevations=len(ckpt["model_config"].get("elevation_deg", (0.0,))),
+        elevations=len(trained_elevations(ckpt["model_config"].get("elevation_deg"))),
         threshold=args.threshold if args.threshold is not None else ckpt.get("threshold"),
         verbose=args.verbose,
         overwrite=args.overwrite,

@@ -24,7 +24,7 @@ from typing import Literal
 import numpy as np
 
 from .augment import AugmentConfig
-from .data import DataConfig, Frames
+from .data import DataConfig, Frames, missing_elevations
 from .models import ModelConfig
 
 Loss = Literal["mse", "bce"]
@@ -216,11 +216,12 @@ def with_grid(config: LearnConfig, frames: Frames) -> LearnConfig:
     memory, the polar grid it resamples on; refused where it was given others."""
     folder = frames.info["folder"]
     given = config.model.elevation_deg
-    if given != ModelConfig().elevation_deg and given != frames.elevation_deg:
+    if given is not None and missing_elevations(frames, given):
         raise ValueError(
-            f"model.elevation_deg {list(given)} is not the elevations of {folder} ({list(frames.elevation_deg)})"
+            f"model.elevation_deg {list(given)}: {folder} holds no energyscapes at {missing_elevations(frames, given)} "
+            f"deg (its elevations: {list(frames.elevation_deg)})"
         )
-    model = dataclasses.replace(config.model, elevation_deg=frames.elevation_deg)
+    model = dataclasses.replace(config.model, elevation_deg=given or frames.elevation_deg)
     if not config.model.uses_odometry:
         return dataclasses.replace(config, model=model)
     r, a = frames.range_m, frames.azimuth_rad

@@ -164,6 +164,21 @@ class Frames:
         return int(np.argmin(np.abs(self.elevation_deg)))
 
 
+ELEVATION_MATCH_DEG = 1e-6  # elevations this close are one (they come through JSON and float32 alike)
+
+
+def elevation_rows(frames: Frames, elevation_deg) -> list[int]:
+    """Where each of `elevation_deg` lies among the frames' elevations (see `missing_elevations`)."""
+    have = np.asarray(frames.elevation_deg)
+    return [int(np.argmin(np.abs(have - e))) for e in elevation_deg]
+
+
+def missing_elevations(frames: Frames, elevation_deg) -> list[float]:
+    """Those of `elevation_deg` [deg] the frames were not beamformed at."""
+    have = np.asarray(frames.elevation_deg)
+    return [float(e) for e in elevation_deg if np.abs(have - e).min() > ELEVATION_MATCH_DEG]
+
+
 def level_slice(frames: Frames) -> Frames:
     """The frames' elevation nearest 0 deg alone (E = 1, no copy): what a planar sonar image
     holds, and what the classical readouts (echo peak, occupancy grids) read."""
@@ -332,10 +347,19 @@ class Windows:
         device: Where the frames are kept and batches are made.
         odometry: Give each frame's motion (a model with memory reads it); needs the data's poses.
         share: Windows of the same frames on the same device whose copies of them to use.
+        elevation_deg: The elevations [deg] the windows hold, some of the frames' (a model
+            trained on fewer reads those); None: all of them.
     """
 
     def __init__(
-        self, frames: Frames, config: DataConfig, device: str | torch.device = "cpu", *, odometry=False, share=None
+        self,
+        frames: Frames,
+        config: DataConfig,
+        device: str | torch.device = "cpu",
+        *,
+        odometry=False,
+        share=None,
+        elevation_deg=None,
     ):
         self.frames, self.config, self.odometry = frames, config, bool(odometry)
         self.device = torch_device(device)
@@ -346,6 +370,16 @@ class Windows:
                 f"{frames.info['folder']} holds no poses (a recording without odometry, or a bare .npy), and a "
                 "model with memory needs them: use a model without memory (polar_unet), or data with odometry"
             )
+        self._pick = None  # rows of the frames' elevations to read; None: all of them, in order
+        if elevation_deg is not None:
+            missing = missing_elevations(frames, elevation_deg)
+            if missing:
+                raise DataError(
+                    f"{frames.info.get('folder')} holds no energyscapes at {missing} deg (its elevations: "
+                    f"{list(frames.elevation_deg)}): beamform the data at the model's elevations"
+                )
+            rows = elevation_rows(frames, elevation_deg)
+            self._pick = None if rows == list(range(len(frames.elevation_deg))) else rows
         self.starts = window_starts(frames.episode, config.frames)
         if len(self.starts) == 0:
             longest = int(np.unique(frames.episode, return_counts=True)[1].max()) if len(frames.episode) else 0
@@ -387,7 +421,8 @@ class Windows:
         frame = start[:, None] + self._offsets  # (B, N)
         present = frame >= self._first[index][:, None]
         frame = torch.maximum(frame, self._first[index][:, None])
-        energy = self._energyscape[frame] * present[:, :, None, None, None]
+        stored = self._energyscape[frame] if self._pick is None else self._energyscape[frame][:, :, self._pick]
+        energy = stored * present[:, :, None, None, None]
         label = self._label[start + self.config.label_offset].float()
         if not self.odometry:
             return energy, label, None

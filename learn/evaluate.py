@@ -26,10 +26,10 @@ import torch
 from tqdm.auto import tqdm
 
 from .checkpoint import load_checkpoint
-from .data import DataConfig, Frames, Windows, level_slice, load_frames, recorded_path
+from .data import DataConfig, Frames, Windows, level_slice, load_frames, missing_elevations, recorded_path
 from .grid_baselines import grid_predictors
 from .metrics import image_metrics
-from .models import ModelConfig, predict_image
+from .models import ModelConfig, predict_image, trained_elevations
 from .odometry import OdometryNoise, noisy_drive
 from .report import example_file, report_markdown, write_per_scenario, write_per_window
 from .scan import CALIBRATION_THRESHOLDS, echo_peak_image, scan_f1_sweep
@@ -328,7 +328,9 @@ def model_windows(frames: Frames, ckpt: dict, device, share: Windows | None = No
     """The windows a checkpoint's model reads (its history and motion for a model with memory),
     holding the frames on the device once with `share`'s."""
     model = ModelConfig(**ckpt["model_config"])
-    return Windows(frames, DataConfig(**ckpt["data_config"]), device, odometry=model.uses_odometry, share=share)
+    data = DataConfig(**ckpt["data_config"])
+    elevations = trained_elevations(model.elevation_deg)
+    return Windows(frames, data, device, odometry=model.uses_odometry, share=share, elevation_deg=elevations)
 
 
 def with_noisy_odometry(frames: Frames, noise: OdometryNoise, *, seed: int) -> Frames:
@@ -357,8 +359,8 @@ def _grid_text(range_m, azimuth_rad) -> str:
 def check_grid(frames: Frames, ckpt: dict, name: str = "the model") -> None:
     """Refuse data on another range/azimuth grid or at other elevations than the checkpoint's,
     naming both."""
-    trained = tuple(ckpt["model_config"].get("elevation_deg", (0.0,)))  # before elevations: the level slice
-    if tuple(frames.elevation_deg) != trained:
+    trained = trained_elevations(ckpt["model_config"].get("elevation_deg"))
+    if missing_elevations(frames, trained):
         raise ValueError(
             f"{frames.info.get('folder')} holds energyscapes at {_elevation_text(frames.elevation_deg)}, but {name} "
             f"was trained on {_elevation_text(trained)}: give it data beamformed at those elevations "

@@ -50,8 +50,9 @@ class ModelConfig:
             [m] and first and last azimuth centre [rad]; `learn train` sets it from the data.
         elevation_deg: The elevations [deg] of the energyscapes it reads, increasing: each is an
             input channel of every frame (the planar array resolves elevation: a floor echo
-            below, the ceiling above, a wall at the level); `learn train` sets it from the data,
-            and data beamformed at other elevations is refused.
+            below, the ceiling above, a wall at the level). None: every elevation of the data
+            (`learn train` sets it); a subset of the data's reads those alone (e.g. [0], the
+            level slice). Data without them is refused by name.
     """
 
     name: str = "polar_unet"
@@ -60,7 +61,7 @@ class ModelConfig:
     row_contrast: bool = False
     history: int = 0
     extent: tuple[float, float, float, float] | None = None
-    elevation_deg: tuple[float, ...] = (0.0,)
+    elevation_deg: tuple[float, ...] | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.name, str) or self.name not in MODEL_NAMES:
@@ -93,6 +94,8 @@ class ModelConfig:
                 )
             object.__setattr__(self, "extent", tuple(float(v) for v in extent))
         elevations = self.elevation_deg
+        if elevations is None:
+            return
         if not (
             isinstance(elevations, list | tuple)
             and elevations
@@ -105,12 +108,18 @@ class ModelConfig:
     @property
     def elevations(self) -> int:
         """Elevation beams a frame has: the input channels of each frame."""
-        return len(self.elevation_deg)
+        return len(trained_elevations(self.elevation_deg))
 
     @property
     def uses_odometry(self) -> bool:
         """Whether the network reads each frame's motion besides the frames (a model with memory)."""
         return self.name == "polar_memory"
+
+
+def trained_elevations(elevation_deg) -> tuple[float, ...]:
+    """The elevations [deg] a model reads: its config's, or the level slice for a model of before
+    elevations (format-1 data held that alone)."""
+    return tuple(float(e) for e in (elevation_deg or (0.0,)))
 
 
 # ---------------------------------------------------------------------------------------------

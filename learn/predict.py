@@ -26,6 +26,7 @@ from .checkpoint import load_checkpoint
 from .data import DataConfig, Frames, Windows, load_frames, recorded_path
 from .evaluate import check_grid, model_predictor, model_windows, return_threshold
 from .inputs import check_fits, npy_header
+from .models import trained_elevations
 from .scan import first_return_ranges
 
 
@@ -50,7 +51,7 @@ def _frames_from_array(path: Path, ckpt: dict) -> Frames:
     if dtype.kind not in "fiu":
         raise ValueError(f"--input {path}: energyscapes must be real numbers, got dtype {dtype}")
     grid = (len(ckpt["range_m"]), len(ckpt["azimuth_rad"]))
-    elevation_deg = tuple(ckpt["model_config"].get("elevation_deg", (0.0,)))
+    elevation_deg = trained_elevations(ckpt["model_config"].get("elevation_deg"))
     frame = (len(elevation_deg), *grid)
     if not (shape[1:] == frame or (len(elevation_deg) == 1 and shape[1:] == grid)) or len(shape) < 3:
         expected = f"(N, {grid[0]}, {grid[1]})" if len(frame) == 1 else f"(N, {', '.join(map(str, frame))})"

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from .data import DataConfig, normalise, torch_device
-from .models import ModelConfig
+from .models import ModelConfig, trained_elevations
 from .odometry import planar, relative
 from .scan import first_return_ranges
 
@@ -77,7 +77,7 @@ class Stream:
         self.range_m = np.asarray(ckpt["range_m"], dtype=np.float64)
         self.azimuth_rad = np.asarray(ckpt["azimuth_rad"], dtype=np.float64)
         self.grid = (len(self.range_m), len(self.azimuth_rad))
-        self.elevation_deg = ModelConfig(**ckpt["model_config"]).elevation_deg
+        self.elevation_deg = trained_elevations(ckpt["model_config"].get("elevation_deg"))
         self.shape = (len(self.elevation_deg), *self.grid)  # one frame: (E, R, A)
         self._run = model_predictor(self.model, amp=amp)
         self.graphs, self._graph = graphs, None

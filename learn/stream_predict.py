@@ -20,7 +20,7 @@ from clitools.outputs import atomic_output
 
 from .bag import Recording, read_bag, write_bag
 from .checkpoint import load_checkpoint
-from .data import DataConfig, DataError, normalise, shard_paths, window_starts
+from .data import DataConfig, DataError, elevation_rows, normalise, shard_paths, window_starts
 from .evaluate import check_grid
 from .predict import _check_outputs, read_input
 from .stream import Stream
@@ -60,7 +60,7 @@ def predict_stream(
     if len(window_starts(frames.episode, stream.config.frames)) == 0:
         raise DataError(f"no window of {stream.config.frames} frames fits in any drive of {source}")
     labelled, images, ranges = [], [], []
-    first = 0
+    first, rows = 0, elevation_rows(frames, stream.elevation_deg)  # the model's elevations of the data's
     bar = tqdm(total=len(frames), desc="streaming", unit="frame", disable=not progress, leave=False)
     with bar:
         for t in range(len(frames)):
@@ -68,7 +68,7 @@ def predict_stream(
                 stream.reset()
                 first = t
             pose = None if frames.pose is None else frames.pose[t]
-            result = stream.step(frames.energyscape[t], pose)
+            result = stream.step(frames.energyscape[t][rows], pose)
             bar.update(1)
             if result is not None:
                 labelled.append(first + result.frame)

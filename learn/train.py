@@ -180,7 +180,9 @@ def _train_in(data, out: Path, config: LearnConfig, *, device: str, folds: int, 
     if (suite := frames.info.get("suite")) in ("crossengine", "crossengine_rough"):
         raise ValueError(f"{frames.info['folder']} is the {suite} test set: score models on it, never train on it")
     config = with_grid(config, frames)
-    windows = Windows(frames, config.data, dev, odometry=config.model.uses_odometry)
+    windows = Windows(
+        frames, config.data, dev, odometry=config.model.uses_odometry, elevation_deg=config.model.elevation_deg
+    )
     groups = windows.episode if config.train.split_by == "episode" else windows.scenario
     _check_enough_groups(groups, folds, config.train.split_by, frames.info["folder"])
     each |= {"config": config, "dist_info": dist_info}

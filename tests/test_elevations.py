@@ -154,3 +154,33 @@ def test_frames_refuse_energyscapes_that_do_not_match_their_elevations():
             info={},
             elevation_deg=ELEVATIONS,
         )
+
+
+def test_a_model_of_the_level_slice_reads_it_out_of_three(three_elevations, tiny_dataset, tmp_path):
+    """model.elevation_deg [0] on data of three elevations trains exactly the model the planar
+    dataset trains (the windows hold the level slice alone, normalised on its own), scores
+    beside a three-elevation model on the same data, and asks for an elevation the data lacks
+    by name."""
+    level = dataclasses.replace(ModelConfig(name="polar_unet", frames=3, width=4), elevation_deg=(0.0,))
+    config = LearnConfig(model=level, data=DataConfig(frames=3), train=QUICK)
+    train(three_elevations, tmp_path / "level", config, progress=False)
+    train(tiny_dataset, tmp_path / "planar", config, progress=False)
+    _, picked = load_checkpoint(tmp_path / "level" / "best.pt")
+    _, planar = load_checkpoint(tmp_path / "planar" / "best.pt")
+    assert tuple(picked["model_config"]["elevation_deg"]) == (0.0,)
+    for name, weights in planar["model"].items():
+        assert torch.equal(weights, picked["model"][name]), name
+    full = LearnConfig(model=ModelConfig(name="polar_unet", frames=3, width=4), data=DataConfig(frames=3), train=QUICK)
+    train(three_elevations, tmp_path / "full", full, progress=False)
+    report = evaluate(
+        {"level": tmp_path / "level" / "best.pt", "full": tmp_path / "full" / "best.pt"},
+        three_elevations,
+        tmp_path / "both",
+        device="cpu",
+        grids=False,
+        split="all",
+    )
+    assert {"level", "full", "echo peak"} <= set(report["results"])
+    wrong = dataclasses.replace(config, model=dataclasses.replace(level, elevation_deg=(0.0, 10.0)))
+    with pytest.raises(ValueError, match=r"holds no energyscapes at \[10\.0\] deg"):
+        train(three_elevations, tmp_path / "wrong", wrong, progress=False)
