@@ -26,6 +26,7 @@ from .kernels import beamform as kernels
 from .signals import tile_block_dim
 
 FLOOR_DB = -60.0  # lowest value of a "db" energyscape
+ENVELOPE_BLOCK_DIM = 256  # threads per beam row in the envelope kernel: one per range bin of the default grid (240)
 
 
 class Beamformer:
@@ -150,12 +151,22 @@ class Beamformer:
         launch_tiled(self._ifft, dim=[pings * self._looks], inputs=[beams], outputs=[envelope], block_dim=block)
         del beams
         images = empty((pings * elevations, *self.grid.shape), dtype=float)
-        launch(
-            kernels.envelope_on_grid,
-            dim=(images.shape[0], images.shape[2], images.shape[1]),
-            inputs=[envelope, self.baseband_samples, self._lowpass, self._range_m, self._samples_per_m, elevations],
-            outputs=[images],
-        )
+        envelope_inputs = [envelope, self.baseband_samples, self._lowpass, self._range_m, self._samples_per_m]
+        if self.device.is_cuda:  # a block per beam row, the row in shared memory
+            launch_tiled(
+                kernels.envelope_rows(self.baseband_samples),
+                dim=[images.shape[0] * images.shape[2]],
+                inputs=envelope_inputs,
+                outputs=[images],
+                block_dim=ENVELOPE_BLOCK_DIM,
+            )
+        else:
+            launch(
+                kernels.envelope_on_grid,
+                dim=(images.shape[0], images.shape[2], images.shape[1]),
+                inputs=[*envelope_inputs, elevations],
+                outputs=[images],
+            )
         if self.normalise is not None:
             peak = zeros(pings, dtype=float)
             launch(kernels.image_peak, dim=images.shape, inputs=[images, elevations], outputs=[peak])
