@@ -46,6 +46,7 @@ def stage_kernels() -> dict[str, str]:
     # Kernels made by factories (sizes fixed at build time): their inner function names.
     names |= {"convolve": "record", "accumulate_rows": "record"}
     names |= {"fft_rows": "energyscape", "ifft_rows": "energyscape", "beamform": "energyscape"}
+    names["envelope_on_grid"] = "energyscape"
     return names
 
 

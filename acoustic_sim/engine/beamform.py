@@ -26,6 +26,7 @@ from .kernels import beamform as kernels
 from .signals import tile_block_dim
 
 FLOOR_DB = -60.0  # lowest value of a "db" energyscape
+ENVELOPE_BLOCK_DIM = 256  # threads per beam row in the envelope kernel: one per range bin of the default grid (240)
 
 
 class Beamformer:
@@ -107,6 +108,8 @@ class Beamformer:
         with wp.ScopedDevice(self.device):
             self._taps = wp.array(np.stack([shifted.real, shifted.imag], -1).astype(np.float32), dtype=wp.vec2f)
             self._band_bin = wp.array(band.astype(np.int32), dtype=wp.int32)
+            off_band = np.setdiff1d(np.arange(self.size), band).astype(np.int32)
+            self._off_band = wp.array(off_band, dtype=wp.int32)
             self._band_hz = wp.array(freqs[band].astype(np.float32), dtype=float)
             self._matched = wp.array(np.stack([matched.real, matched.imag], -1).astype(np.float32), dtype=wp.vec2f)
             self._delays = wp.array(delays.astype(np.float32), dtype=float)
@@ -138,11 +141,11 @@ class Beamformer:
             outputs=[spectra],
         )
         launch_tiled(self._fft, dim=[pings * mics], outputs=[spectra], block_dim=block)  # in place
-        beams = zeros((pings * self._looks, self.size), dtype=wp.vec2f)
+        beams = empty((pings * self._looks, self.size), dtype=wp.vec2f)  # every bin written below
         launch(
             self._beamform,
-            dim=(self._looks, self._band_bin.shape[0]),
-            inputs=[spectra, self._band_bin, self._band_hz, self._matched, self._delays, pings],
+            dim=(-(-self.size // kernels.BAND_CHUNK), self._looks, kernels.BAND_CHUNK),
+            inputs=[spectra, self._band_bin, self._off_band, self._band_hz, self._matched, self._delays, pings],
             outputs=[beams],
         )
         del spectra
@@ -150,12 +153,22 @@ class Beamformer:
         launch_tiled(self._ifft, dim=[pings * self._looks], inputs=[beams], outputs=[envelope], block_dim=block)
         del beams
         images = empty((pings * elevations, *self.grid.shape), dtype=float)
-        launch(
-            kernels.envelope_on_grid,
-            dim=(images.shape[0], images.shape[2], images.shape[1]),
-            inputs=[envelope, self.baseband_samples, self._lowpass, self._range_m, self._samples_per_m, elevations],
-            outputs=[images],
-        )
+        envelope_inputs = [envelope, self.baseband_samples, self._lowpass, self._range_m, self._samples_per_m]
+        if self.device.is_cuda:  # a block per beam row, the row in shared memory
+            launch_tiled(
+                kernels.envelope_rows(self.baseband_samples),
+                dim=[images.shape[0] * images.shape[2]],
+                inputs=envelope_inputs,
+                outputs=[images],
+                block_dim=ENVELOPE_BLOCK_DIM,
+            )
+        else:
+            launch(
+                kernels.envelope_on_grid,
+                dim=(images.shape[0], images.shape[2], images.shape[1]),
+                inputs=[*envelope_inputs, elevations],
+                outputs=[images],
+            )
         if self.normalise is not None:
             peak = zeros(pings, dtype=float)
             launch(kernels.image_peak, dim=images.shape, inputs=[images, elevations], outputs=[peak])

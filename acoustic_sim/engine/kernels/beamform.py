@@ -84,22 +84,34 @@ def inverse_fft_magnitude(size: int):
     return ifft_rows
 
 
+# Band bins a warp of `beamform` takes: consecutive bins, so that its reads and writes are coalesced.
+BAND_CHUNK = 32
+
+
 @functools.cache
 def delay_and_sum(mics: int):
     """Kernel for arrays of `mics` microphones: matched filter and delay-and-sum per frequency.
 
-    One thread per (look direction, band bin), dim = (looks, band bins), looping over pings so
-    that its steering weights are computed once:
+    One thread per (look direction, FFT bin), dim = (ceil(FFT bins / BAND_CHUNK), looks,
+    BAND_CHUNK), looping over pings so that its steering weights are computed once:
     beams[p * looks + l, bin] = conj(C(f)) / M sum_m X[p * M + m, bin] exp(-2 pi i f tau_lm),
-    with f the bin's true frequency and tau_lm = (m . u_l) / c. Bins off the band stay untouched.
+    with f the bin's true frequency and tau_lm = (m . u_l) / c, for the band's bins (thread f
+    takes band_bin[f]); the threads past the band write zeros to the bins off it (off_band), so
+    beams needs no zero fill first.
+
+    A block's warps take the same band bins for neighbouring looks, so each ping's spectra are
+    read from L2 once per block and then from L1 (one look per block re-read them all from L2:
+    that bound the kernel). The microphone loops are unrolled (max_unroll), so the weights stay
+    in registers rather than local memory. The sum over microphones runs in the same order.
     """
     Weights = wp.types.vector(length=mics, dtype=float)
 
-    @wp.kernel(enable_backward=False, module="unique")
+    @wp.kernel(enable_backward=False, module="unique", module_options={"max_unroll": max(mics, 16)})
     def beamform(
         # in
         spectra: wp.array2d[wp.vec2f],
         band_bin: wp.array[wp.int32],
+        off_band: wp.array[wp.int32],
         band_hz: wp.array[float],
         matched: wp.array[wp.vec2f],
         delays: wp.array2d[float],
@@ -107,8 +119,15 @@ def delay_and_sum(mics: int):
         # out
         beams_out: wp.array2d[wp.vec2f],
     ):
-        look, f = wp.tid()
+        chunk, look, lane = wp.tid()
+        f = chunk * BAND_CHUNK + lane
         looks = delays.shape[0]
+        band = band_hz.shape[0]
+        if f >= band:
+            if f < band + off_band.shape[0]:
+                for p in range(pings):
+                    beams_out[p * looks + look, off_band[f - band]] = wp.vec2f(0.0, 0.0)
+            return
         frequency = band_hz[f]
         column = band_bin[f]
         re = Weights()
@@ -150,7 +169,8 @@ def envelope_on_grid(
     The envelope of beam row (p * elevations + e) * azimuths + a, low-passed by the zero-phase FIR
     `lowpass` and interpolated linearly at range r (sample r * samples_per_m); samples at or past
     `valid` count as zero. Neighbouring threads take neighbouring range bins of one beam, so the
-    FIR's many reads share cache lines (the one write per thread is what strides).
+    FIR's many reads share cache lines (the one write per thread is what strides). The CPU's
+    kernel; GPUs run `envelope_rows`, the same sums with the row staged in shared memory.
     """
     pe, a, r = wp.tid()
     row = pe * image_out.shape[2] + a
@@ -169,6 +189,58 @@ def envelope_on_grid(
             if j > 0:
                 high += lowpass[j - 1] * e
     image_out[pe, r, a] = (1.0 - w) * low + w * high
+
+
+@functools.cache
+def envelope_rows(span: int):
+    """GPU kernel: `envelope_on_grid` with one block per beam row;
+    launch_tiled(dim=[image_out.shape[0] * image_out.shape[2]]).
+
+    The envelope of beam row (p * elevations + e) * azimuths + a, low-passed by the zero-phase FIR
+    `lowpass` and interpolated linearly at range r (sample r * samples_per_m), goes to
+    image_out[p * elevations + e, r, a]; samples at or past `valid` (<= span) count as zero. The
+    block stages the row's first `span` samples in shared memory once; its threads then take the
+    range bins in turn and read their ~225-sample windows from there (neighbouring range bins are
+    ~7 samples apart, so straight from global memory a warp's every read spanned several cache
+    lines). Each bin's sums run in the same order, so the results are `envelope_on_grid`'s bits
+    (tested on the CPU). GPUs only: on the CPU, Warp keeps shared tiles in one static buffer per
+    module, which the threads of a CPU `Sonar.simulate` beamforming at once would share.
+    """
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def envelope_on_grid(
+        # in
+        envelope: wp.array2d[float],
+        valid: int,
+        lowpass: wp.array[float],
+        range_m: wp.array[float],
+        samples_per_m: float,
+        # out
+        image_out: wp.array3d[float],
+    ):
+        beam, lane = wp.tid()
+        azimuths = image_out.shape[2]
+        pe = beam // azimuths
+        a = beam - pe * azimuths
+        row = wp.tile_load(envelope, shape=(1, span), offset=(beam, 0), storage="shared")
+        half = lowpass.shape[0] // 2
+        for r in range(lane, image_out.shape[1], wp.block_dim()):
+            x = range_m[r] * samples_per_m
+            k0 = int(wp.floor(x))
+            w = x - float(k0)
+            low = float(0.0)
+            high = float(0.0)
+            for j in range(lowpass.shape[0] + 1):
+                n = k0 + j - half
+                if n >= 0 and n < valid:
+                    e = row[0, n]
+                    if j < lowpass.shape[0]:
+                        low += lowpass[j] * e
+                    if j > 0:
+                        high += lowpass[j - 1] * e
+            image_out[pe, r, a] = (1.0 - w) * low + w * high
+
+    return envelope_on_grid
 
 
 @wp.kernel(enable_backward=False)
