@@ -108,8 +108,6 @@ class Beamformer:
         with wp.ScopedDevice(self.device):
             self._taps = wp.array(np.stack([shifted.real, shifted.imag], -1).astype(np.float32), dtype=wp.vec2f)
             self._band_bin = wp.array(band.astype(np.int32), dtype=wp.int32)
-            off_band = np.setdiff1d(np.arange(self.size), band).astype(np.int32)
-            self._off_band = wp.array(off_band, dtype=wp.int32)
             self._band_hz = wp.array(freqs[band].astype(np.float32), dtype=float)
             self._matched = wp.array(np.stack([matched.real, matched.imag], -1).astype(np.float32), dtype=wp.vec2f)
             self._delays = wp.array(delays.astype(np.float32), dtype=float)
@@ -141,11 +139,11 @@ class Beamformer:
             outputs=[spectra],
         )
         launch_tiled(self._fft, dim=[pings * mics], outputs=[spectra], block_dim=block)  # in place
-        beams = empty((pings * self._looks, self.size), dtype=wp.vec2f)  # every bin written below
+        beams = zeros((pings * self._looks, self.size), dtype=wp.vec2f)
         launch(
             self._beamform,
-            dim=(-(-self.size // kernels.BAND_CHUNK), self._looks, kernels.BAND_CHUNK),
-            inputs=[spectra, self._band_bin, self._off_band, self._band_hz, self._matched, self._delays, pings],
+            dim=(-(-self._band_bin.shape[0] // kernels.BAND_CHUNK), self._looks, kernels.BAND_CHUNK),
+            inputs=[spectra, self._band_bin, self._band_hz, self._matched, self._delays, pings],
             outputs=[beams],
         )
         del spectra

@@ -92,12 +92,10 @@ BAND_CHUNK = 32
 def delay_and_sum(mics: int):
     """Kernel for arrays of `mics` microphones: matched filter and delay-and-sum per frequency.
 
-    One thread per (look direction, FFT bin), dim = (ceil(FFT bins / BAND_CHUNK), looks,
+    One thread per (look direction, band bin), dim = (ceil(band bins / BAND_CHUNK), looks,
     BAND_CHUNK), looping over pings so that its steering weights are computed once:
     beams[p * looks + l, bin] = conj(C(f)) / M sum_m X[p * M + m, bin] exp(-2 pi i f tau_lm),
-    with f the bin's true frequency and tau_lm = (m . u_l) / c, for the band's bins (thread f
-    takes band_bin[f]); the threads past the band write zeros to the bins off it (off_band), so
-    beams needs no zero fill first.
+    with f the bin's true frequency and tau_lm = (m . u_l) / c. Bins off the band stay untouched.
 
     A block's warps take the same band bins for neighbouring looks, so each ping's spectra are
     read from L2 once per block and then from L1 (one look per block re-read them all from L2:
@@ -111,7 +109,6 @@ def delay_and_sum(mics: int):
         # in
         spectra: wp.array2d[wp.vec2f],
         band_bin: wp.array[wp.int32],
-        off_band: wp.array[wp.int32],
         band_hz: wp.array[float],
         matched: wp.array[wp.vec2f],
         delays: wp.array2d[float],
@@ -121,13 +118,9 @@ def delay_and_sum(mics: int):
     ):
         chunk, look, lane = wp.tid()
         f = chunk * BAND_CHUNK + lane
-        looks = delays.shape[0]
-        band = band_hz.shape[0]
-        if f >= band:
-            if f < band + off_band.shape[0]:
-                for p in range(pings):
-                    beams_out[p * looks + look, off_band[f - band]] = wp.vec2f(0.0, 0.0)
+        if f >= band_hz.shape[0]:
             return
+        looks = delays.shape[0]
         frequency = band_hz[f]
         column = band_bin[f]
         re = Weights()
