@@ -142,7 +142,7 @@ class Beamformer:
         beams = zeros((pings * self._looks, self.size), dtype=wp.vec2f)
         launch(
             self._beamform,
-            dim=(-(-self._band_bin.shape[0] // kernels.BAND_CHUNK), self._looks, kernels.BAND_CHUNK),
+            dim=(self._looks, self._band_bin.shape[0]),
             inputs=[spectra, self._band_bin, self._band_hz, self._matched, self._delays, pings],
             outputs=[beams],
         )

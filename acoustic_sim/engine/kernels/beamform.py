@@ -84,27 +84,18 @@ def inverse_fft_magnitude(size: int):
     return ifft_rows
 
 
-# Band bins a warp of `beamform` takes: consecutive bins, so that its reads and writes are coalesced.
-BAND_CHUNK = 32
-
-
 @functools.cache
 def delay_and_sum(mics: int):
     """Kernel for arrays of `mics` microphones: matched filter and delay-and-sum per frequency.
 
-    One thread per (look direction, band bin), dim = (ceil(band bins / BAND_CHUNK), looks,
-    BAND_CHUNK), looping over pings so that its steering weights are computed once:
+    One thread per (look direction, band bin), dim = (looks, band bins), looping over pings so
+    that its steering weights are computed once:
     beams[p * looks + l, bin] = conj(C(f)) / M sum_m X[p * M + m, bin] exp(-2 pi i f tau_lm),
     with f the bin's true frequency and tau_lm = (m . u_l) / c. Bins off the band stay untouched.
-
-    A block's warps take the same band bins for neighbouring looks, so each ping's spectra are
-    read from L2 once per block and then from L1 (one look per block re-read them all from L2:
-    that bound the kernel). The microphone loops are unrolled (max_unroll), so the weights stay
-    in registers rather than local memory. The sum over microphones runs in the same order.
     """
     Weights = wp.types.vector(length=mics, dtype=float)
 
-    @wp.kernel(enable_backward=False, module="unique", module_options={"max_unroll": max(mics, 16)})
+    @wp.kernel(enable_backward=False, module="unique")
     def beamform(
         # in
         spectra: wp.array2d[wp.vec2f],
@@ -116,10 +107,7 @@ def delay_and_sum(mics: int):
         # out
         beams_out: wp.array2d[wp.vec2f],
     ):
-        chunk, look, lane = wp.tid()
-        f = chunk * BAND_CHUNK + lane
-        if f >= band_hz.shape[0]:
-            return
+        look, f = wp.tid()
         looks = delays.shape[0]
         frequency = band_hz[f]
         column = band_bin[f]
