@@ -90,7 +90,7 @@ def test_the_test_set_scores_models_but_never_trains_them(tmp_path, device, caps
     assert learn_main(["train", "--data", str(out), "--out", str(tmp_path / "run")]) == 2
     assert "never train on it" in capsys.readouterr().err
     assert main(["generate", "--suite", "crossengine", "--out", str(out), "--set", "tracer.max_bounces=1"]) == 2
-    assert "--set does not apply" in capsys.readouterr().err
+    assert "only processing.elevation_deg applies" in capsys.readouterr().err
     names = {s.name for suite in SUITES.values() for s in suite.scenarios}
     assert not names & set(FLOOR_PLANS)
 
@@ -311,4 +311,21 @@ def test_the_rough_set_is_its_own_suite_on_the_same_drives(tmp_path, device, cap
     assert learn_main(["train", "--data", str(rough_out), "--out", str(tmp_path / "run")]) == 2
     assert "crossengine_rough test set" in capsys.readouterr().err
     assert main([*argv, "--out", str(rough_out), "--set", "tracer.max_bounces=1"]) == 2
-    assert "--set does not apply" in capsys.readouterr().err
+    assert "only processing.elevation_deg applies" in capsys.readouterr().err
+
+
+def test_the_set_beamforms_at_the_elevations_asked_and_nothing_else_changes(tmp_path, device):
+    """`--set processing.elevation_deg=[...]` gives shards of those elevations whose level slice is
+    the default set's, bit for bit (same rooms, drives and noise); any other --set is refused."""
+    import h5py
+
+    from acoustic_sim.cli import main
+
+    base = ["generate", "--suite", "crossengine", "--frames", "2", "--device", device, "--quiet"]
+    assert main([*base, "--out", str(tmp_path / "one")]) == 0
+    assert main([*base, "--out", str(tmp_path / "three"), "--set", "processing.elevation_deg=[-20,0,20]"]) == 0
+    with h5py.File(tmp_path / "one" / "shard-00000.h5") as one, h5py.File(tmp_path / "three" / "shard-00000.h5") as f:
+        assert f["energyscape"].shape[1] == 3 and f["elevation_deg"][:].tolist() == [-20.0, 0.0, 20.0]
+        np.testing.assert_array_equal(f["energyscape"][:, 1], one["energyscape"][:, 0])
+        assert not np.array_equal(f["energyscape"][:, 0], f["energyscape"][:, 1])
+    assert main([*base, "--out", str(tmp_path / "x"), "--set", "tracer.max_bounces=2"]) == 2

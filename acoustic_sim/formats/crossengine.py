@@ -224,7 +224,8 @@ class CrossEngineRenderer:
         from ..engine.beamform import energyscape
         from ..engine.lidar import lidar_image
 
-        sonar, lidar, processing = SonarConfig.ertis(), LidarConfig.hokuyo_ust20lx(), ProcessingConfig()
+        sonar, lidar = SonarConfig.ertis(), LidarConfig.hokuyo_ust20lx()
+        processing = ProcessingConfig(**task.suite["config"]["sim"]["processing"])  # its elevations too
         t0 = time.perf_counter()
         signals = []
         for pose in drive.poses:
@@ -248,7 +249,9 @@ class CrossEngineRenderer:
         return arrays, record | asdict(drive.room) | (drive.rough.record() if drive.rough else {})
 
     def shard_header(self, task: ShardTask) -> ShardHeader:
-        return ShardHeader(task.suite["config"], list(FLOOR_PLANS), ProcessingConfig().grid)
+        processing = ProcessingConfig(**task.suite["config"]["sim"]["processing"])
+        elevations = tuple(np.atleast_1d(processing.elevation_deg).tolist())
+        return ShardHeader(task.suite["config"], list(FLOOR_PLANS), processing.grid, elevations)
 
     def describe(self, tasks: list[ShardTask]) -> About:
         config = tasks[0].suite["config"]
@@ -275,10 +278,10 @@ class CrossEngineRenderer:
         )
 
 
-def _settings(frames: int, seed: int, episode_frames: int, rough: bool) -> dict:
+def _settings(frames: int, seed: int, episode_frames: int, rough: bool, elevation_deg) -> dict:
     pra = _need_pyroomacoustics()
     rig = {"lidar": asdict(LidarConfig.hokuyo_ust20lx()), "sonar": asdict(SonarConfig.ertis())}
-    rig["processing"] = asdict(ProcessingConfig())
+    rig["processing"] = asdict(ProcessingConfig(elevation_deg=elevation_deg))
     engine = {"name": ENGINE, "version": pra.__version__, "order": IMAGE_ORDER, "sample_rate_hz": SAMPLE_RATE_HZ}
     engine |= {"speed_m_s": SPEED_M_S, "dt_s": DT_S, "episode_frames": episode_frames, "plans": FLOOR_PLANS}
     if rough:  # only here, so the specular set's plan (and its plan id) is what it was
@@ -288,15 +291,21 @@ def _settings(frames: int, seed: int, episode_frames: int, rough: bool) -> dict:
 
 
 def plan_crossengine(
-    out: str | Path, *, frames: int, seed: int = 0, episode_frames: int = EPISODE_FRAMES, rough: bool = False
+    out: str | Path,
+    *,
+    frames: int,
+    seed: int = 0,
+    episode_frames: int = EPISODE_FRAMES,
+    rough: bool = False,
+    elevation_deg: float | tuple[float, ...] = 0.0,
 ) -> list[ShardTask]:
     """The test set's shard tasks: one per drive of `episode_frames` frames (the last one shorter),
     drive i in a room of the floor-plan family i mod 5, each drive seeded from (`seed`, i); `rough`:
-    the rough-wall variant."""
+    the rough-wall variant; `elevation_deg`: the beamformer's elevations (`ProcessingConfig`)."""
     if frames < 1 or episode_frames < 1:
         raise ValueError(f"frames and episode_frames must be >= 1, got {frames} and {episode_frames}")
     check_seed(seed, "seed")
-    config = _settings(frames, seed, episode_frames, rough)
+    config = _settings(frames, seed, episode_frames, rough, elevation_deg)
     run_id = plan_id(config | {"format_version": FORMAT_VERSION, "scenes_revision": scenes.REVISION})
     suite = {"name": SUITE_ROUGH if rough else SUITE, "config": config}
     tasks = []
@@ -324,11 +333,15 @@ def generate_crossengine(
     progress: bool = True,
     episode_frames: int = EPISODE_FRAMES,
     rough: bool = False,
+    elevation_deg: float | tuple[float, ...] = 0.0,
 ) -> dict:
     """Write (or finish) the crossengine test set (`rough`: its rough-wall variant) in `out` with
     generate's machinery (`make_dataset`: plan.json, lock, resume, repair of damaged shards,
-    manifest.json with its `use`, and the dataset card); returns the same summary as `generate`."""
-    tasks = plan_crossengine(out, frames=frames, seed=seed, episode_frames=episode_frames, rough=rough)
+    manifest.json with its `use`, and the dataset card); returns the same summary as `generate`.
+    `elevation_deg`: the beamformer's elevations, one or an increasing sequence."""
+    tasks = plan_crossengine(
+        out, frames=frames, seed=seed, episode_frames=episode_frames, rough=rough, elevation_deg=elevation_deg
+    )
     meta = {"suite": tasks[0].suite["name"], "frames": frames, "shards": len(tasks), "seed": seed}
     meta |= {"engine": tasks[0].suite["config"]["engine"], "use": USE}
     return make_dataset(
