@@ -20,7 +20,7 @@ sys.path.insert(0, str(ROOT))
 
 from benchmarks.provenance import provenance, relative  # noqa: E402
 from learn.checkpoint import load_checkpoint  # noqa: E402
-from learn.data import DataConfig, Windows, load_frames  # noqa: E402
+from learn.data import DataConfig, Windows, level_slice, load_frames  # noqa: E402
 from learn.evaluate import ECHO_PEAK_LEVEL, model_predictor, model_windows, plain_windows  # noqa: E402
 from learn.grid_baselines import grid_predictors  # noqa: E402
 from learn.models import ModelConfig  # noqa: E402
@@ -51,7 +51,7 @@ def main() -> None:
         name, _, path = item.partition("=")
         models[name] = load_checkpoint(path, args.device)
     first = DataConfig(**next(iter(models.values()))[1]["data_config"])
-    windows = Windows(frames, plain_windows(first), args.device)
+    windows = Windows(level_slice(frames), plain_windows(first), args.device)  # the grids' and labels': the level slice
     episode = int(windows.episode[0]) if args.episode is None else args.episode
     indices = np.flatnonzero(windows.episode == episode)
     if not len(indices):

@@ -25,7 +25,7 @@ from benchmarks.provenance import markdown as provenance_line  # noqa: E402
 from benchmarks.provenance import provenance, relative  # noqa: E402
 from learn.checkpoint import load_checkpoint  # noqa: E402
 from learn.cli import named_folder  # noqa: E402
-from learn.data import DataConfig, Windows, load_frames  # noqa: E402
+from learn.data import DataConfig, Windows, level_slice, load_frames  # noqa: E402
 from learn.evaluate import (  # noqa: E402
     BASELINE_THRESHOLD,
     echo_peak_predictor,
@@ -108,7 +108,7 @@ def main() -> None:
         true, hit = found(model_predictor(model), model_windows(frames, ckpt, args.device), float(ckpt["threshold"]))
         hits.append(hit)
         print(f"{run}: recall {hit[np.isfinite(true)].mean():.3f}", flush=True)
-    windows = Windows(frames, plain_windows(config), args.device)
+    windows = Windows(level_slice(frames), plain_windows(config), args.device)  # the echo peak's: the level slice
     _, peak = found(echo_peak_predictor(windows.config.label_offset), windows, BASELINE_THRESHOLD)
     angle = incidence_deg(true, np.asarray(frames.azimuth_rad))
     has = np.isfinite(true)
