@@ -1,0 +1,121 @@
+#!/usr/bin/env bash
+# Issue 40's study: does the array's elevation help a model read walls off another engine's and a
+# real-like sensor's echoes? The protocol of sim2real_study.sh and memory_study.sh (randomised suite,
+# 3 secondary bounces, FRAMES frames, seeds 0-2, early stopping on validation scan F1, each run's
+# return threshold calibrated on its own validation windows only), with the augmentation and row
+# contrast the sim-to-real study chose, on one dataset beamformed at ELEVATIONS, in two arms:
+#
+#   e1   polar UNet, K = 5, the level slice alone (model.elevation_deg=[0]): today's model, which
+#        trains bit for bit as on a dataset beamformed at 0 deg only
+#   e3   polar UNet, K = 5, every elevation as input channels
+#
+# Scored by `learn evaluate` (both arms of a seed side by side, with the echo peak and the empty
+# image; no occupancy grids) on the held-out episodes of the training data, on `reality`, on
+# `crossengine` and `crossengine_rough` (another engine, specular and rough walls; never trained,
+# stopped or calibrated on) and on a fresh drive (the paper suite, seed 1000), every test set
+# beamformed at the same ELEVATIONS. Then recall by incidence on both crossengine sets, and
+# elevation_study_summary.py.
+#
+#   bash benchmarks/elevation_study.sh gen   WORKDIR           # the training data
+#   bash benchmarks/elevation_study.sh tests WORKDIR           # the test sets (while training runs)
+#   bash benchmarks/elevation_study.sh train WORKDIR SEED...   # both arms of each seed, side by side
+#   bash benchmarks/elevation_study.sh score WORKDIR SEED...
+#   bash benchmarks/elevation_study.sh pack  WORKDIR DEST      # DEST/study.tgz.part* (cat | tar -xz)
+#
+# Environment: FRAMES (40000), ELEVATIONS ([-20,0,20]), REALITY_FRAMES (the suite's 1,500),
+# CROSS_FRAMES (1000), FRESH_FRAMES (1000), DEVICE (cuda; GPUS=2 spreads runs over cuda:0..),
+# GEN_DEVICE (cuda:0), WORKERS (8), CROSS_WORKERS (12), MINUTES (per run, 12), EPOCHS (100),
+# PATIENCE (4), SUBEPOCH (12000), VAL (2000).
+set -euo pipefail
+phase=$1 W=$2
+shift 2
+export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
+D=$W/data
+DEVICE=${DEVICE:-cuda}
+ARMS=(e1 e3)
+ELEVATIONS=${ELEVATIONS:-[-20,0,20]}
+BEAMS=(--set "processing.elevation_deg=$ELEVATIONS")
+mkdir -p "$W/logs" "$W/runs" "$W/scores" "$W/summary"
+python benchmarks/provenance.py write "$W/logs/provenance-$phase-$(date -u +%Y%m%dT%H%M%SZ).json" --device "$DEVICE"
+
+arm_options() { # the options that make an arm
+  case $1 in
+  e1) echo "--set model.elevation_deg=[0]" ;;
+  e3) echo "" ;;
+  *)
+    echo "unknown arm $1" >&2
+    exit 2
+    ;;
+  esac
+}
+
+case $phase in
+gen)
+  python -m acoustic_sim generate --suite randomised --variants bounces_3 --frames "${FRAMES:-40000}" \
+    --out "$D/randomised" "${BEAMS[@]}" --workers "${WORKERS:-8}" --device "${GEN_DEVICE:-cuda:0}" --seed 0 --quiet
+  ;;
+tests)
+  GEN=(--workers "${WORKERS:-8}" --device "${GEN_DEVICE:-cuda:0}" --quiet "${BEAMS[@]}")
+  CROSS=(--frames "${CROSS_FRAMES:-1000}" --workers "${CROSS_WORKERS:-12}" --device "${GEN_DEVICE:-cuda:0}" --seed 0
+    --quiet "${BEAMS[@]}")
+  python -m acoustic_sim generate --suite crossengine --out "$D/crossengine" "${CROSS[@]}" &
+  python -m acoustic_sim generate --suite crossengine_rough --out "$D/crossengine_rough" "${CROSS[@]}" &
+  python -m acoustic_sim generate --suite reality ${REALITY_FRAMES:+--frames "$REALITY_FRAMES"} --out "$D/reality" \
+    "${GEN[@]}" --seed 0
+  python -m acoustic_sim generate --suite paper --frames "${FRESH_FRAMES:-1000}" --out "$D/fresh" "${GEN[@]}" --seed 1000
+  wait
+  ;;
+train)
+  graphs=$([[ $DEVICE == cuda* ]] && echo --cuda-graphs || true)
+  n=0
+  for s in "$@"; do
+    for arm in "${ARMS[@]}"; do
+      dev=$DEVICE
+      [[ -n ${GPUS:-} ]] && dev=cuda:$((n % GPUS))
+      n=$((n + 1))
+      run=(python -m learn train --data "$D/randomised/bounces_3" --out "$W/runs/seed$s/$arm" --model polar_unet
+        $(arm_options "$arm") --frames 5 --set model.row_contrast=true --seed "$s" --loss bce --lr 1e-3
+        --batch-size 16 --epochs "${EPOCHS:-100}" --patience "${PATIENCE:-4}" --max-train-windows "${SUBEPOCH:-12000}"
+        --max-val-windows "${VAL:-2000}" --max-minutes "${MINUTES:-12}" --resume --device "$dev" --quiet)
+      # CUDA graphs where they compile; a run they fail for starts again eagerly (same seed, same draws)
+      ("${run[@]}" $graphs || "${run[@]}") >> "$W/logs/seed${s}_$arm.log" 2>&1 &
+    done
+  done
+  wait
+  ;;
+score)
+  for s in "$@"; do
+    ckpts=()
+    for arm in "${ARMS[@]}"; do ckpts+=(--checkpoint "$arm=$W/runs/seed$s/$arm/best.pt"); done
+    for test in validation reality crossengine crossengine_rough fresh; do
+      data=$D/$test
+      [[ $test == validation ]] && data=$D/randomised/bounces_3 # its held-out episodes
+      python -m learn evaluate "${ckpts[@]}" --data "$data" --out "$W/scores/seed$s/$test" --no-grids \
+        --device "$DEVICE" --quiet --overwrite >> "$W/logs/score_seed${s}_$test.log" 2>&1 &
+    done
+  done
+  for arm in "${ARMS[@]}"; do
+    runs=()
+    for s in "$@"; do runs+=("$W/runs/seed$s/$arm"); done
+    for test in crossengine crossengine_rough reality; do
+      python benchmarks/recall_by_incidence.py "${runs[@]}" --test "$test=$D/$test" \
+        --out "$W/summary/recall_by_incidence_${test}_$arm.md" --device "$DEVICE" >> "$W/logs/recall.log" 2>&1 &
+    done
+  done
+  wait
+  python benchmarks/elevation_study_summary.py "$W" --out "$W/summary/elevation_study.md"
+  ;;
+pack)
+  for ckpt in "$W"/runs/seed*/*/best.pt; do
+    python -c "import sys; from learn.checkpoint import strip_checkpoint; strip_checkpoint(*sys.argv[1:])" \
+      "$ckpt" "${ckpt%.pt}_weights.pt"
+  done
+  mkdir -p "$1"
+  tar -czf - -C "$W" --exclude=data --exclude=per_window.csv --exclude=last.pt --exclude=best.pt --exclude=tensorboard . |
+    split -b 15M - "$1/study.tgz.part"
+  ;;
+*)
+  echo "usage: $0 gen|tests|train|score|pack WORKDIR ..." >&2
+  exit 2
+  ;;
+esac
