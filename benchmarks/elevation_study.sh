@@ -36,7 +36,7 @@ ARMS=(e1 e3)
 ELEVATIONS=${ELEVATIONS:-[-20,0,20]}
 BEAMS=(--set "processing.elevation_deg=$ELEVATIONS")
 mkdir -p "$W/logs" "$W/runs" "$W/scores" "$W/summary"
-python benchmarks/provenance.py write "$W/logs/provenance-$phase-$(date -u +%Y%m%dT%H%M%SZ).json" --device "$DEVICE"
+python3 benchmarks/provenance.py write "$W/logs/provenance-$phase-$(date -u +%Y%m%dT%H%M%SZ).json" --device "$DEVICE"
 
 arm_options() { # the options that make an arm
   case $1 in
@@ -51,18 +51,18 @@ arm_options() { # the options that make an arm
 
 case $phase in
 gen)
-  python -m acoustic_sim generate --suite randomised --variants bounces_3 --frames "${FRAMES:-40000}" \
+  python3 -m acoustic_sim generate --suite randomised --variants bounces_3 --frames "${FRAMES:-40000}" \
     --out "$D/randomised" "${BEAMS[@]}" --workers "${WORKERS:-8}" --device "${GEN_DEVICE:-cuda:0}" --seed 0 --quiet
   ;;
 tests)
   GEN=(--workers "${WORKERS:-8}" --device "${GEN_DEVICE:-cuda:0}" --quiet "${BEAMS[@]}")
   CROSS=(--frames "${CROSS_FRAMES:-1000}" --workers "${CROSS_WORKERS:-12}" --device "${GEN_DEVICE:-cuda:0}" --seed 0
     --quiet "${BEAMS[@]}")
-  python -m acoustic_sim generate --suite crossengine --out "$D/crossengine" "${CROSS[@]}" &
-  python -m acoustic_sim generate --suite crossengine_rough --out "$D/crossengine_rough" "${CROSS[@]}" &
-  python -m acoustic_sim generate --suite reality ${REALITY_FRAMES:+--frames "$REALITY_FRAMES"} --out "$D/reality" \
+  python3 -m acoustic_sim generate --suite crossengine --out "$D/crossengine" "${CROSS[@]}" &
+  python3 -m acoustic_sim generate --suite crossengine_rough --out "$D/crossengine_rough" "${CROSS[@]}" &
+  python3 -m acoustic_sim generate --suite reality ${REALITY_FRAMES:+--frames "$REALITY_FRAMES"} --out "$D/reality" \
     "${GEN[@]}" --seed 0
-  python -m acoustic_sim generate --suite paper --frames "${FRESH_FRAMES:-1000}" --out "$D/fresh" "${GEN[@]}" --seed 1000
+  python3 -m acoustic_sim generate --suite paper --frames "${FRESH_FRAMES:-1000}" --out "$D/fresh" "${GEN[@]}" --seed 1000
   wait
   ;;
 train)
@@ -73,7 +73,7 @@ train)
       dev=$DEVICE
       [[ -n ${GPUS:-} ]] && dev=cuda:$((n % GPUS))
       n=$((n + 1))
-      run=(python -m learn train --data "$D/randomised/bounces_3" --out "$W/runs/seed$s/$arm" --model polar_unet
+      run=(python3 -m learn train --data "$D/randomised/bounces_3" --out "$W/runs/seed$s/$arm" --model polar_unet
         $(arm_options "$arm") --frames 5 --set model.row_contrast=true --seed "$s" --loss bce --lr 1e-3
         --batch-size 16 --epochs "${EPOCHS:-100}" --patience "${PATIENCE:-4}" --max-train-windows "${SUBEPOCH:-12000}"
         --max-val-windows "${VAL:-2000}" --max-minutes "${MINUTES:-12}" --resume --device "$dev" --quiet)
@@ -90,7 +90,7 @@ score)
     for test in validation reality crossengine crossengine_rough fresh; do
       data=$D/$test
       [[ $test == validation ]] && data=$D/randomised/bounces_3 # its held-out episodes
-      python -m learn evaluate "${ckpts[@]}" --data "$data" --out "$W/scores/seed$s/$test" --no-grids \
+      python3 -m learn evaluate "${ckpts[@]}" --data "$data" --out "$W/scores/seed$s/$test" --no-grids \
         --device "$DEVICE" --quiet --overwrite >> "$W/logs/score_seed${s}_$test.log" 2>&1 &
     done
   done
@@ -98,16 +98,16 @@ score)
     runs=()
     for s in "$@"; do runs+=("$W/runs/seed$s/$arm"); done
     for test in crossengine crossengine_rough reality; do
-      python benchmarks/recall_by_incidence.py "${runs[@]}" --test "$test=$D/$test" \
+      python3 benchmarks/recall_by_incidence.py "${runs[@]}" --test "$test=$D/$test" \
         --out "$W/summary/recall_by_incidence_${test}_$arm.md" --device "$DEVICE" >> "$W/logs/recall.log" 2>&1 &
     done
   done
   wait
-  python benchmarks/elevation_study_summary.py "$W" --out "$W/summary/elevation_study.md"
+  python3 benchmarks/elevation_study_summary.py "$W" --out "$W/summary/elevation_study.md"
   ;;
 pack)
   for ckpt in "$W"/runs/seed*/*/best.pt; do
-    python -c "import sys; from learn.checkpoint import strip_checkpoint; strip_checkpoint(*sys.argv[1:])" \
+    python3 -c "import sys; from learn.checkpoint import strip_checkpoint; strip_checkpoint(*sys.argv[1:])" \
       "$ckpt" "${ckpt%.pt}_weights.pt"
   done
   mkdir -p "$1"

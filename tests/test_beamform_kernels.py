@@ -1,6 +1,7 @@
 """Beamformer kernels: the GPU's envelope kernel gives the CPU's bits."""
 
 import numpy as np
+import pytest
 import warp as wp
 
 import acoustic_sim as sim
@@ -10,6 +11,7 @@ from acoustic_sim.engine.kernels import beamform as kernels
 CONFIG = sim.SonarConfig.ertis()
 
 
+@pytest.mark.skipif(not wp.is_cpu_available(), reason="this Warp build compiles no CPU kernels (a GPU-only bundle)")
 def test_gpu_envelope_kernel_gives_the_cpu_kernels_bits():
     """`envelope_rows` (GPUs: a block per beam row, the row in shared memory) and
     `envelope_on_grid` (the CPU's) give the same bits for 2 pings x 2 elevations x 7 azimuths of
