@@ -244,7 +244,9 @@ def build_parser(base=None) -> argparse.ArgumentParser:
     p.set_defaults(handler=_evaluate)
     p = sub.add_parser("predict", formatter_class=fmt, parents=[common], **COMMANDS["predict"])
     p.add_argument("--checkpoint", required=True, help="the model (.pt) to run")
-    p.add_argument("--input", required=True, help="dataset folder, or .npy of energyscapes (N, R, A) in time order")
+    p.add_argument(
+        "--input", required=True, help="dataset folder, or .npy of energyscapes (N, R, A) or (N, E, R, A) in time order"
+    )
     p.add_argument("--out", required=True, help=".npz to write")
     p.add_argument("--png", default=None, help="also draw four predictions spread over the input here (.png)")
     p.add_argument(

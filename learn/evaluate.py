@@ -64,7 +64,7 @@ def score(
     batch_size: int = 32,
     progress: str | None = None,
 ) -> dict[str, np.ndarray]:
-    """Per-window metrics (`learn.metrics.image_metrics`) of a predictor x (B, 1, K, R, A) -> image
+    """Per-window metrics (`learn.metrics.image_metrics`) of a predictor x (B, E, K, R, A) -> image
     (B, 1, R, A) in [0, 1], whose cells >= threshold are returns. `progress` names a progress bar."""
     bar = tqdm(total=len(indices), desc=progress, unit="win", disable=progress is None, leave=False)
     per = score_predictions(predict_batches(predict, windows, indices, batch_size), windows, threshold, bar.update)

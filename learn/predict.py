@@ -6,7 +6,8 @@ threshold, inf where there is none.
 
 Recorded data: process the microphone signals with `acoustic_sim.engine.beamform.energyscape` (same
 grid as training, one ping per frame at the training frame rate) and save the result as a
-.npy (N, R, A) in time order; every window of K consecutive frames gets a prediction.
+.npy (N, R, A) (or (N, E, R, A) at the model's elevations) in time order; every window of K
+consecutive frames gets a prediction.
 """
 
 from __future__ import annotations

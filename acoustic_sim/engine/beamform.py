@@ -215,7 +215,8 @@ def energyscape(
     device=None,
     **settings,
 ) -> np.ndarray:
-    """Energyscapes of pings: reflected energy over range x azimuth, float32 (N, R, A).
+    """Energyscapes of pings: reflected energy over range x azimuth, float32 (N, R, A), or
+    (N, E, R, A) for a sequence of E elevations.
 
     Processing as on the eRTIS: matched filter with the call; delay-and-sum beamforming with
     far-field delays (m . u) / c for each azimuth of the grid at the elevation; envelope

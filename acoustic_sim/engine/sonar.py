@@ -72,7 +72,7 @@ class Sonar:
         return record(arrivals, self.config, pose_count=pose_count, device=self.device, **options)
 
     def energyscape(self, signals: np.ndarray, processing: ProcessingConfig | None = None, **settings) -> np.ndarray:
-        """Energyscapes (N, R, A) of signals recorded with this sonar; see `beamform.energyscape`."""
+        """Energyscapes (N, R, A) (or (N, E, R, A)) of signals recorded with this sonar; see `beamform.energyscape`."""
         return energyscape(signals, self.config, processing, device=self.device, **settings)
 
     def simulate(
@@ -228,7 +228,8 @@ def batch_copies(device, shape: tuple[int, ...]) -> BatchCopies:
 
 @dataclass
 class SonarFrames:
-    """Output of `Sonar.simulate`: energyscapes (N, R, A) and, if kept, signals (N, mics, samples)."""
+    """Output of `Sonar.simulate`: energyscapes (N, R, A), or (N, E, R, A) at E elevations, and,
+    if kept, signals (N, mics, samples)."""
 
     energyscape: np.ndarray
     signals: np.ndarray | None = None

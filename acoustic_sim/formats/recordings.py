@@ -6,9 +6,9 @@ Each file is one measurement (or `samples_per_ping` words split a long stream in
 time order). The PDM is decoded by `signals.pdm_to_pcm`, and the PCM goes through the same
 `beamform.energyscape` as our simulated pings, with the rig's array geometry, call and grid
 (`--set sonar...` for another sensor or call). Time zero of a measurement is taken as the start
-of the call, as the eRTIS records. Writes the energyscapes (N, R, A) float32 to `out`, a picture
-of the first pings beside it (.png) and what was done (.json), so `learn predict --input rec.npy`
-can take them.
+of the call, as the eRTIS records. Writes the energyscapes (N, R, A) float32 ((N, E, R, A) for
+several elevations) to `out`, a picture of the first pings beside it (.png) and what was done
+(.json), so `learn predict --input rec.npy` can take them.
 """
 
 from __future__ import annotations
