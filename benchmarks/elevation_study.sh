@@ -106,13 +106,7 @@ score)
   python3 benchmarks/elevation_study_summary.py "$W" --out "$W/summary/elevation_study.md"
   ;;
 pack)
-  for ckpt in "$W"/runs/seed*/*/best.pt; do
-    python3 -c "import sys; from learn.checkpoint import strip_checkpoint; strip_checkpoint(*sys.argv[1:])" \
-      "$ckpt" "${ckpt%.pt}_weights.pt"
-  done
-  mkdir -p "$1"
-  tar -czf - -C "$W" --exclude=data --exclude=per_window.csv --exclude=last.pt --exclude=best.pt --exclude=tensorboard . |
-    split -b 15M - "$1/study.tgz.part"
+  bash benchmarks/pack_study.sh "$W" "$1"
   ;;
 *)
   echo "usage: $0 gen|tests|train|score|pack WORKDIR ..." >&2

@@ -113,15 +113,7 @@ score)
   python benchmarks/memory_study_summary.py "$W" --out "$W/summary/memory_study.md"
   ;;
 pack)
-  # what comes back from the GPU machine: reports, summaries, logs, histories and each run's best.pt
-  # without its optimizer state, in parts of 15 MB
-  for ckpt in "$W"/runs/seed*/*/best.pt; do
-    python -c "import sys; from learn.checkpoint import strip_checkpoint; strip_checkpoint(*sys.argv[1:])" \
-      "$ckpt" "${ckpt%.pt}_weights.pt"
-  done
-  mkdir -p "$1"
-  tar -czf - -C "$W" --exclude=data --exclude=per_window.csv --exclude=last.pt --exclude=best.pt --exclude=tensorboard . |
-    split -b 15M - "$1/study.tgz.part"
+  bash benchmarks/pack_study.sh "$W" "$1"
   ;;
 *)
   echo "usage: $0 gen|train|score|pack WORKDIR ..." >&2
