@@ -439,7 +439,7 @@ def _redrawn(ckpt: dict, model_config: dict) -> tuple[dict, torch.nn.Module]:
     return {**ckpt, "model_config": model_config, "model": model.state_dict(), "threshold": 0.5}, model.eval()
 
 
-def test_a_model_of_three_elevations_predicts_from_the_bag_as_from_its_dataset(three_elevation_bag, tmp_path):
+def test_a_model_of_three_elevations_predicts_from_the_bag_as_from_its_dataset(three_elevation_bag, tmp_path, capsys):
     """A polar UNet trained one epoch on the E = 3 data (weights then drawn again, so that its
     images follow every elevation: reversing them changes the images), streamed by `learn predict`
     over the exported bag, gives the folder's images and scans exactly."""
@@ -473,6 +473,10 @@ def test_a_model_of_three_elevations_predicts_from_the_bag_as_from_its_dataset(t
         got[name] = dict(np.load(tmp_path / f"{name}.npz"))
     for key in ("frame", "prediction", "ranges"):
         np.testing.assert_array_equal(got["bag"][key], got["folder"][key])
+    batch = ["predict", "--checkpoint", str(checkpoint), "--input", str(bag), "--out", str(tmp_path / "batch.npz")]
+    capsys.readouterr()
+    assert learn_main(batch) == 2  # batch prediction reads folders and arrays; it points to --stream
+    assert "is an MCAP bag: `learn predict --stream` reads bags" in capsys.readouterr().err
     assert (
         len(got["folder"]["frame"]) == 12
         and np.ptp(got["folder"]["prediction"].astype(np.float32), axis=0).max() > 0.05
