@@ -2,9 +2,11 @@
 `mcap-ros2-support` packages; learn never imports the simulator, so what its exporter writes is
 read here again, and tests/test_predict_stream.py holds the two sides equal).
 
-In: sonar frames as `sensor_msgs/Image` 32FC1 on /sonar/energyscape (row i range bin i from near
-to far, column j azimuth j from the grid's minimum, as `python -m acoustic_sim export --format
-mcap` writes them) and the sensor's poses as `tf2_msgs/TFMessage` on /tf (a parent frame, world or
+In: sonar frames as `sensor_msgs/Image` 32FC1 (row i range bin i from near to far, column j
+azimuth j from the grid's minimum, as `python -m acoustic_sim export --format mcap` writes them):
+on /sonar/energyscape for data of one elevation (read as the level slice, 0 deg), or one topic per
+elevation, /sonar/energyscape/elevation_<angle>_deg (`topic_elevation`), whose images of one ping
+share its stamp; and the sensor's poses as `tf2_msgs/TFMessage` on /tf (a parent frame, world or
 odom, to the images' frame). A frame's pose is the transform stamped as the image, or the two
 around it interpolated; a recording whose images fall outside its /tf has no poses. A new drive
 starts wherever no image came for DRIVE_GAP_S.
@@ -15,6 +17,8 @@ shows the predicted scan in the world.
 
 from __future__ import annotations
 
+import itertools
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,6 +31,8 @@ from .odometry import planar
 from .ros import EPISODE_GAP_S, LASER_SCAN, laser_scan
 
 IMAGE_TOPIC, TF_TOPIC = "/sonar/energyscape", "/tf"
+ELEVATION_TOPIC = re.compile(re.escape(IMAGE_TOPIC) + r"/elevation_(?P<angle>[^/]*)_deg")
+_ANGLE = re.compile(r"m?[0-9]+(p[0-9]+)?")  # the exporter's spelling: m for the minus, p for the point
 DRIVE_GAP_S = EPISODE_GAP_S / 2  # the exporter leaves EPISODE_GAP_S between drives; frames come every 0.1 s
 INSTALL = "pip install -e '.[ros]'"
 
@@ -71,10 +77,32 @@ class Recording:
     note: str = ""
 
 
+def topic_elevation(topic: str) -> float | None:
+    """The elevation [deg] of the energyscapes on an Image topic, as the exporter names its topics
+    (`acoustic_sim.formats.mcap_export.energyscape_topics`, restated here): IMAGE_TOPIC holds a
+    dataset of one elevation, read as the level slice (0 deg); IMAGE_TOPIC/elevation_<angle>_deg
+    one of several, the angle spelt with `m` for its minus and `p` for its point
+    (elevation_m20_deg: -20, elevation_12p5_deg: 12.5). None for any other topic (/tf, /scan, an
+    image_transport topic such as IMAGE_TOPIC/compressed); ValueError for an elevation topic whose
+    angle does not read."""
+    if topic == IMAGE_TOPIC:
+        return 0.0
+    match = ELEVATION_TOPIC.fullmatch(topic)
+    if match is None:
+        return None
+    if not _ANGLE.fullmatch(match["angle"]):
+        raise ValueError(
+            f"the topic {topic} names no angle (expected {IMAGE_TOPIC}/elevation_<angle>_deg with the angle in "
+            "digits, m for a minus and p for a point: elevation_m20_deg, elevation_12p5_deg)"
+        )
+    return float(match["angle"].replace("m", "-").replace("p", ".")) + 0.0  # + 0.0: m0 is 0
+
+
 def read_bag(path: str | Path, range_m, azimuth_rad) -> Recording:
     """The sonar frames and poses of an MCAP bag on the grid (range_m, azimuth_rad) a checkpoint
-    reads; refused naming the file where it is not an MCAP file, holds no frames, or frames of
-    another encoding or size."""
+    reads, its elevations in increasing order; refused naming the file where it is not an MCAP
+    file, holds no frames, frames of another encoding or size, both image layouts, or elevation
+    topics that do not hold one image per ping each (naming the topic)."""
     try:
         from mcap.reader import make_reader
         from mcap_ros2.decoder import DecoderFactory
@@ -82,19 +110,29 @@ def read_bag(path: str | Path, range_m, azimuth_rad) -> Recording:
         raise MissingExtra(f"reading an MCAP bag needs the `ros` extra: {INSTALL}") from None
     path = regular_file(path, "--input")
     grid = (len(range_m), len(azimuth_rad))
-    images, frame_ids, tf = [], set(), []
+    images, angles, frame_ids, tf = {}, {}, set(), []  # images: {topic: [(stamp, (R, A) pixels)]}
     try:
         with open(path, "rb") as f:
-            reader = make_reader(f, decoder_factories=[DecoderFactory()])
-            _check_size(reader, path, grid)
-            for _, channel, _, message in reader.iter_decoded_messages(topics=[IMAGE_TOPIC, TF_TOPIC]):
-                if channel.topic == IMAGE_TOPIC:
-                    images.append((_stamp(message.header), _pixels(message, path, grid)))
-                    frame_ids.add(message.header.frame_id)
-                else:
-                    tf += [
-                        (_stamp(t.header), t.header.frame_id, t.child_frame_id, t.transform) for t in message.transforms
-                    ]
+            reader, decode = make_reader(f), _Decoder(DecoderFactory())
+            summary = reader.get_summary()
+            topics = None  # an unindexed bag: every message is looked at, only ours decoded
+            if summary is not None:
+                topics = [c.topic for c in summary.channels.values() if _elevation(c.topic, path) is not None]
+                if summary.statistics is not None:
+                    _check_size(summary, topics, path, grid)
+                topics += [TF_TOPIC]
+            for schema, channel, message in reader.iter_messages(topics=topics):
+                if channel.topic == TF_TOPIC:
+                    transforms = decode(schema, channel, message).transforms
+                    tf += [(_stamp(t.header), t.header.frame_id, t.child_frame_id, t.transform) for t in transforms]
+                    continue
+                if channel.topic not in angles:
+                    angles[channel.topic] = _elevation(channel.topic, path)
+                if angles[channel.topic] is not None:
+                    image = decode(schema, channel, message)
+                    pixels = _pixels(image, channel.topic, path, grid)
+                    images.setdefault(channel.topic, []).append((_stamp(image.header), pixels))
+                    frame_ids.add(image.header.frame_id)
     except (DataError, TooLarge, OSError):
         raise
     except Exception as err:  # the mcap readers raise many kinds on a damaged or foreign file
@@ -102,22 +140,16 @@ def read_bag(path: str | Path, range_m, azimuth_rad) -> Recording:
         raise ValueError(
             f"--input {path} is not an MCAP bag this learner can read ({text[0] if text else err!r})"
         ) from None
-    if not images:
-        raise DataError(
-            f"--input {path} holds no {IMAGE_TOPIC} messages (sensor_msgs/Image 32FC1, as `python -m acoustic_sim "
-            "export --format mcap` writes them)"
-        )
+    topics = _image_topics(images, angles, path)
     if len(frame_ids) > 1:
-        raise DataError(f"--input {path}: the {IMAGE_TOPIC} images name {len(frame_ids)} frames {sorted(frame_ids)}")
-    order = np.argsort([s for s, _ in images], kind="stable")
-    stamps = np.array([images[i][0] for i in order], np.int64)
-    energy = np.stack([images[i][1] for i in order])
+        raise DataError(f"--input {path}: the sonar images name {len(frame_ids)} frames {sorted(frame_ids)}")
+    stamps, energy = _pings(images, topics, path, grid)
     sensor = frame_ids.pop()
     transforms, parent, note = _poses(tf, sensor, stamps)
     episode = np.cumsum(np.r_[0, np.diff(stamps) >= DRIVE_GAP_S * 1e9]).astype(np.int64)
     frames = Frames(
-        energyscape=energy[:, None],  # one elevation: the level slice
-        label=np.zeros(energy.shape, np.uint8),
+        energyscape=energy,
+        label=np.zeros((len(stamps), *grid), np.uint8),
         episode=episode,
         scenario=np.zeros(len(stamps), np.int64),
         scenarios=["recorded"],
@@ -125,20 +157,94 @@ def read_bag(path: str | Path, range_m, azimuth_rad) -> Recording:
         azimuth_rad=np.asarray(azimuth_rad, np.float64),
         info={"folder": recorded_path(path)},
         pose=None if transforms is None else planar(transforms),
+        elevation_deg=tuple(angles[t] for t in topics),
     )
     return Recording(frames, stamps, transforms, parent or "world", sensor, note)
 
 
-def _check_size(reader, path: Path, grid: tuple[int, int]) -> None:
+class _Decoder:
+    """Decodes the ROS 2 messages of a bag, a decoder per channel (only those read are decoded:
+    a bag may hold messages of types this reader has no definition for)."""
+
+    def __init__(self, factory):
+        self.factory, self.decoders = factory, {}
+
+    def __call__(self, schema, channel, message):
+        if channel.id not in self.decoders:
+            decoder = self.factory.decoder_for(channel.message_encoding, schema)
+            if decoder is None:
+                raise ValueError(f"{channel.topic} is encoded as {channel.message_encoding!r}, not ROS 2's cdr")
+            self.decoders[channel.id] = decoder
+        return self.decoders[channel.id](message.data)
+
+
+def _elevation(topic: str, path: Path) -> float | None:
+    """`topic_elevation`, refused naming the bag."""
+    try:
+        return topic_elevation(topic)
+    except ValueError as err:
+        raise DataError(f"--input {path}: {err}") from None
+
+
+def _image_topics(images: dict, angles: dict, path: Path) -> list[str]:
+    """The image topics read, in increasing elevation; refused where there are none, where both
+    layouts (IMAGE_TOPIC and per-elevation topics) are mixed, or where two name one angle."""
+    if not images:
+        raise DataError(
+            f"--input {path} holds no sonar images: sensor_msgs/Image 32FC1 on {IMAGE_TOPIC}, or one topic per "
+            f"elevation {IMAGE_TOPIC}/elevation_<angle>_deg, as `python -m acoustic_sim export --format mcap` "
+            "writes them"
+        )
+    if IMAGE_TOPIC in images and len(images) > 1:
+        others = sorted(t for t in images if t != IMAGE_TOPIC)
+        raise DataError(
+            f"--input {path} holds images on {IMAGE_TOPIC} and on the elevation topics {others}: one bag holds "
+            f"one layout; keep one (`mcap filter --exclude-topic-regex`)"
+        )
+    topics = sorted(images, key=lambda t: angles[t])
+    for below, above in itertools.pairwise(topics):
+        if angles[below] == angles[above]:
+            raise DataError(f"--input {path}: the topics {below} and {above} name one elevation, {angles[below]:g} deg")
+    return topics
+
+
+def _pings(images: dict, topics: list[str], path: Path, grid: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """(T,) int64 stamps [ns] and (T, E, R, A) float32 energyscapes of the pings, in time order:
+    image k of each topic (in stamp order) is elevation e of ping k. Refused naming the topic
+    where one holds another count of images, or stamps them otherwise, than the first."""
+    first = topics[0]
+    order = {t: np.argsort([s for s, _ in images[t]], kind="stable") for t in topics}
+    stamps = np.array([images[first][i][0] for i in order[first]], np.int64)
+    for topic in topics[1:]:
+        if len(images[topic]) != len(stamps):
+            raise DataError(
+                f"--input {path}: {topic} holds {len(images[topic])} images, {first} {len(stamps)}: every elevation "
+                "of a ping needs its image"
+            )
+        theirs = np.array([images[topic][i][0] for i in order[topic]], np.int64)
+        if (differ := np.flatnonzero(theirs != stamps)).size:
+            k = int(differ[0])
+            raise DataError(
+                f"--input {path}: {topic}'s image {k} (in time order) is stamped {_seconds(theirs[k])}, {first}'s "
+                f"{_seconds(stamps[k])}: the images of one ping, one per elevation, share its stamp"
+            )
+    energy = np.empty((len(stamps), len(topics), *grid), np.float32)
+    for e, topic in enumerate(topics):
+        for k, i in enumerate(order[topic]):
+            energy[k, e] = images[topic][i][1]
+    return stamps, energy
+
+
+def _check_size(summary, topics: list[str], path: Path, grid: tuple[int, int]) -> None:
     """Refuse a bag whose frames, as its summary counts them, would not fit in memory."""
-    summary = reader.get_summary()
-    if summary is None or summary.statistics is None:
-        return  # an unindexed bag: it is read as it comes
-    ids = [i for i, c in summary.channels.items() if c.topic == IMAGE_TOPIC]
-    count = sum(summary.statistics.channel_message_counts.get(i, 0) for i in ids)
+    counts = {t: 0 for t in topics}
+    for i, channel in summary.channels.items():
+        if channel.topic in counts:
+            counts[channel.topic] += summary.statistics.channel_message_counts.get(i, 0)
+    images, pings = sum(counts.values()), max(counts.values(), default=0)
     check_fits(
-        count * grid[0] * grid[1] * 9,  # float32 frames as read and stacked, uint8 labels
-        f"--input {path} ({count:,} sonar frames of {grid[0]} x {grid[1]})",
+        (images * 8 + pings) * grid[0] * grid[1],  # float32 images as read and stacked, uint8 labels
+        f"--input {path} ({images:,} sonar images of {grid[0]} x {grid[1]})",
         "split the bag (`mcap filter --start/--end`) and predict a stretch at a time",
     )
 
@@ -147,24 +253,28 @@ def _stamp(header) -> int:
     return int(header.stamp.sec) * 10**9 + int(header.stamp.nanosec)
 
 
-def _pixels(image, path: Path, grid: tuple[int, int]) -> np.ndarray:
+def _seconds(stamp_ns: int) -> str:
+    return f"{int(stamp_ns) // 10**9}.{int(stamp_ns) % 10**9:09d} s"
+
+
+def _pixels(image, topic: str, path: Path, grid: tuple[int, int]) -> np.ndarray:
     """An Image message's energyscape (R, A) float32, refused where not 32FC1 on the grid."""
     stamp = f"{image.header.stamp.sec}.{image.header.stamp.nanosec:09d} s"
     if image.encoding != "32FC1":
-        raise DataError(f"--input {path}: the {IMAGE_TOPIC} image at {stamp} is {image.encoding!r}, not 32FC1")
+        raise DataError(f"--input {path}: the {topic} image at {stamp} is {image.encoding!r}, not 32FC1")
     if (image.height, image.width) != grid:
         raise DataError(
-            f"--input {path}: the {IMAGE_TOPIC} image at {stamp} is {image.height} x {image.width}, but the model "
+            f"--input {path}: the {topic} image at {stamp} is {image.height} x {image.width}, but the model "
             f"reads {grid[0]} ranges x {grid[1]} azimuths"
         )
     data = bytes(image.data)
     if image.step != 4 * image.width or len(data) != image.step * image.height:
         raise DataError(
-            f"--input {path}: the {IMAGE_TOPIC} image at {stamp} has {len(data)} bytes, not {4 * grid[0] * grid[1]}"
+            f"--input {path}: the {topic} image at {stamp} has {len(data)} bytes, not {4 * grid[0] * grid[1]}"
         )
     pixels = np.frombuffer(data, ">f4" if image.is_bigendian else "<f4").reshape(grid).astype(np.float32)
     if not np.isfinite(pixels).all():
-        raise DataError(f"--input {path}: the {IMAGE_TOPIC} image at {stamp} holds NaN or inf values")
+        raise DataError(f"--input {path}: the {topic} image at {stamp} holds NaN or inf values")
     return pixels
 
 

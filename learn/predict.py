@@ -35,6 +35,8 @@ def read_input(source: Path, ckpt: dict) -> Frames:
     """The frames `predict` runs on: a dataset folder's, or the energyscapes of a `.npy` file."""
     if source.suffix == ".npy":
         return _frames_from_array(source, ckpt)
+    if source.suffix == ".mcap":
+        raise ValueError(f"--input {source} is an MCAP bag: `learn predict --stream` reads bags, frame by frame")
     if source.suffix == ".npz" or source.is_file():
         raise ValueError(
             f"--input {source} is a file, not a .npy: give a dataset folder, or energyscapes (N, R, A) (or (N, E, R, "

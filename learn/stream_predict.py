@@ -1,6 +1,7 @@
 """`learn predict --stream`: a checkpoint run frame by frame with state over a drive, as a robot
 runs it (`learn.stream.Stream`), on a dataset folder (simulated, or an imported recording), a
-.npy of energyscapes (no poses) or an MCAP bag (/sonar/energyscape and /tf, `learn.bag`).
+.npy of energyscapes (no poses) or an MCAP bag (/sonar/energyscape, or a topic per elevation, and
+/tf, `learn.bag`).
 
 It writes what `learn predict` writes (the .npz, and with `mcap` the scans on /scan_pred), the
 same windows' scans: each episode (each drive of a bag) is one stream, reset where the next

@@ -252,3 +252,232 @@ def test_bag_poses_are_the_transforms_at_the_frames_or_between_them():
     np.testing.assert_allclose(pose[:, 2, 3], 0.3)
     assert _poses(tf, "sensor", np.array([1, 5]))[2] == "1 of 2 sonar frames lie outside the time span of its /tf"
     assert _poses(tf, "sonar", np.array([1]))[0] is None
+
+
+# Bags of several elevations: one Image topic per elevation, as the exporter writes them.
+
+ELEVATIONS = (-20.0, 0.0, 20.0)
+
+
+@pytest.fixture(scope="module")
+def three_elevation_bag(tmp_path_factory, device):
+    """The tiny drives beamformed at -20, 0 and 20 deg (tests/test_elevations.py's data) and their
+    MCAP export: (folder, bag)."""
+    import dataclasses
+
+    from acoustic_sim.cli import main as simulator
+    from acoustic_sim.datasets.generate import generate
+    from acoustic_sim.datasets.suites import SUITES, Physics
+
+    suite = dataclasses.replace(
+        SUITES["tiny"], variants={"": Physics(ray_count=2000)}, settings=("processing.elevation_deg=[-20, 0, 20]",)
+    )
+    tmp = tmp_path_factory.mktemp("three_elevation_bag")
+    folder, bag = tmp / "data", tmp / "drive.mcap"
+    generate(suite, folder, frames=16, shards=2, seed=3, device=device, progress=False)
+    assert simulator(["export", str(folder), "--format", "mcap", "--out", str(bag)]) == 0
+    return folder, bag
+
+
+def _elevation_bag(path, topics: dict, height: int = 10, width: int = 20) -> None:
+    """An MCAP bag of 32FC1 images: for each topic, in the order given, {topic: stamps [ns]}; topic
+    j's images are filled with j + 1 (each topic's images told apart by their value)."""
+    from mcap_ros2.writer import Writer
+
+    from acoustic_sim.formats.mcap_export import IMAGE
+
+    messages = [(stamp, j, topic) for j, (topic, stamps) in enumerate(topics.items()) for stamp in stamps]
+    with open(path, "wb") as stream:
+        writer = Writer(stream)
+        schema = writer.register_msgdef("sensor_msgs/msg/Image", IMAGE)
+        for k, (stamp, j, topic) in enumerate(sorted(messages)):
+            message = {
+                "header": {"stamp": {"sec": stamp // 10**9, "nanosec": stamp % 10**9}, "frame_id": "sensor"},
+                "height": height,
+                "width": width,
+                "encoding": "32FC1",
+                "is_bigendian": 0,
+                "step": 4 * width,
+                "data": np.full((height, width), j + 1, "<f4").tobytes(),
+            }
+            writer.write_message(topic, schema, message, log_time=stamp, sequence=k)
+        writer.finish()
+
+
+def _unindexed(source, out) -> None:
+    """A copy of an MCAP file without chunks, indexes or summary, as a recorder cut off writes it."""
+    from mcap.reader import make_reader
+    from mcap.writer import IndexType, Writer
+
+    with open(source, "rb") as f, open(out, "wb") as stream:
+        writer = Writer(
+            stream,
+            index_types=IndexType.NONE,
+            use_chunking=False,
+            use_statistics=False,
+            use_summary_offsets=False,
+            repeat_channels=False,
+            repeat_schemas=False,
+        )
+        writer.start(profile="ros2", library="test")
+        schemas, channels = {}, {}
+        for schema, channel, message in make_reader(f).iter_messages():
+            if schema.id not in schemas:
+                schemas[schema.id] = writer.register_schema(schema.name, schema.encoding, schema.data)
+            if channel.id not in channels:
+                channels[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schemas[schema.id]
+                )
+            writer.add_message(
+                channels[channel.id], message.log_time, message.data, message.publish_time, message.sequence
+            )
+        writer.finish()
+
+
+def test_the_bag_reader_reads_the_exporters_topic_names():
+    """learn.bag restates the exporter's rule (learn may not import the simulator): every topic
+    `energyscape_topics` writes reads back as its angle exactly (-0 as 0, seeded angles of 17
+    digits too); its one-elevation topic is the level; other topics are none of the sonar's;
+    a topic spelling its angle otherwise is refused by name."""
+    from acoustic_sim.formats.mcap_export import ENERGYSCAPE_TOPIC, energyscape_topics
+    from learn.bag import IMAGE_TOPIC, topic_elevation
+
+    assert IMAGE_TOPIC == ENERGYSCAPE_TOPIC
+    angles = [-90.0, -20.0, -12.5, -0.0, 0.1, 7.0, 12.5, 90.0, *np.random.default_rng(0).uniform(-90, 90, 20)]
+    topics = energyscape_topics(angles)
+    assert [topic_elevation(t) for t in topics] == [float(a) for a in angles]
+    assert topic_elevation(topics[0]) == -90.0 and topic_elevation(topics[3]) == 0.0
+    assert topic_elevation(energyscape_topics([0.0])[0]) == 0.0
+    for other in ("/tf", "/scan", "/sonar/energyscape/compressed", f"{topics[1]}/compressed", "/sonar/energyscape2"):
+        assert topic_elevation(other) is None
+    with pytest.raises(ValueError, match="/sonar/energyscape/elevation_-20_deg names no angle"):
+        topic_elevation("/sonar/energyscape/elevation_-20_deg")
+
+
+def test_a_bag_of_three_elevations_reads_back_as_its_dataset(three_elevation_bag, tmp_path):
+    """The E = 3 dataset exported reads back (indexed, and copied without an index) as the
+    folder's frames: energyscapes (16, 3, 240, 181) equal to the shards' float16 as float32, the
+    elevations increasing, the drives split where the folder's episodes change, the same poses."""
+    from learn.bag import read_bag
+
+    folder, bag = three_elevation_bag
+    want = load_frames(folder)
+    assert want.elevation_deg == ELEVATIONS and want.energyscape.shape == (16, 3, 240, 181)
+    _unindexed(bag, tmp_path / "unindexed.mcap")
+    for path in (bag, tmp_path / "unindexed.mcap"):
+        got = read_bag(path, want.range_m, want.azimuth_rad).frames
+        assert got.elevation_deg == ELEVATIONS and got.energyscape.dtype == np.float32
+        np.testing.assert_array_equal(got.energyscape, want.energyscape.astype(np.float32))
+        np.testing.assert_array_equal(np.diff(got.episode) != 0, np.diff(want.episode) != 0)
+        np.testing.assert_allclose(got.pose, want.pose, atol=1e-9)
+    assert not np.array_equal(want.energyscape[:, 0], want.energyscape[:, 2])  # a swap would show
+
+
+def test_a_bag_reads_its_elevations_in_increasing_order(tmp_path):
+    """Topics written in any order (12.5, -20, -5 deg; by name 12p5 < m20 < m5) read as -20, -5,
+    12.5 deg, each elevation holding its own topic's images (values 2, 3, 1), a ping per stamp."""
+    from learn.bag import read_bag
+
+    stamps = [1_700_000_000 * 10**9 + k * 10**8 for k in range(4)]
+    _elevation_bag(
+        tmp_path / "e3.mcap", {f"/sonar/energyscape/elevation_{a}_deg": stamps for a in ("12p5", "m20", "m5")}
+    )
+    drive = read_bag(tmp_path / "e3.mcap", np.arange(10.0), np.arange(20.0))
+    assert drive.frames.elevation_deg == (-20.0, -5.0, 12.5)
+    assert drive.frames.energyscape.shape == (4, 3, 10, 20) and drive.stamps.tolist() == stamps
+    np.testing.assert_array_equal(drive.frames.energyscape[:, :, 0, 0], np.tile([2.0, 3.0, 1.0], (4, 1)))
+
+
+START = 1_700_000_000 * 10**9
+PINGS = [START + k * 10**8 for k in range(6)]
+BELOW, LEVEL, ABOVE = (f"/sonar/energyscape/elevation_{a}_deg" for a in ("m20", "0", "20"))
+
+
+@pytest.mark.parametrize(
+    ("topics", "words"),
+    [
+        ({BELOW: PINGS, LEVEL: PINGS, ABOVE: PINGS[:5]}, f"{ABOVE} holds 5 images, {BELOW} 6: every elevation"),
+        (
+            {BELOW: PINGS, LEVEL: [*PINGS[:3], PINGS[3] + 10**6, *PINGS[4:]], ABOVE: PINGS},
+            f"{LEVEL}'s image 3 (in time order) is stamped 1700000000.301000000 s, {BELOW}'s 1700000000.300000000 s",
+        ),
+        (
+            {"/sonar/energyscape": PINGS, LEVEL: PINGS},
+            f"holds images on /sonar/energyscape and on the elevation topics ['{LEVEL}']",
+        ),
+        ({LEVEL: PINGS, "/sonar/energyscape/elevation_m0_deg": PINGS}, "name one elevation, 0 deg"),
+        (
+            {"/sonar/energyscape/elevation_-20_deg": PINGS},
+            "the topic /sonar/energyscape/elevation_-20_deg names no angle",
+        ),
+        ({"/scan": PINGS}, "holds no sonar images"),
+    ],
+    ids=["counts", "stamps", "both_layouts", "one_angle_twice", "unreadable_angle", "none"],
+)
+def test_bags_whose_elevations_do_not_make_pings_are_refused_in_one_line(tmp_path, capsys, topics, words):
+    """`learn predict --stream` on such a bag: exit 2, one error line naming the topic, no output."""
+    from learn.cli import main as learn_main
+
+    _elevation_bag(tmp_path / "bad.mcap", topics, 240, 181)
+    argv = ["predict", "--stream", "--quiet", "--checkpoint", str(PRETRAINED_CHECKPOINT)]
+    assert learn_main([*argv, "--input", str(tmp_path / "bad.mcap"), "--out", str(tmp_path / "out.npz")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1 and err.startswith("error: ") and words in err, err
+    assert not (tmp_path / "out.npz").exists()
+
+
+def _redrawn(ckpt: dict, model_config: dict) -> tuple[dict, torch.nn.Module]:
+    """`ckpt` holding a model of `model_config` whose weights are drawn afresh (He, seeded, no
+    bias) so that its images move with every input, read at threshold 0.5."""
+    model = build_model(ModelConfig(**model_config))
+    torch.manual_seed(0)
+    for layer in model.modules():
+        if isinstance(layer, torch.nn.Conv2d | torch.nn.Conv3d):
+            torch.nn.init.kaiming_normal_(layer.weight)
+            if layer.bias is not None:
+                torch.nn.init.zeros_(layer.bias)
+    return {**ckpt, "model_config": model_config, "model": model.state_dict(), "threshold": 0.5}, model.eval()
+
+
+def test_a_model_of_three_elevations_predicts_from_the_bag_as_from_its_dataset(three_elevation_bag, tmp_path, capsys):
+    """A polar UNet trained one epoch on the E = 3 data (weights then drawn again, so that its
+    images follow every elevation: reversing them changes the images), streamed by `learn predict`
+    over the exported bag, gives the folder's images and scans exactly."""
+    from learn.cli import main as learn_main
+
+    folder, bag = three_elevation_bag
+    config = LearnConfig(
+        model=ModelConfig(name="polar_unet", frames=3, width=4),
+        data=DataConfig(frames=3),
+        train=TrainConfig(epochs=1, batch_size=4, lr=1e-3, loss="bce", val_fraction=0.5, max_val_windows=8),
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # "has not learnt to place walls": not what is tested
+        train(folder, tmp_path / "run", config, progress=False)
+    checkpoint = tmp_path / "run" / "best.pt"
+    ckpt = torch.load(checkpoint, weights_only=True)
+    assert tuple(ckpt["model_config"]["elevation_deg"]) == ELEVATIONS
+    ckpt, model = _redrawn(ckpt, ckpt["model_config"])
+    torch.save(ckpt, checkpoint)
+
+    windows = Windows(load_frames(folder), DataConfig(**ckpt["data_config"]), elevation_deg=ELEVATIONS)
+    x, _ = windows.batch(np.arange(len(windows)))
+    with torch.no_grad():
+        image, reversed_image = (predict_image(model.eval(), v).float().clamp(0, 1) for v in (x, x.flip(1)))
+    assert (image - reversed_image).abs().max() > 0.05  # a bag read with its elevations mixed up would show
+
+    got = {}
+    for name, source in (("folder", folder), ("bag", bag)):
+        argv = ["predict", "--stream", "--quiet", "--checkpoint", str(checkpoint), "--input", str(source)]
+        assert learn_main([*argv, "--out", str(tmp_path / f"{name}.npz")]) == 0
+        got[name] = dict(np.load(tmp_path / f"{name}.npz"))
+    for key in ("frame", "prediction", "ranges"):
+        np.testing.assert_array_equal(got["bag"][key], got["folder"][key])
+    batch = ["predict", "--checkpoint", str(checkpoint), "--input", str(bag), "--out", str(tmp_path / "batch.npz")]
+    capsys.readouterr()
+    assert learn_main(batch) == 2  # batch prediction reads folders and arrays; it points to --stream
+    assert "is an MCAP bag: `learn predict --stream` reads bags" in capsys.readouterr().err
+    assert (
+        len(got["folder"]["frame"]) == 12
+        and np.ptp(got["folder"]["prediction"].astype(np.float32), axis=0).max() > 0.05
+    )
