@@ -208,24 +208,12 @@ def _report(summary: dict) -> int:
 
 
 def _generate_crossengine(args) -> int:
-    from .formats.crossengine import generate_crossengine
+    from .formats.crossengine import elevations_of, generate_crossengine
 
     own = {"--max-bounces": args.max_bounces, "--shards": args.shards, "--signals": args.signals}
     own |= {"--arrivals": args.arrivals, "--ray-address": args.ray_address, "--variants": args.variants}
     if given := [k for k, v in own.items() if v not in (None, False)]:
         raise ValueError(f"the {args.suite} test set is another engine's: {', '.join(given)} does not apply to it")
-    from .config import SimConfig
-    from .settings import apply_settings
-
-    rig = apply_settings(SimConfig(), args.set or ())  # its own rig: only the beamformer's elevations may change
-    elevation_deg = rig.processing.elevation_deg
-    default = SimConfig()
-    if rig != dataclasses.replace(
-        default, processing=dataclasses.replace(default.processing, elevation_deg=elevation_deg)
-    ):
-        raise ValueError(
-            f"the {args.suite} test set is another engine's: of --set, only processing.elevation_deg applies to it"
-        )
     summary = generate_crossengine(
         args.out,
         frames=1000 if args.frames is None else args.frames,  # --frames 0 is refused, not the default
@@ -234,7 +222,7 @@ def _generate_crossengine(args) -> int:
         workers=args.workers,
         progress=not args.quiet,
         rough=args.suite == "crossengine_rough",
-        elevation_deg=elevation_deg,
+        elevation_deg=elevations_of(args.set or (), args.suite),
     )
     return _report(summary)
 

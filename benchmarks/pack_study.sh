@@ -11,5 +11,6 @@ for ckpt in "$W"/runs/seed*/*/best.pt; do
     "$ckpt" "${ckpt%.pt}_weights.pt"
 done
 mkdir -p "$DEST"
+python3 benchmarks/provenance.py write "$DEST/provenance-pack.json" --device cpu  # the commit that packed them
 tar -czf - -C "$W" --exclude=data --exclude=per_window.csv --exclude=last.pt --exclude=best.pt --exclude=tensorboard . |
   split -b 15M - "$DEST/study.tgz.part"

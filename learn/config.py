@@ -24,7 +24,8 @@ from typing import Literal
 import numpy as np
 
 from .augment import AugmentConfig
-from .data import DataConfig, Frames, missing_elevations
+from .data import DataConfig, Frames
+from .elevations import missing_elevations
 from .models import ModelConfig
 
 Loss = Literal["mse", "bce"]
@@ -216,10 +217,11 @@ def with_grid(config: LearnConfig, frames: Frames) -> LearnConfig:
     memory, the polar grid it resamples on; refused where it was given others."""
     folder = frames.info["folder"]
     given = config.model.elevation_deg
-    if given is not None and missing_elevations(frames, given):
+    missing = missing_elevations(frames.elevation_deg, given or ())
+    if missing:
         raise ValueError(
-            f"model.elevation_deg {list(given)}: {folder} holds no energyscapes at {missing_elevations(frames, given)} "
-            f"deg (its elevations: {list(frames.elevation_deg)})"
+            f"model.elevation_deg {list(given)}: {folder} holds no energyscapes at {missing} deg (its elevations: "
+            f"{list(frames.elevation_deg)})"
         )
     model = dataclasses.replace(config.model, elevation_deg=given or frames.elevation_deg)
     if not config.model.uses_odometry:

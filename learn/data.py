@@ -20,6 +20,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from .elevations import elevation_rows, missing_elevations
 from .inputs import check_fits, read_json
 from .odometry import relative
 from .shardfile import FORMAT as FORMAT  # re-exported: learn.data is where readers look for them
@@ -162,21 +163,6 @@ class Frames:
     def level(self) -> int:
         """Index of the elevation nearest 0 deg: the LiDAR's plane, which the echo peak reads."""
         return int(np.argmin(np.abs(self.elevation_deg)))
-
-
-ELEVATION_MATCH_DEG = 1e-6  # elevations this close are one (they come through JSON and float32 alike)
-
-
-def elevation_rows(frames: Frames, elevation_deg) -> list[int]:
-    """Where each of `elevation_deg` lies among the frames' elevations (see `missing_elevations`)."""
-    have = np.asarray(frames.elevation_deg)
-    return [int(np.argmin(np.abs(have - e))) for e in elevation_deg]
-
-
-def missing_elevations(frames: Frames, elevation_deg) -> list[float]:
-    """Those of `elevation_deg` [deg] the frames were not beamformed at."""
-    have = np.asarray(frames.elevation_deg)
-    return [float(e) for e in elevation_deg if np.abs(have - e).min() > ELEVATION_MATCH_DEG]
 
 
 def level_slice(frames: Frames) -> Frames:
@@ -372,13 +358,13 @@ class Windows:
             )
         self._pick = None  # rows of the frames' elevations to read; None: all of them, in order
         if elevation_deg is not None:
-            missing = missing_elevations(frames, elevation_deg)
+            missing = missing_elevations(frames.elevation_deg, elevation_deg)
             if missing:
                 raise DataError(
                     f"{frames.info.get('folder')} holds no energyscapes at {missing} deg (its elevations: "
                     f"{list(frames.elevation_deg)}): beamform the data at the model's elevations"
                 )
-            rows = elevation_rows(frames, elevation_deg)
+            rows = elevation_rows(frames.elevation_deg, elevation_deg)
             self._pick = None if rows == list(range(len(frames.elevation_deg))) else rows
         self.starts = window_starts(frames.episode, config.frames)
         if len(self.starts) == 0:

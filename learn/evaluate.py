@@ -26,7 +26,8 @@ import torch
 from tqdm.auto import tqdm
 
 from .checkpoint import load_checkpoint
-from .data import DataConfig, Frames, Windows, level_slice, load_frames, missing_elevations, recorded_path
+from .data import DataConfig, Frames, Windows, level_slice, load_frames, recorded_path
+from .elevations import missing_elevations
 from .grid_baselines import grid_predictors
 from .metrics import image_metrics
 from .models import ModelConfig, predict_image, trained_elevations
@@ -360,7 +361,7 @@ def check_grid(frames: Frames, ckpt: dict, name: str = "the model") -> None:
     """Refuse data on another range/azimuth grid or at other elevations than the checkpoint's,
     naming both."""
     trained = trained_elevations(ckpt["model_config"].get("elevation_deg"))
-    if missing_elevations(frames, trained):
+    if missing_elevations(frames.elevation_deg, trained):
         raise ValueError(
             f"{frames.info.get('folder')} holds energyscapes at {_elevation_text(frames.elevation_deg)}, but {name} "
             f"was trained on {_elevation_text(trained)}: give it data beamformed at those elevations "

@@ -21,7 +21,8 @@ from clitools.outputs import atomic_output
 
 from .bag import Recording, read_bag, write_bag
 from .checkpoint import load_checkpoint
-from .data import DataConfig, DataError, elevation_rows, normalise, shard_paths, window_starts
+from .data import DataConfig, DataError, normalise, shard_paths, window_starts
+from .elevations import elevation_rows
 from .evaluate import check_grid
 from .predict import _check_outputs, read_input
 from .stream import Stream
@@ -61,7 +62,7 @@ def predict_stream(
     if len(window_starts(frames.episode, stream.config.frames)) == 0:
         raise DataError(f"no window of {stream.config.frames} frames fits in any drive of {source}")
     labelled, images, ranges = [], [], []
-    first, rows = 0, elevation_rows(frames, stream.elevation_deg)  # the model's elevations of the data's
+    first, rows = 0, elevation_rows(frames.elevation_deg, stream.elevation_deg)  # the model's elevations of the data's
     bar = tqdm(total=len(frames), desc="streaming", unit="frame", disable=not progress, leave=False)
     with bar:
         for t in range(len(frames)):

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import ast
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -234,5 +235,5 @@ def test_every_study_script_stamps_its_calls():
     """Each shell script under benchmarks/ writes the provenance of its call beside what it writes."""
     scripts = sorted(BENCHMARKS.glob("*.sh"))
     assert scripts
-    missing = [s.name for s in scripts if "python benchmarks/provenance.py write" not in s.read_text()]
+    missing = [s.name for s in scripts if not re.search(r"python3? benchmarks/provenance\.py write", s.read_text())]
     assert missing == []

@@ -86,7 +86,8 @@ def test_train_checkpoint_resume_and_evaluate(tiny_dataset, tmp_path):
     for name in ("last.pt", "best.pt", "history.csv", "curves.png", "summary.json"):
         assert (run / name).exists(), name
     model, ckpt = load_checkpoint(run / "last.pt")
-    assert ckpt["model_config"] == dataclasses.asdict(MODEL) and ckpt["state"]["epoch"] == 2
+    on_data = dataclasses.replace(MODEL, elevation_deg=(0.0,))  # training sets the data's elevations
+    assert ckpt["model_config"] == dataclasses.asdict(on_data) and ckpt["state"]["epoch"] == 2
     windows = Windows(load_frames(tiny_dataset), DATA)
     x, _ = windows.batch([0, 1])
     with torch.no_grad():
@@ -373,7 +374,8 @@ def test_sim2real_table_matches_its_reports_and_summarises_runs(tiny_dataset, tm
         sim2real(ablation, tiny_dataset, run, config=seeded, progress=False)
     table = json.loads((runs[1] / "sim2real.json").read_text())
     trained = torch.load(runs[0] / "bounces_3" / "best.pt", weights_only=True)["model_config"]
-    assert trained == dataclasses.asdict(model)  # the whole network config reaches every variant's run
+    on_data = dataclasses.replace(model, elevation_deg=(0.0,))  # and the data's elevations
+    assert trained == dataclasses.asdict(on_data)  # the whole network config reaches every variant's run
     assert list(table) == ["bounces_0", "bounces_3"]
     report = json.loads((runs[1] / "bounces_3" / "reality" / "metrics.json").read_text())
     assert _same(table["bounces_3"]["reality"], report["results"]["model"]["all"])
@@ -502,6 +504,7 @@ def test_set_reaches_fields_no_option_names_and_the_run_records_them(tiny_datase
     from learn.config import from_record
 
     ran = run_config(build_parser().parse_args(argv))  # the whole config, in both places
+    ran = dataclasses.replace(ran, model=dataclasses.replace(ran.model, elevation_deg=(0.0,)))  # with the data's
     assert from_record(written) == from_record(load_checkpoint(run / "best.pt")[1]) == ran
     again = ["train", "--data", str(tiny_dataset), "--out", "again", "--config", str(run / "config.json")]
     assert run_config(build_parser(_recorded_config(again)).parse_args(again)) == ran  # a repeat of it

@@ -23,7 +23,7 @@ drive) and the renderer that turns a drive into arrays (`CrossEngineRenderer`).
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -276,6 +276,21 @@ class CrossEngineRenderer:
             {"description": description, "use": USE, "engine": engine, "sim": config["sim"]},
             (FactTable(caption, rows),),
         )
+
+
+def elevations_of(settings, suite: str = SUITE):
+    """The beamformer's elevations that `--set` asks of the set: the one setting it takes (its
+    rig is its own; ValueError for any other)."""
+    from ..config import SimConfig
+    from ..settings import apply_settings
+
+    rig, default = apply_settings(SimConfig(), settings), SimConfig()
+    elevation_deg = rig.processing.elevation_deg
+    if rig != replace(default, processing=replace(default.processing, elevation_deg=elevation_deg)):
+        raise ValueError(
+            f"the {suite} test set is another engine's: of --set, only processing.elevation_deg applies to it"
+        )
+    return elevation_deg
 
 
 def _settings(frames: int, seed: int, episode_frames: int, rough: bool, elevation_deg) -> dict:
