@@ -259,7 +259,7 @@ def build_parser(base=None) -> argparse.ArgumentParser:
         "--stream",
         action="store_true",
         help="run frame by frame with state, as a robot would (a model with memory needs poses); --input may "
-        "also be an MCAP bag with /sonar/energyscape and /tf; --mcap then holds /tf too",
+        "also be an MCAP bag with /sonar/energyscape (or one topic per elevation) and /tf; --mcap then holds /tf too",
     )
     _threshold_option(p)
     p.set_defaults(handler=_predict)

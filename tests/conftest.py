@@ -30,3 +30,18 @@ def tiny_dataset(tmp_path_factory, device):
     out = tmp_path_factory.mktemp("tiny_dataset")
     generate(suite, out, frames=16, shards=2, seed=3, device=device, progress=False)
     return out
+
+
+@pytest.fixture(scope="session")
+def three_elevations(tmp_path_factory, device):
+    """The tiny_dataset's drives (same suite, seed and rays) beamformed at -20, 0 and 20 deg."""
+    import dataclasses
+
+    from acoustic_sim.datasets.generate import generate
+    from acoustic_sim.datasets.suites import SUITES, Physics
+
+    suite = dataclasses.replace(SUITES["tiny"], variants={"": Physics(ray_count=2000)})
+    suite = dataclasses.replace(suite, settings=("processing.elevation_deg=[-20, 0, 20]",))
+    out = tmp_path_factory.mktemp("three_elevations")
+    generate(suite, out, frames=16, shards=2, seed=3, device=device, progress=False)
+    return out

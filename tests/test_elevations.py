@@ -23,19 +23,6 @@ ELEVATIONS = (-20.0, 0.0, 20.0)
 QUICK = TrainConfig(epochs=1, batch_size=4, lr=1e-3, loss="bce", val_fraction=0.5, max_val_windows=8)
 
 
-@pytest.fixture(scope="module")
-def three_elevations(tmp_path_factory, device):
-    """The tiny_dataset's drives (same suite, seed and rays) beamformed at three elevations."""
-    from acoustic_sim.datasets.generate import generate
-    from acoustic_sim.datasets.suites import SUITES, Physics
-
-    suite = dataclasses.replace(SUITES["tiny"], variants={"": Physics(ray_count=2000)})
-    suite = dataclasses.replace(suite, settings=("processing.elevation_deg=[-20, 0, 20]",))
-    out = tmp_path_factory.mktemp("three_elevations")
-    generate(suite, out, frames=16, shards=2, seed=3, device=device, progress=False)
-    return out
-
-
 def test_shards_hold_every_elevation_and_the_level_slice_is_the_planar_one(three_elevations, tiny_dataset):
     """Format 2 stores (T, E, R, A) with its elevation axis; the 0 deg slice is bit for bit the
     energyscape of the same drives generated with the default single elevation; the others

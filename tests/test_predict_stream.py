@@ -260,23 +260,14 @@ ELEVATIONS = (-20.0, 0.0, 20.0)
 
 
 @pytest.fixture(scope="module")
-def three_elevation_bag(tmp_path_factory, device):
-    """The tiny drives beamformed at -20, 0 and 20 deg (tests/test_elevations.py's data) and their
+def three_elevation_bag(three_elevations, tmp_path_factory):
+    """The tiny drives beamformed at -20, 0 and 20 deg (conftest's `three_elevations`) and their
     MCAP export: (folder, bag)."""
-    import dataclasses
-
     from acoustic_sim.cli import main as simulator
-    from acoustic_sim.datasets.generate import generate
-    from acoustic_sim.datasets.suites import SUITES, Physics
 
-    suite = dataclasses.replace(
-        SUITES["tiny"], variants={"": Physics(ray_count=2000)}, settings=("processing.elevation_deg=[-20, 0, 20]",)
-    )
-    tmp = tmp_path_factory.mktemp("three_elevation_bag")
-    folder, bag = tmp / "data", tmp / "drive.mcap"
-    generate(suite, folder, frames=16, shards=2, seed=3, device=device, progress=False)
-    assert simulator(["export", str(folder), "--format", "mcap", "--out", str(bag)]) == 0
-    return folder, bag
+    bag = tmp_path_factory.mktemp("three_elevation_bag") / "drive.mcap"
+    assert simulator(["export", str(three_elevations), "--format", "mcap", "--out", str(bag)]) == 0
+    return three_elevations, bag
 
 
 def _elevation_bag(path, topics: dict, height: int = 10, width: int = 20) -> None:
