@@ -276,7 +276,7 @@ def evaluate(
     held = windows if windows.frames is frames else None  # one copy of the frames on the device
     for name, (m, c) in models.items():
         their_windows = model_windows(frames, c, device, share=held)
-        held = held or their_windows
+        held = their_windows if held is None else held
         predictors[name] = (model_predictor(m), return_threshold(c, threshold, str(named[name])), their_windows)
     predictors["echo peak"] = (echo_peak_predictor(data_config.label_offset), BASELINE_THRESHOLD, windows)
     predictors["empty"] = (empty_predictor, BASELINE_THRESHOLD, windows)
