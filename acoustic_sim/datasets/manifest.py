@@ -113,8 +113,8 @@ def write_card(folder: Path, manifest: dict, tables: tuple[FactTable, ...] = ())
     counts = f"{counted(manifest['frames'], 'frame')} in {counted(manifest['episodes'], 'episode')} (robot drives), "
     counts += counted(len(manifest["shards"]), "shard")
     stack_text = (
-        "\nOne frame at each of its elevations (the level slice is the LiDAR's plane; floor echoes lie below, "
-        "the ceiling above):\n\n![one frame at every elevation](card_elevations.png)\n"
+        "\nOne frame at each of its elevations, each in dB below its own peak (the level slice is the LiDAR's "
+        "plane; floor echoes lie below, the ceiling above):\n\n![one frame at every elevation](card_elevations.png)\n"
         if stack
         else ""
     )
