@@ -79,8 +79,8 @@ class Recording:
 
 def topic_elevation(topic: str) -> float | None:
     """The elevation [deg] of the energyscapes on an Image topic, as the exporter names its topics
-    (`acoustic_sim.formats.mcap_export.energyscape_topics`, restated here): IMAGE_TOPIC holds a
-    dataset of one elevation, read as the level slice (0 deg); IMAGE_TOPIC/elevation_<angle>_deg
+    (`acoustic_sim.formats.mcap_export.energyscape_topics`, restated here): IMAGE_TOPIC holds the
+    level slice (0 deg) alone; IMAGE_TOPIC/elevation_<angle>_deg
     one of several, the angle spelt with `m` for its minus and `p` for its point
     (elevation_m20_deg: -20, elevation_12p5_deg: 12.5). None for any other topic (/tf, /scan, an
     image_transport topic such as IMAGE_TOPIC/compressed); ValueError for an elevation topic whose

@@ -22,7 +22,7 @@ import torch
 from .config import LearnConfig, from_record
 from .data import DataConfig, torch_device
 from .inputs import check_fits, regular_file
-from .models import ModelConfig, build_model, check_model_size
+from .models import LEVEL_SLICE, ModelConfig, build_model, check_model_size
 from .shardfile import READABLE_VERSIONS
 
 # What a resumed run may change: how long it runs and how its steps execute, not what it learns.
@@ -117,6 +117,7 @@ def read_checkpoint(path: str | Path, device: str | torch.device = "cpu", *, rol
     missing = [k for k in ("model", "model_config", "data_config") if not isinstance(ckpt.get(k), dict)]
     if missing:
         raise ValueError(f"{role} {path} is not a whole learn checkpoint: it has no {', '.join(missing)}")
+    ckpt["model_config"].setdefault("elevation_deg", list(LEVEL_SLICE))  # what a model of before elevations read
     try:
         model, data = ModelConfig(**ckpt["model_config"]), DataConfig(**ckpt["data_config"])
     except (TypeError, ValueError) as err:

@@ -26,7 +26,7 @@ import numpy as np
 from .augment import AugmentConfig
 from .data import DataConfig, Frames
 from .elevations import missing_elevations
-from .models import ModelConfig
+from .models import LEVEL_SLICE, ModelConfig
 
 Loss = Literal["mse", "bce"]
 Split = Literal["episode", "scenario"]
@@ -177,7 +177,8 @@ def to_record(config: LearnConfig) -> dict:
 
 def from_record(record: dict) -> LearnConfig:
     """The config a checkpoint or config.json records. A field added since it was written counts at
-    its default; augmentation absent from it counts as none, which is what such a run trained with.
+    its default; augmentation absent from it counts as none and elevations as the level slice,
+    which is what such a run trained with.
 
     Raises:
         ValueError: a section is missing, or holds a field this version does not know.
@@ -191,8 +192,9 @@ def from_record(record: dict) -> LearnConfig:
     try:
         recipe = dict(record["train_config"])
         augment = AugmentConfig(**{**dataclasses.asdict(AugmentConfig.none()), **recipe.pop("augment", {})})
+        model = {"elevation_deg": LEVEL_SLICE, **record["model_config"]}  # a run of before elevations read that
         return LearnConfig(
-            model=ModelConfig(**record["model_config"]),
+            model=ModelConfig(**model),
             data=DataConfig(**record["data_config"]),
             augment=augment,
             train=TrainConfig(**recipe),

@@ -322,10 +322,11 @@ def torch_device(name: str | torch.device) -> torch.device:
 class Windows:
     """Windows of a dataset on a device: `batch(indices)` -> (x, y (B, 1, R, A)).
 
-    x is the frames (B, E, N, R, A) normalised (E elevations, the models' channels; N = history
-    + K, oldest first; absent history frames are 0), or with `odometry` the pair (frames,
-    motion): motion (B, N, 4) holds each frame's pose in the label frame's sensor frame (x, y
-    [m], yaw [rad]) and 1 where the frame is there (0 for history before the drive began).
+    x is the frames (B, E, N, R, A) normalised (E elevations, `elevation_deg`, the models'
+    channels, `level` the one nearest 0 deg; N = history + K, oldest first; absent history
+    frames are 0), or with `odometry` the pair (frames, motion): motion (B, N, 4) holds each
+    frame's pose in the label frame's sensor frame (x, y [m], yaw [rad]) and 1 where the frame
+    is there (0 for history before the drive began).
 
     Args:
         frames: The dataset (see `load_frames`).
@@ -366,6 +367,10 @@ class Windows:
                 )
             rows = elevation_rows(frames.elevation_deg, elevation_deg)
             self._pick = None if rows == list(range(len(frames.elevation_deg))) else rows
+        self.elevation_deg = (
+            frames.elevation_deg if self._pick is None else tuple(frames.elevation_deg[r] for r in rows)
+        )
+        self.level = int(np.argmin(np.abs(self.elevation_deg)))  # the channel of the LiDAR's plane in x
         self.starts = window_starts(frames.episode, config.frames)
         if len(self.starts) == 0:
             longest = int(np.unique(frames.episode, return_counts=True)[1].max()) if len(frames.episode) else 0

@@ -436,7 +436,7 @@ def _example_rows(predictors, name, picker, per_window, windows, indices, frames
                 "caption": f"{name}: scan_f1 {f1[local]:.2f}, beam accuracy "
                 f"{per_window[name]['beam_accuracy'][local]:.2f} (rank {rank[local] + 1} of {len(f1)}); "
                 f"echo peak scan_f1 {peak:.2f}",
-                "sonar": x[0, 0, offset].cpu().numpy(),
+                "sonar": x[0, windows.level, offset].cpu().numpy(),
                 "truth": y[0, 0].cpu().numpy(),
                 "pred": pred[0, 0].cpu().numpy(),
             }

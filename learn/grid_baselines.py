@@ -75,8 +75,9 @@ def _echo_peak_scans(windows: Windows, rows: np.ndarray, level: float, batch: in
     frames, out = windows.frames, []
     range_m = torch.as_tensor(frames.range_m, device=windows.device)
     for start in range(0, len(rows), batch):
-        energy = torch.from_numpy(frames.energyscape[rows[start : start + batch]]).to(windows.device)
-        image = echo_peak_image(normalise(energy, windows.config.floor_db), level)[:, 0]  # (B, R, A): one elevation
+        level_slice = frames.energyscape[rows[start : start + batch], frames.level : frames.level + 1]  # (B, 1, R, A)
+        energy = torch.from_numpy(level_slice).to(windows.device)
+        image = echo_peak_image(normalise(energy, windows.config.floor_db), level)[:, 0]  # (B, R, A)
         out.append(first_return_ranges(image, range_m).cpu().numpy())
     return np.concatenate(out)
 

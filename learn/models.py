@@ -116,10 +116,13 @@ class ModelConfig:
         return self.name == "polar_memory"
 
 
+LEVEL_SLICE = (0.0,)  # the elevations of format-1 data, and so of every model trained before elevations
+
+
 def trained_elevations(elevation_deg) -> tuple[float, ...]:
     """The elevations [deg] a model reads: its config's, or the level slice for a model of before
     elevations (format-1 data held that alone)."""
-    return tuple(float(e) for e in (elevation_deg or (0.0,)))
+    return tuple(float(e) for e in (elevation_deg or LEVEL_SLICE))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -178,7 +178,7 @@ def _plot(path: Path, windows: Windows, images: np.ndarray, threshold: float) ->
         rows.append(
             {
                 "title": f"frame {windows.starts[i] + offset}",
-                "sonar": frames[0, 0, windows.config.anchor].cpu().numpy(),
+                "sonar": frames[0, windows.level, windows.config.anchor].cpu().numpy(),
                 "truth": y[0, 0].cpu().numpy(),
                 "pred": images[i].astype(np.float32),
             }

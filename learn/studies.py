@@ -210,7 +210,7 @@ def typical_windows(runs: dict[str, Path], test: str, frames, out: Path, *, devi
             {
                 "title": f"trained on {name}: {frames.scenarios[windows.scenario[window]]}, window {window}",
                 "caption": f"its median scan F1 on {test}: {f1:.2f} (of {len(scores)} windows)",
-                "sonar": (x[0] if isinstance(x, tuple) else x)[0, 0, windows.config.anchor].cpu().numpy(),
+                "sonar": (x[0] if isinstance(x, tuple) else x)[0, windows.level, windows.config.anchor].cpu().numpy(),
                 "truth": y[0, 0].cpu().numpy(),
                 "pred": pred[0, 0].cpu().numpy(),
                 "threshold": return_threshold(ckpt),

@@ -171,3 +171,21 @@ def test_a_model_of_the_level_slice_reads_it_out_of_three(three_elevations, tiny
     wrong = dataclasses.replace(config, model=dataclasses.replace(level, elevation_deg=(0.0, 10.0)))
     with pytest.raises(ValueError, match=r"holds no energyscapes at \[10\.0\] deg"):
         train(three_elevations, tmp_path / "wrong", wrong, progress=False)
+
+
+def test_a_run_of_before_elevations_resumes_and_fine_tunes(tiny_dataset, tmp_path):
+    """A checkpoint written before elevations (no elevation_deg in its model config, dataset format 1)
+    read the level slice: --resume and --init-from take it on planar data as they did."""
+    config = LearnConfig(
+        model=ModelConfig(name="polar_unet", frames=3, width=4), data=DataConfig(frames=3), train=QUICK
+    )
+    train(tiny_dataset, tmp_path / "run", config, progress=False)
+    for name in ("last.pt", "best.pt"):
+        ckpt = torch.load(tmp_path / "run" / name, weights_only=True)
+        del ckpt["model_config"]["elevation_deg"]
+        ckpt["dataset"]["format_version"] = 1
+        torch.save(ckpt, tmp_path / "run" / name)
+    longer = dataclasses.replace(config, train=dataclasses.replace(QUICK, epochs=2))
+    train(tiny_dataset, tmp_path / "run", longer, progress=False, resume=True)
+    assert torch.load(tmp_path / "run" / "last.pt", weights_only=True)["state"]["epoch"] == 2
+    train(tiny_dataset, tmp_path / "tuned", config, progress=False, init_from=tmp_path / "run" / "best.pt")

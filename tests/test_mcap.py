@@ -93,9 +93,11 @@ def test_export_reads_back_as_the_dataset(tiny_dataset, tmp_path):
 
 
 def test_topic_names_are_ros_names():
-    """One elevation keeps /sonar/energyscape; several get one topic each, the angle spelt with
-    letters, digits and underscores (m: minus, p: point; -0 is 0), distinct for distinct angles."""
-    assert energyscape_topics([12.5]) == ["/sonar/energyscape"]
+    """The level slice alone keeps /sonar/energyscape; one other elevation or several get one topic
+    each, the angle spelt with letters, digits and underscores (m: minus, p: point; -0 is 0),
+    distinct for distinct angles."""
+    assert energyscape_topics([0.0]) == energyscape_topics([-0.0]) == ["/sonar/energyscape"]
+    assert energyscape_topics([12.5]) == ["/sonar/energyscape/elevation_12p5_deg"]  # not read back as 0 deg
     topics = energyscape_topics([-20.0, -0.0, 12.5, 0.1])
     assert topics == [
         "/sonar/energyscape/elevation_m20_deg",

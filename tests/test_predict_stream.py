@@ -339,6 +339,7 @@ def test_the_bag_reader_reads_the_exporters_topic_names():
     assert [topic_elevation(t) for t in topics] == [float(a) for a in angles]
     assert topic_elevation(topics[0]) == -90.0 and topic_elevation(topics[3]) == 0.0
     assert topic_elevation(energyscape_topics([0.0])[0]) == 0.0
+    assert topic_elevation(energyscape_topics([10.0])[0]) == 10.0  # one elevation off the level keeps its angle
     for other in ("/tf", "/scan", "/sonar/energyscape/compressed", f"{topics[1]}/compressed", "/sonar/energyscape2"):
         assert topic_elevation(other) is None
     with pytest.raises(ValueError, match="/sonar/energyscape/elevation_-20_deg names no angle"):

@@ -86,11 +86,12 @@ def frame_stamps(episode: np.ndarray, time_s: np.ndarray) -> np.ndarray:
 
 
 def energyscape_topics(elevation_deg) -> list[str]:
-    """The Image topic of each elevation [deg]: ENERGYSCAPE_TOPIC for one elevation (the layout of
-    datasets before elevations), else ENERGYSCAPE_TOPIC/elevation_<angle>_deg per elevation, the
+    """The Image topic of each elevation [deg]: ENERGYSCAPE_TOPIC for the level slice alone (the
+    layout of datasets before elevations), else ENERGYSCAPE_TOPIC/elevation_<angle>_deg per
+    elevation (one elevation other than 0 deg too, so a reader does not take it for 0), the
     angle in its shortest exact decimal with `m` for its minus and `p` for its point (ROS names
     hold letters, digits and underscores): -20 -> elevation_m20_deg, 12.5 -> elevation_12p5_deg."""
-    if len(elevation_deg) == 1:
+    if len(elevation_deg) == 1 and float(elevation_deg[0]) == 0.0:
         return [ENERGYSCAPE_TOPIC]
     angles = (np.format_float_positional(float(e) + 0.0, trim="-") for e in elevation_deg)  # + 0.0: no "-0"
     return [f"{ENERGYSCAPE_TOPIC}/elevation_{a.replace('-', 'm').replace('.', 'p')}_deg" for a in angles]
