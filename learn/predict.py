@@ -26,8 +26,8 @@ from clitools.outputs import atomic_output, check_output
 from .checkpoint import load_checkpoint
 from .data import DataConfig, Frames, Windows, load_frames, recorded_path
 from .evaluate import check_grid, model_predictor, model_windows, return_threshold
-from .inputs import check_fits, npy_header
-from .models import trained_elevations
+from .inputs import check_fits, npy_header, read_json
+from .models import ModelConfig, trained_elevations
 from .scan import first_return_ranges
 
 
@@ -46,18 +46,21 @@ def read_input(source: Path, ckpt: dict) -> Frames:
 
 
 def _frames_from_array(path: Path, ckpt: dict) -> Frames:
-    """Energyscapes (N, R, A), or (N, E, R, A) at the checkpoint's elevations, of a `.npy`, held
-    as float32: each is normalised to its own peak (`learn.data.normalise`), so any scale is
-    right, and float32 holds any that float16 cannot (above 65,504). Header, size and values are
-    checked before and after reading."""
+    """Energyscapes (N, R, A), or (N, E, R, A), of a `.npy`, held as float32: each is normalised
+    to its own peak (`learn.data.normalise`), so any scale is right, and float32 holds any that
+    float16 cannot (above 65,504). Their elevations are those its `.json` records (`import
+    --format pdm` writes it), else the checkpoint's. Header, size and values are checked before
+    and after reading."""
     shape, dtype = npy_header(path, "--input")  # a regular file whose header fits its size
     if dtype.kind not in "fiu":
         raise ValueError(f"--input {path}: energyscapes must be real numbers, got dtype {dtype}")
     grid = (len(ckpt["range_m"]), len(ckpt["azimuth_rad"]))
-    elevation_deg = trained_elevations(ckpt["model_config"].get("elevation_deg"))
+    elevation_deg = _recorded_elevations(path.with_suffix(".json")) or trained_elevations(
+        ckpt["model_config"].get("elevation_deg")
+    )
     frame = (len(elevation_deg), *grid)
     if not (shape[1:] == frame or (len(elevation_deg) == 1 and shape[1:] == grid)) or len(shape) < 3:
-        expected = f"(N, {grid[0]}, {grid[1]})" if len(frame) == 1 else f"(N, {', '.join(map(str, frame))})"
+        expected = f"(N, {grid[0]}, {grid[1]})" if len(elevation_deg) == 1 else f"(N, {', '.join(map(str, frame))})"
         raise ValueError(f"--input {path}: expected energyscapes {expected}, got {shape}")
     n = shape[0]
     check_fits(
@@ -88,6 +91,20 @@ def _frames_from_array(path: Path, ckpt: dict) -> Frames:
         info={"folder": recorded_path(path)},
         elevation_deg=elevation_deg,
     )
+
+
+def _recorded_elevations(sidecar: Path) -> tuple[float, ...] | None:
+    """The elevations [deg] a `.npy`'s record says it was beamformed at, or None without one."""
+    if not sidecar.is_file():
+        return None
+    record = read_json(sidecar, "--input's record", "fix or remove it (it says how the energyscapes were made)")
+    values = record.get("elevation_deg")
+    if values is None:
+        return None
+    try:
+        return ModelConfig(elevation_deg=values).elevation_deg  # checked as a model's: increasing angles
+    except ValueError as err:
+        raise ValueError(f"--input's record {sidecar}: {err}") from None
 
 
 def predict(

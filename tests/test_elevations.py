@@ -189,3 +189,28 @@ def test_a_run_of_before_elevations_resumes_and_fine_tunes(tiny_dataset, tmp_pat
     train(tiny_dataset, tmp_path / "run", longer, progress=False, resume=True)
     assert torch.load(tmp_path / "run" / "last.pt", weights_only=True)["state"]["epoch"] == 2
     train(tiny_dataset, tmp_path / "tuned", config, progress=False, init_from=tmp_path / "run" / "best.pt")
+
+
+def test_a_recording_says_its_elevations_and_predict_reads_them(three_elevations, tmp_path):
+    """A .npy beside the record `import --format pdm` writes is taken at the elevations the record
+    names: a model of the level slice picks its row out of three; a model of three elevations
+    refuses an array recorded at others, naming both."""
+    level = dataclasses.replace(ModelConfig(name="polar_unet", frames=3, width=4), elevation_deg=(0.0,))
+    train(
+        three_elevations,
+        tmp_path / "level",
+        LearnConfig(model=level, data=DataConfig(frames=3), train=QUICK),
+        progress=False,
+    )
+    scapes = load_frames(three_elevations).energyscape[:6].astype(np.float32)
+    np.save(tmp_path / "rec.npy", scapes)
+    (tmp_path / "rec.json").write_text(json.dumps({"elevation_deg": list(ELEVATIONS)}))
+    np.save(tmp_path / "level.npy", scapes[:, 1])
+    picked = np.load(predict(tmp_path / "level" / "best.pt", tmp_path / "rec.npy", tmp_path / "p3"))
+    alone = np.load(predict(tmp_path / "level" / "best.pt", tmp_path / "level.npy", tmp_path / "p1"))
+    np.testing.assert_array_equal(picked["prediction"], alone["prediction"])
+    (tmp_path / "rec.json").write_text(json.dumps({"elevation_deg": [-10.0, 0.0, 10.0]}))
+    full = LearnConfig(model=ModelConfig(name="polar_unet", frames=3, width=4), data=DataConfig(frames=3), train=QUICK)
+    train(three_elevations, tmp_path / "full", full, progress=False)
+    with pytest.raises(ValueError, match=r"3 elevations \(-10, 0, 10 deg\).*trained on 3 elevations \(-20, 0, 20"):
+        predict(tmp_path / "full" / "best.pt", tmp_path / "rec.npy", tmp_path / "p")
