@@ -103,7 +103,7 @@ def _export(args) -> int:
         frames=ckpt["data_config"]["frames"],
         range_count=len(ckpt["range_m"]),
         azimuth_count=len(ckpt["azimuth_rad"]),
-        elevations=len(trained_elevations(ckpt["model_config"].get("elevation_deg"))),
+        elevation_deg=trained_elevations(ckpt["model_config"].get("elevation_deg")),
         threshold=args.threshold if args.threshold is not None else ckpt.get("threshold"),
         verbose=args.verbose,
         overwrite=args.overwrite,

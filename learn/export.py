@@ -10,11 +10,12 @@ as `learn.data.Windows` gives them) and returns the model's raw output (batch, 1
 sigmoid). The batch dimension is dynamic; E, K, R and A are fixed.
 The file's metadata carries "output_kind" ("image" or "logits") and "return_threshold": a cell
 of the image at or above it is a return, and the nearest such cell of each azimuth column is the
-beam's range, as `learn predict` reads it.
+beam's range, as `learn predict` reads it; "elevation_deg" (JSON) names the elevation of each input channel.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import warnings
 from pathlib import Path
@@ -51,7 +52,7 @@ def export_onnx(
     frames: int,
     range_count: int = 240,
     azimuth_count: int = 181,
-    elevations: int = 1,
+    elevation_deg: tuple[float, ...] = (0.0,),
     check: bool = True,
     threshold: float | None = None,
     verbose: bool = False,
@@ -70,7 +71,8 @@ def export_onnx(
         frames: Window length K.
         range_count: Range bins R.
         azimuth_count: Azimuth bins A.
-        elevations: Elevation beams E of each frame (`ModelConfig.elevations`).
+        elevation_deg: The elevations [deg] of the E channels of each frame, in order
+            (`learn.models.trained_elevations`); written to the metadata.
         check: Compare onnxruntime with torch.
         threshold: The model's return threshold on the [0, 1] image (the checkpoint's calibrated
             one), written to the metadata; None writes none.
@@ -91,13 +93,15 @@ def export_onnx(
     path = check_output(path, overwrite=overwrite, inputs=inputs)
     if threshold is not None and not 0 < threshold <= 1:
         raise ValueError(f"the return threshold must lie in (0, 1], got {threshold}")
-    shape = (elevations, frames, range_count, azimuth_count)
+    shape = (len(elevation_deg), frames, range_count, azimuth_count)
     with atomic_output(path, overwrite=overwrite, inputs=inputs) as tmp:
-        info = _export_checked(model, tmp, shape, check=check, threshold=threshold, verbose=verbose)
+        info = _export_checked(model, tmp, shape, elevation_deg, check=check, threshold=threshold, verbose=verbose)
     return info | {"path": str(path)}
 
 
-def _export_checked(model: nn.Module, path: Path, shape: tuple, *, check: bool, threshold, verbose: bool) -> dict:
+def _export_checked(
+    model: nn.Module, path: Path, shape: tuple, elevation_deg, *, check: bool, threshold, verbose: bool
+) -> dict:
     """`export_onnx` into `path` (its temporary file); `shape` is (E, K, R, A)."""
     onnx, onnxruntime = _import_onnx()
     device = next(model.parameters()).device
@@ -133,7 +137,7 @@ def _export_checked(model: nn.Module, path: Path, shape: tuple, *, check: bool, 
     finally:
         model.train(was_training)
         exporter_log.setLevel(level)
-    metadata = {"output_kind": getattr(model, "output", "image")}
+    metadata = {"output_kind": getattr(model, "output", "image"), "elevation_deg": json.dumps(list(elevation_deg))}
     if threshold is not None:
         metadata["return_threshold"] = f"{threshold:g}"
     proto = onnx.load(str(path))

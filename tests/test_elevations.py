@@ -214,3 +214,24 @@ def test_a_recording_says_its_elevations_and_predict_reads_them(three_elevations
     train(three_elevations, tmp_path / "full", full, progress=False)
     with pytest.raises(ValueError, match=r"3 elevations \(-10, 0, 10 deg\).*trained on 3 elevations \(-20, 0, 20"):
         predict(tmp_path / "full" / "best.pt", tmp_path / "rec.npy", tmp_path / "p")
+
+
+def test_onnx_export_takes_every_elevation_and_names_them(tmp_path):
+    """The exported graph reads (batch, E, K, R, A), equals torch, and its metadata names the
+    channels' elevations in order."""
+    onnxruntime = pytest.importorskip("onnxruntime")
+    import onnx
+
+    from learn.export import export_onnx
+
+    torch.manual_seed(0)
+    model = build_model(ModelConfig(name="polar_unet", frames=3, width=4, elevation_deg=ELEVATIONS)).eval()
+    info = export_onnx(model, tmp_path / "m.onnx", frames=3, range_count=40, azimuth_count=30, elevation_deg=ELEVATIONS)
+    meta = {p.key: p.value for p in onnx.load(info["path"]).metadata_props}
+    assert json.loads(meta["elevation_deg"]) == list(ELEVATIONS)
+    x = torch.rand(2, 3, 3, 40, 30)
+    session = onnxruntime.InferenceSession(info["path"], providers=["CPUExecutionProvider"])
+    assert session.get_inputs()[0].shape[1:] == [3, 3, 40, 30]
+    (got,) = session.run(None, {"energyscapes": x.numpy()})
+    with torch.no_grad():
+        np.testing.assert_allclose(got, model(x).numpy(), atol=1e-4)

@@ -204,7 +204,7 @@ def test_onnx_matches_torch(name, contrast, tmp_path):
         inputs["motion"][:, 0, 3] = 0.0  # the oldest frame absent
     session = onnxruntime.InferenceSession(info["path"], providers=["CPUExecutionProvider"])
     meta = session.get_modelmeta().custom_metadata_map
-    assert meta == {"output_kind": model.output, "return_threshold": "0.35"}
+    assert meta == {"output_kind": model.output, "return_threshold": "0.35", "elevation_deg": "[0.0]"}
     (got,) = session.run(None, {k: v.numpy() for k, v in inputs.items()})
     with torch.no_grad():
         expected = model.eval()(*inputs.values()).numpy()

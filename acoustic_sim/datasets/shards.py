@@ -244,8 +244,10 @@ def energyscapes(f: h5py.File, rows=slice(None)) -> tuple[np.ndarray, np.ndarray
     """A shard's energyscapes (frames, elevation, range, azimuth) and their elevations (E,) [deg],
     from either layout (format 1 held one slice at 0 deg, (frame, range, azimuth))."""
     energy = f["energyscape"][rows]
-    if "elevation_deg" not in f:
+    if int(f.attrs.get("format_version", -1)) == 1:
         return energy[:, None], np.zeros(1)
+    if "elevation_deg" not in f or energy.ndim != 4:
+        raise DatasetError(f"{f.filename}: a format-2 shard without its (frame, elevation, range, azimuth) layout")
     return energy, f["elevation_deg"][:]
 
 
