@@ -412,7 +412,10 @@ class Windows:
         frame = start[:, None] + self._offsets  # (B, N)
         present = frame >= self._first[index][:, None]
         frame = torch.maximum(frame, self._first[index][:, None])
-        stored = self._energyscape[frame] if self._pick is None else self._energyscape[frame][:, :, self._pick]
+        if self._pick is None:
+            stored = self._energyscape[frame]
+        else:  # only the rows read: (B, N, P, R, A)
+            stored = self._energyscape[frame[:, :, None], torch.as_tensor(self._pick, device=self.device)]
         energy = stored * present[:, :, None, None, None]
         label = self._label[start + self.config.label_offset].float()
         if not self.odometry:

@@ -466,7 +466,8 @@ def test_pretrained_model_reads_walls_on_a_fresh_drive(tiny_dataset, tmp_path):
     import learn
 
     _, ckpt = load_checkpoint(learn.PRETRAINED_CHECKPOINT)
-    assert ckpt["model_config"] == {"name": "polar_unet", "frames": 5, "width": 16} and 0 < ckpt["threshold"] < 1
+    shipped = {"name": "polar_unet", "frames": 5, "width": 16, "elevation_deg": [0.0]}  # read as the level slice
+    assert ckpt["model_config"] == shipped and 0 < ckpt["threshold"] < 1
     assert "optimizer" not in ckpt
     report = evaluate(learn.PRETRAINED_CHECKPOINT, tiny_dataset, tmp_path / "eval", timing=False, examples=1)
     f1 = {name: r["all"]["scan_f1"]["mean"] for name, r in report["results"].items()}

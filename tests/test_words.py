@@ -65,6 +65,7 @@ def test_example_rows_run_from_poor_to_good():
     per_window = {"model": {"scan_f1": f1, "beam_accuracy": f1}, "echo peak": {"scan_f1": np.zeros(10)}}
     windows = SimpleNamespace(
         config=SimpleNamespace(label_offset=0),
+        level=0,
         scenario=np.zeros(10, int),
         batch=lambda idx: (torch.zeros(1, 1, 1, 2, 2), torch.zeros(1, 1, 2, 2)),
     )
