@@ -22,6 +22,15 @@
 #   bash benchmarks/elevation_study.sh score WORKDIR SEED...
 #   bash benchmarks/elevation_study.sh pack  WORKDIR DEST      # DEST/study.tgz.part* (cat | tar -xz)
 #
+# On the GPU machine (one H100/H200; calls back to back, each under 10 minutes; the interpreter is python3:
+# never link or wrap it under another name): install Warp and pyroomacoustics, then
+#   call 1: FRAMES=30000 MINUTES=12 bash benchmarks/elevation_study.sh gen W; then
+#           nohup bash benchmarks/elevation_study.sh train W 0 1 2 > W.train.log 2>&1 < /dev/null &
+#           bash benchmarks/elevation_study.sh tests W     (the test sets while the runs train)
+#   call 2: wait until no `learn trai[n]` process is left (pgrep), then score W 0 1 2
+#   call 3: pack W "$OUT" (parts of 15 MB; a call returns 64 MB at most)
+# Six runs of 30,000 frames at three elevations hold 7.8 GB each on the GPU and in host memory.
+#
 # Environment: FRAMES (40000), ELEVATIONS ([-20,0,20]), REALITY_FRAMES (the suite's 1,500),
 # CROSS_FRAMES (1000), FRESH_FRAMES (1000), DEVICE (cuda; GPUS=2 spreads runs over cuda:0..),
 # GEN_DEVICE (cuda:0), WORKERS (8), CROSS_WORKERS (12), MINUTES (per run, 12), EPOCHS (100),
