@@ -412,6 +412,16 @@ class ProcessingConfig:
         if self.lowpass_hz is not None and not self.lowpass_hz > 0:
             raise ValueError(f"lowpass_hz must be positive (or None), got {self.lowpass_hz}")
 
+    @property
+    def elevations_deg(self) -> tuple[float, ...]:
+        """The beams' elevations [deg], one or more: a shard's `elevation_deg` axis."""
+        return tuple(np.atleast_1d(self.elevation_deg).tolist())
+
+
+def level_index(elevation_deg) -> int:
+    """Index of the elevation [deg] nearest 0: the LiDAR's plane, the one a planar sonar images."""
+    return int(np.argmin(np.abs(np.asarray(elevation_deg, dtype=np.float64))))
+
 
 @dataclass(frozen=True, kw_only=True)
 class SimConfig:

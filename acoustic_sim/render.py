@@ -103,6 +103,15 @@ def render_examples(examples: list[tuple[str, np.ndarray, np.ndarray]], grid: Po
     return out
 
 
+def render_elevations(
+    what: str, energy: np.ndarray, lidar: np.ndarray, elevation_deg, grid: PolarGrid, out: str | Path
+) -> Path:
+    """One frame (E, R, A) at each of its increasing elevations, highest first, each titled
+    "`what` at E deg", with its LiDAR image (R, A) on top; e.g. a dataset card's stack."""
+    rows = [(f"{what} at {e:g} deg", energy[j], lidar) for j, e in enumerate(elevation_deg)]
+    return render_examples(rows[::-1], grid, out)
+
+
 def render_lidar(
     scene: Scene,
     poses: np.ndarray,

@@ -20,7 +20,7 @@ from typing import Literal
 import numpy as np
 import torch
 
-from .elevations import elevation_rows, missing_elevations
+from .elevations import elevation_rows, level_index, missing_elevations
 from .inputs import check_fits, read_json
 from .odometry import relative
 from .shardfile import FORMAT as FORMAT  # re-exported: learn.data is where readers look for them
@@ -162,7 +162,7 @@ class Frames:
     @property
     def level(self) -> int:
         """Index of the elevation nearest 0 deg: the LiDAR's plane, which the echo peak reads."""
-        return int(np.argmin(np.abs(self.elevation_deg)))
+        return level_index(self.elevation_deg)
 
 
 def level_slice(frames: Frames) -> Frames:
@@ -370,7 +370,7 @@ class Windows:
         self.elevation_deg = (
             frames.elevation_deg if self._pick is None else tuple(frames.elevation_deg[r] for r in rows)
         )
-        self.level = int(np.argmin(np.abs(self.elevation_deg)))  # the channel of the LiDAR's plane in x
+        self.level = level_index(self.elevation_deg)  # the channel of the LiDAR's plane in x
         self.starts = window_starts(frames.episode, config.frames)
         if len(self.starts) == 0:
             longest = int(np.unique(frames.episode, return_counts=True)[1].max()) if len(frames.episode) else 0

@@ -8,6 +8,11 @@ import numpy as np
 MATCH_DEG = 1e-6  # elevations this close are one (they come through JSON and float32 alike)
 
 
+def level_index(elevation_deg) -> int:
+    """Index of the elevation [deg] nearest 0: the LiDAR's plane, the one a planar sonar images."""
+    return int(np.argmin(np.abs(np.asarray(elevation_deg, dtype=np.float64))))
+
+
 def elevation_rows(have_deg, want_deg) -> list[int]:
     """Where each elevation of `want_deg` lies among `have_deg` [deg] (see `missing_elevations`)."""
     have = np.asarray(have_deg, dtype=np.float64)

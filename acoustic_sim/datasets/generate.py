@@ -20,7 +20,6 @@ import warnings
 from collections.abc import Iterable
 from pathlib import Path
 
-import numpy as np
 from tqdm.auto import tqdm
 
 from ..config import SimConfig
@@ -80,8 +79,10 @@ class SuiteRenderer:
     def shard_header(self, task: ShardTask) -> ShardHeader:
         nominal = self.rig(task)[1]
         config = {"suite": task.suite, "variant": task.variant, "physics": task.physics, "sim": nominal.to_dict()}
-        elevations = tuple(np.atleast_1d(nominal.processing.elevation_deg).tolist())
-        return ShardHeader(config, [s["name"] for s in task.suite["scenarios"]], nominal.processing.grid, elevations)
+        processing = nominal.processing
+        return ShardHeader(
+            config, [s["name"] for s in task.suite["scenarios"]], processing.grid, processing.elevations_deg
+        )
 
     def describe(self, tasks: list[ShardTask]) -> About:
         suite, physics = tasks[0].suite, tasks[0].physics

@@ -81,10 +81,10 @@ def write_card(folder: Path, manifest: dict, tables: tuple[FactTable, ...] = ())
     """README.md and card.png: what the dataset holds, how to read it, example frames."""
     import h5py
 
-    from ..config import PolarGrid
-    from ..render import render_examples
+    from ..config import PolarGrid, level_index
+    from ..render import render_elevations, render_examples
 
-    examples, stack, seen = [], [], set()
+    examples, stack, seen = [], None, set()
     for entry in manifest["shards"]:
         with h5py.File(folder / entry["file"], "r") as f:
             names = json.loads(f.attrs["scenarios"])
@@ -96,17 +96,16 @@ def write_card(folder: Path, manifest: dict, tables: tuple[FactTable, ...] = ())
                 seen.add(name)
                 k = min(i + 5, len(episode) - 1) if episode[min(i + 5, len(episode) - 1)] == episode[i] else i
                 (energy,), elevations = energyscapes(f, slice(k, k + 1))
-                lidar = f["lidar/image"][k]
-                level = int(np.argmin(np.abs(elevations)))  # the LiDAR's plane
+                lidar, level = f["lidar/image"][k], level_index(elevations)
                 if len(elevations) > 1:
                     name = f"{name} at {elevations[level]:g} deg elevation"
-                    if not stack:  # the first example at every elevation, highest first
-                        stack = [(f"frame {k} at {e:g} deg", energy[j], lidar) for j, e in enumerate(elevations)][::-1]
+                    if stack is None:  # the first example at every elevation
+                        stack = (f"frame {k}", energy, lidar, elevations)
                 examples.append((f"{name}, frame {k}", energy[level], lidar))
     grid = PolarGrid(**manifest["sim"]["processing"]["grid"])  # the run's grid
     render_examples(examples, grid, folder / "card.png")
-    if stack:
-        render_examples(stack, grid, folder / "card_elevations.png")
+    if stack is not None:
+        render_elevations(*stack, grid, folder / "card_elevations.png")
     title = manifest["suite"] + (f" / {manifest['variant']}" if manifest["variant"] else "")
     rows = "\n".join(f"| {name} | {count:,} |" for name, count in manifest["scenarios"].items())
     facts = "".join(_table_text(table) for table in tables)
@@ -115,7 +114,7 @@ def write_card(folder: Path, manifest: dict, tables: tuple[FactTable, ...] = ())
     stack_text = (
         "\nOne frame at each of its elevations, each in dB below its own peak (the level slice is the LiDAR's "
         "plane; floor echoes lie below, the ceiling above):\n\n![one frame at every elevation](card_elevations.png)\n"
-        if stack
+        if stack is not None
         else ""
     )
     text = f"""# Dataset: {title}

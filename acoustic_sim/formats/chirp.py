@@ -404,7 +404,7 @@ def import_chirp(
     pings = ImportedPings(
         stamps=stamps,
         energyscape=energy,
-        elevation_deg=np.atleast_1d(rig.processing.elevation_deg).astype(np.float64),
+        elevation_deg=np.array(rig.processing.elevations_deg),
         lidar_ranges=ranges,
         lidar_image=lidar_image(ranges, planar, grid),
         pose=poses,

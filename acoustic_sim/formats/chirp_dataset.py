@@ -96,10 +96,11 @@ def write_card(
     """card.png (three pings at the level elevation, with their labels), for several elevations
     card_elevations.png (the middle ping at each, highest first), and a README.md that says what
     was imported how."""
-    from ..render import render_examples
+    from ..config import level_index
+    from ..render import render_elevations, render_examples
 
     count, options, elevations = len(pings.stamps), config["import"], pings.elevation_deg
-    level = int(np.argmin(np.abs(elevations)))  # the LiDAR's plane
+    level = level_index(elevations)  # the LiDAR's plane
     at = f" at {elevations[level]:g} deg" if len(elevations) > 1 else ""
     shown = [
         (f"ping {i}{at}", pings.energyscape[i, level], pings.lidar_image[i])
@@ -109,11 +110,14 @@ def write_card(
     stack = ""
     if len(elevations) > 1:
         middle = count // 2
-        rows = [
-            (f"ping {middle} at {elevations[j]:g} deg", pings.energyscape[middle, j], pings.lidar_image[middle])
-            for j in np.argsort(-elevations, kind="stable")
-        ]
-        render_examples(rows, grid, out / "card_elevations.png")
+        render_elevations(
+            f"ping {middle}",
+            pings.energyscape[middle],
+            pings.lidar_image[middle],
+            elevations,
+            grid,
+            out / "card_elevations.png",
+        )
         stack = (
             f"\nEach ping is imaged at {len(elevations)} elevations ({', '.join(f'{e:g}' for e in elevations)} deg; "
             "`elevation_deg` in each shard); one ping at each, highest first:\n\n"

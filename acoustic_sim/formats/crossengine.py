@@ -250,8 +250,7 @@ class CrossEngineRenderer:
 
     def shard_header(self, task: ShardTask) -> ShardHeader:
         processing = ProcessingConfig(**task.suite["config"]["sim"]["processing"])
-        elevations = tuple(np.atleast_1d(processing.elevation_deg).tolist())
-        return ShardHeader(task.suite["config"], list(FLOOR_PLANS), processing.grid, elevations)
+        return ShardHeader(task.suite["config"], list(FLOOR_PLANS), processing.grid, processing.elevations_deg)
 
     def describe(self, tasks: list[ShardTask]) -> About:
         config = tasks[0].suite["config"]

@@ -22,6 +22,7 @@ import numpy as np
 
 from clitools.limits import check_fits, check_memory, format_bytes, free_disk_bytes, input_file
 
+from ..config import level_index
 from ..engine.signals import pdm_to_pcm
 
 PDM_DECODE_BYTES_PER_BYTE = 64  # a ping being decoded: its bits unpacked, as +-1, filtered (per byte of PDM)
@@ -121,8 +122,8 @@ def import_pdm(
     energy = energyscape(pcm, sonar, processing, device=device)
     out.parent.mkdir(parents=True, exist_ok=True)
     np.save(out, energy)
-    grid, elevations = processing.grid, np.atleast_1d(processing.elevation_deg)
-    level = int(np.argmin(np.abs(elevations)))  # (pings, E, R, A) for several elevations: draw the level one
+    grid, elevations = processing.grid, processing.elevations_deg
+    level = level_index(elevations)  # (pings, E, R, A) for several elevations: draw the level one
     images = energy if energy.ndim == 3 else energy[:, level]
     at = "" if energy.ndim == 3 else f" at {elevations[level]:g} deg"
     shown = [(f"ping {i}{at}", images[i], None) for i in range(min(3, len(energy)))]
@@ -130,7 +131,7 @@ def import_pdm(
     dims = "(pings, range, azimuth)" if energy.ndim == 3 else "(pings, elevation, range, azimuth)"
     record = {
         "what": f"energyscapes {dims} of a raw PDM recording, processed by acoustic_sim",
-        "elevation_deg": elevations.tolist(),
+        "elevation_deg": list(elevations),
         "files": [str(p) for p in paths],
         "pings": len(energy),
         "decode": decode | {"samples_per_ping": samples_per_ping, "pcm_rate_hz": sonar.chirp.sample_rate_hz},
