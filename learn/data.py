@@ -366,7 +366,8 @@ class Windows:
                     f"{list(frames.elevation_deg)}): beamform the data at the model's elevations"
                 )
             rows = elevation_rows(frames.elevation_deg, elevation_deg)
-            self._pick = None if rows == list(range(len(frames.elevation_deg))) else rows
+            if rows != list(range(len(frames.elevation_deg))):
+                self._pick = torch.as_tensor(rows, device=self.device)
         self.elevation_deg = (
             frames.elevation_deg if self._pick is None else tuple(frames.elevation_deg[r] for r in rows)
         )
@@ -415,7 +416,7 @@ class Windows:
         if self._pick is None:
             stored = self._energyscape[frame]
         else:  # only the rows read: (B, N, P, R, A)
-            stored = self._energyscape[frame[:, :, None], torch.as_tensor(self._pick, device=self.device)]
+            stored = self._energyscape[frame[:, :, None], self._pick]
         energy = stored * present[:, :, None, None, None]
         label = self._label[start + self.config.label_offset].float()
         if not self.odometry:
