@@ -23,12 +23,15 @@
 #   bash benchmarks/elevation_study.sh pack  WORKDIR DEST      # DEST/study.tgz.part* (cat | tar -xz)
 #
 # On the GPU machine (one H100/H200; calls back to back, each under 10 minutes; the interpreter is python3:
-# never link or wrap it under another name): install Warp and pyroomacoustics, then
-#   call 1: FRAMES=30000 MINUTES=12 bash benchmarks/elevation_study.sh gen W; then
-#           nohup bash benchmarks/elevation_study.sh train W 0 1 2 > W.train.log 2>&1 < /dev/null &
-#           bash benchmarks/elevation_study.sh tests W     (the test sets while the runs train)
-#   call 2: wait until no `learn trai[n]` process is left (pgrep), then score W 0 1 2
-#   call 3: pack W "$OUT" (parts of 15 MB; a call returns 64 MB at most)
+# never link or wrap it under another name): install Warp and pyroomacoustics, copy the repository to
+# $HOME (each call brings a fresh working tree), then
+#   call 1: gen W (30,000 frames: 45 s), then `tests W & MINUTES=6 train W 0 1 2; wait` (the test sets
+#           are made while the runs train, within the call)
+#   call 2: MINUTES=6 train W 0 1 2 again (--resume goes on from each run's last epoch)
+#   call 3: score W 0 1 2 (2.5 minutes), then pack W "$OUT" (parts of 15 MB; a call returns 64 MB at most)
+# A process left running in the background does not outlive its call: the machine stops it when
+# the call returns (a nohup'd train phase ended mid-epoch in session 23), so every phase ends
+# within its call, and a long training runs in legs.
 # Six runs of 30,000 frames at three elevations hold 7.8 GB each on the GPU and in host memory.
 #
 # Environment: FRAMES (40000), ELEVATIONS ([-20,0,20]), REALITY_FRAMES (the suite's 1,500),

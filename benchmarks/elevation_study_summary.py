@@ -65,7 +65,7 @@ def main() -> None:
     for row, name in ROWS:
         table["scan_f1"][name] = {t: values(reports, seeds, t, name, "scan_f1").tolist() for t in TESTS}
         lines.append(f"| {row} | " + " | ".join(spread(np.array(table["scan_f1"][name][t])) for t in TESTS) + " |")
-    lines += ["", "False returns (share of predicted returns with no true return within 0.10 m):", ""]
+    lines += ["", "False returns (share of the beams without a true return where the predictor returns):", ""]
     lines += ["| predictor | " + " | ".join(TESTS) + " |", "|---|" + "---|" * len(TESTS)]
     for row, name in ROWS:
         table["false"][name] = {t: values(reports, seeds, t, name, "false").tolist() for t in TESTS}

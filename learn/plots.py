@@ -247,3 +247,39 @@ def plot_drive_from_above(scans: dict[str, np.ndarray], poses, azimuth_rad, out:
         fig.savefig(out, dpi=90)
     plt.close(fig)
     return Path(out)
+
+
+def plot_elevation_examples(
+    rows: list[dict], range_m, azimuth_rad, elevation_deg, out: str | Path, *, title: str | None = None
+) -> Path:
+    """One row per window: the label frame's sonar input at each elevation, then a top view of each model's scan
+    beside the LiDAR truth, so a ghost or a band that one model reads as a wall and another does not shows as such.
+
+    Args:
+        rows: Dicts with "title", "sonar" (E, R, A) normalised echo level in [0, 1] of the label frame,
+            "truth" (A,) true range per beam [m] (inf = none) and "scans" {model name: (A,) range per beam [m]}.
+        range_m: Range bin centres [m], ascending, shape (R,).
+        azimuth_rad: Azimuth bin centres [rad], ascending, positive left, shape (A,).
+        elevation_deg: Elevation of each sonar slice [deg], shape (E,).
+        out: PNG path.
+        title: Figure title.
+    """
+    range_m, azimuth_rad = np.asarray(range_m, dtype=float), np.asarray(azimuth_rad, dtype=float)
+    elevations = np.atleast_1d(np.asarray(elevation_deg, dtype=float))
+    models = len(rows[0]["scans"])
+    with plt.rc_context(_FONT):
+        fig = plt.figure(figsize=(4.6 * len(elevations) + 6.5 * models, 4.2 * len(rows) + 0.5), layout="constrained")
+        subfigs = np.atleast_1d(fig.subfigures(len(rows), 1))
+        for sub, row in zip(subfigs, rows, strict=True):
+            sub.suptitle(row["title"], fontsize=12, fontweight="bold")
+            axes = sub.subplots(1, len(elevations) + models, width_ratios=(1,) * len(elevations) + (1.45,) * models)
+            for ax, image, elevation in zip(axes[: len(elevations)], row["sonar"], elevations, strict=True):
+                _polar(sub, ax, image, range_m, azimuth_rad, f"sonar input at {elevation:+.0f} deg", "magma", "echo")
+            for ax, (name, scan) in zip(axes[len(elevations) :], row["scans"].items(), strict=True):
+                _top_down(ax, row["truth"], scan, range_m, azimuth_rad)
+                ax.set_title(name)
+        if title:
+            fig.suptitle(title, fontsize=12)
+        fig.savefig(out, dpi=80)
+    plt.close(fig)
+    return Path(out)

@@ -227,3 +227,31 @@ def test_curves_follow_the_history(tmp_path):
                 continue
             assert len(np.unique(rows)) > box.height / 3  # a dashed line from top to bottom
             assert np.abs((cols - box.left) / box.width - share(3)).max() <= 2 / box.width
+
+
+def test_elevation_examples_draw_each_elevation_in_order(tmp_path):
+    """Two rows of three elevations and two models: each row's sonar panels, left to right, hold
+    its (E, R, A) slices in elevation order cell by cell, and one top view follows per model."""
+    from learn.plots import plot_elevation_examples
+
+    rng = np.random.default_rng(1)
+    truth = np.where(np.abs(AZIMUTH_RAD) < 1.0, 2.0 / np.cos(AZIMUTH_RAD), np.inf)
+    rows = [
+        {
+            "title": f"window {i}",
+            "sonar": rng.random((3, len(RANGE_M), len(AZIMUTH_RAD))),
+            "truth": truth,
+            "scans": {"e1": truth + 0.3 * i, "e3": truth},
+        }
+        for i in range(2)
+    ]
+    out = plot_elevation_examples(rows, RANGE_M, AZIMUTH_RAD, [-20, 0, 20], tmp_path / "elevations.png")
+    image = read_rgb(out)
+    frames = axes_frames(image)
+    assert len(frames) == 2 * (3 + 2)
+    for i, row in enumerate(rows):
+        panels = sorted(frames[5 * i : 5 * i + 5], key=lambda box: box.left)
+        shift = _edge_shift(image, panels[0])
+        for box, expected in zip(panels[:3], row["sonar"], strict=True):
+            cells = _cells(image, box, lambda px: colormap_value(px, "magma")[0], shift)
+            assert np.abs(cells - expected)[1:-1, 1:-1].max() <= 2.5 / 255, (row["title"], "elevation order")
