@@ -33,6 +33,27 @@ def false_beams(pred: np.ndarray, truth: np.ndarray) -> np.ndarray:
     return (np.isfinite(pred) & ~np.isfinite(truth)).sum(axis=-1)
 
 
+def read_scans(frames, checkpoints: list[str], device: str) -> tuple[Windows, np.ndarray, dict[str, np.ndarray]]:
+    """Every window's LiDAR truth and each model's scan, (N, A) ranges [m] (inf = none), beside the windows of
+    every elevation the frames hold (the first model's window layout), from NAME=PATH checkpoints."""
+    named = (item.partition("=") for item in checkpoints)
+    models = [(name, *load_checkpoint(path, device)) for name, _, path in named]
+    windows = Windows(frames, plain_windows(DataConfig(**models[0][2]["data_config"])), device)
+    chunks = np.array_split(np.arange(len(windows)), max(1, len(windows) // 64))
+    range_m = torch.as_tensor(frames.range_m, device=windows.device)
+    truth = np.concatenate(
+        [
+            first_return_ranges(windows.batch(chunk)[1][:, 0], range_m, threshold=LABEL_THRESHOLD).cpu().numpy()
+            for chunk in chunks
+        ]
+    )
+    scans = {}
+    for name, model, ckpt in models:
+        theirs, predict, threshold = model_windows(frames, ckpt, device), model_predictor(model), ckpt["threshold"]
+        scans[name] = np.concatenate([ranges_of(predict, theirs, chunk, float(threshold)) for chunk in chunks])
+    return windows, truth, scans
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--checkpoint", action="append", required=True, help="NAME=PATH: the level slice's model first")
@@ -44,23 +65,7 @@ def main() -> None:
     frames = load_frames(args.data)
     if frames.energyscape.shape[1] < 2:
         raise SystemExit(f"{args.data} holds one elevation: beamform it at several (processing.elevation_deg)")
-    named = (item.partition("=") for item in args.checkpoint)
-    models = [(name, *load_checkpoint(path, args.device)) for name, _, path in named]
-    first = DataConfig(**models[0][2]["data_config"])
-    windows = Windows(frames, plain_windows(first), args.device)  # every elevation, for the pictures
-    indices = np.arange(len(windows))
-    range_m = torch.as_tensor(frames.range_m, device=windows.device)
-    chunks = np.array_split(indices, max(1, len(indices) // 64))
-    truth = np.concatenate(
-        [
-            first_return_ranges(windows.batch(chunk)[1][:, 0], range_m, threshold=LABEL_THRESHOLD).cpu().numpy()
-            for chunk in chunks
-        ]
-    )
-    scans = {}
-    for name, model, ckpt in models:
-        theirs, predict, threshold = model_windows(frames, ckpt, args.device), model_predictor(model), ckpt["threshold"]
-        scans[name] = np.concatenate([ranges_of(predict, theirs, chunk, float(threshold)) for chunk in chunks])
+    windows, truth, scans = read_scans(frames, args.checkpoint, args.device)
     (base, base_scan), (other, other_scan) = list(scans.items())[:2]
     change = false_beams(other_scan, truth) - false_beams(base_scan, truth)
     order = np.argsort(change, kind="stable")
@@ -81,7 +86,7 @@ def main() -> None:
     stamp = provenance(args.device)
     commit = stamp["commit"][:12] if stamp.get("commit") else "?"
     title = (
-        f"{relative(args.data)}: the {args.rows} windows of {len(indices)} where {other} predicts the fewest false "
+        f"{relative(args.data)}: the {args.rows} windows of {len(windows)} where {other} predicts the fewest false "
         f"returns against {base}, then the {args.rows} where it predicts the most (commit {commit}, "
         f"{stamp.get('device_name') or args.device}; {other} minus {base} over all windows: "
         f"{int(change.sum()):+d} false beams, mean {change.mean():+.2f} a window)"
