@@ -70,12 +70,12 @@ def _evaluate(args) -> int:
 
 
 def _predict(args) -> int:
-    from .predict import predict, prediction_summary
+    from .predict import prediction_summary, run_predict
 
     t0 = time.perf_counter()
     if args.stream:  # frame by frame with state, as a robot runs it (learn.stream)
-        from .stream_predict import predict_stream as predict
-    out = predict(
+        from .stream_predict import run_predict_stream as run_predict
+    run = run_predict(
         args.checkpoint,
         args.input,
         args.out,
@@ -86,8 +86,7 @@ def _predict(args) -> int:
         overwrite=args.overwrite,
         progress=not args.quiet,
     )
-    summary = prediction_summary(out, args.input, time.perf_counter() - t0)
-    print(summary + (f"; and {args.mcap} (/scan_pred{' and /tf' if args.stream else ''})" if args.mcap else ""))
+    print(prediction_summary(run, args.input, time.perf_counter() - t0))
     return 0
 
 
@@ -248,7 +247,12 @@ def build_parser(base=None) -> argparse.ArgumentParser:
         "--input", required=True, help="dataset folder, or .npy of energyscapes (N, R, A) or (N, E, R, A) in time order"
     )
     p.add_argument("--out", required=True, help=".npz to write")
-    p.add_argument("--png", default=None, help="also draw four predictions spread over the input here (.png)")
+    p.add_argument(
+        "--png",
+        default=None,
+        help="also draw four predictions spread over the input here (.png), beside their LiDAR truth where the "
+        "input holds one",
+    )
     p.add_argument(
         "--mcap", default=None, help="also write the scans as ROS 2 LaserScans on /scan_pred (.mcap; extra ros)"
     )

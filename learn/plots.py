@@ -9,11 +9,16 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
+from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.ticker import MaxNLocator
 
+from clitools import counted
+
 _FONT = {"font.size": 10, "axes.titlesize": 11, "axes.labelsize": 10, "legend.fontsize": 9}
 _NEAR_M = 0.10  # a predicted return this close to the true one (same column) is drawn as a hit
+_ALONE = "tab:purple"  # a predicted scan without truth: neither the hits' green nor the misses' red
+_NO_TRUTH = "no LiDAR truth in this data: the predicted scan alone"
 
 
 def plot_curves(
@@ -110,7 +115,8 @@ def _polar(fig, ax, image, range_m, azimuth_rad, title, cmap, label):
 
 
 def _top_down(ax, truth_r, pred_r, range_m, azimuth_rad):
-    """Sensor-frame map seen from above, x forward up the page, y left to the left."""
+    """Sensor-frame map seen from above, x forward up the page, y left to the left. `truth_r` None:
+    data without LiDAR truth, so the predicted scan is drawn alone, neither hit nor false."""
     rmax = float(range_m[-1])
     # Horizontal axis is y, inverted so that left (+y) is on the left; vertical is x.
     arc = np.linspace(azimuth_rad[0], azimuth_rad[-1], 200)
@@ -125,60 +131,80 @@ def _top_down(ax, truth_r, pred_r, range_m, azimuth_rad):
         keep = np.isfinite(r)
         return r[keep] * np.sin(azimuth_rad[keep]), r[keep] * np.cos(azimuth_rad[keep])
 
-    with np.errstate(invalid="ignore"):  # inf - inf is nan: a column with no return on either side is no hit
-        near = np.abs(pred_r - truth_r) <= _NEAR_M
-    off = np.where(near, np.inf, pred_r)
-    hits = np.where(near, pred_r, np.inf)
-    ax.scatter(*xy(truth_r), s=14, color="black", label="LiDAR truth", zorder=2)
-    ax.scatter(
-        *xy(hits), s=9, color="tab:green", label=f"predicted scan, within {_NEAR_M:.2f} m ({near.sum()})", zorder=3
-    )
-    off_count = np.isfinite(off).sum()
-    ax.scatter(*xy(off), s=9, color="tab:red", label=f"predicted scan, off / false ({off_count})", zorder=3)
+    title = "top view (robot heading up)"
+    if truth_r is None:  # nothing to compare with: no colour may say right or wrong
+        count = counted(int(np.isfinite(pred_r).sum()), "return")
+        ax.scatter(*xy(pred_r), s=9, color=_ALONE, label=f"predicted scan ({count})", zorder=3)
+        title = "top view (robot heading up), no truth to compare"
+    else:
+        with np.errstate(invalid="ignore"):  # inf - inf is nan: a column with no return on either side is no hit
+            near = np.abs(pred_r - truth_r) <= _NEAR_M
+        off = np.where(near, np.inf, pred_r)
+        hits = np.where(near, pred_r, np.inf)
+        ax.scatter(*xy(truth_r), s=14, color="black", label="LiDAR truth", zorder=2)
+        within = f"predicted scan, within {_NEAR_M:.2f} m ({near.sum()})"
+        ax.scatter(*xy(hits), s=9, color="tab:green", label=within, zorder=3)
+        off_count = np.isfinite(off).sum()
+        ax.scatter(*xy(off), s=9, color="tab:red", label=f"predicted scan, off / false ({off_count})", zorder=3)
     side = rmax * max(np.sin(np.abs(azimuth_rad)).max(), 0.2) * 1.05
     ax.set_xlim(side, -side)
     ax.set_ylim(min(rmax * np.cos(np.abs(azimuth_rad)).min(), 0) - 0.3, rmax * 1.05)
     ax.set_aspect("equal")
     ax.set_xticks(np.arange(-np.floor(side), np.floor(side) + 1))
-    ax.set(title="top view (robot heading up)", xlabel="y [m] (left +)", ylabel="x [m] (forward)")
+    ax.set(title=title, xlabel="y [m] (left +)", ylabel="x [m] (forward)")
     # Outside, to the right: the half disc fills the axes and a legend inside would hide returns.
     ax.legend(loc="center left", bbox_to_anchor=(1.02, 0.5), fontsize=9)
 
 
 def plot_examples(rows: list[dict], range_m, azimuth_rad, out: str | Path, *, threshold: float = 0.5) -> Path:
-    """One row per example: sonar input, LiDAR truth, prediction (polar images) and a top view of both scans.
-
-    Args:
-        rows: Dicts with "title", "sonar" (R, A) normalised echo level in [0, 1] of the label frame,
-            "truth" (R, A) 0/1 LiDAR image, "pred" (R, A) return probability, optional "caption" (metrics text)
-            and "threshold" (this row's, instead of `threshold`).
-        range_m: Range bin centres [m], ascending, shape (R,).
-        azimuth_rad: Azimuth bin centres [rad], ascending, positive left, shape (A,).
-        out: PNG path.
-        threshold: Probability at which a predicted cell counts as a return.
-    """
-    range_m, azimuth_rad = np.asarray(range_m, dtype=float), np.asarray(azimuth_rad, dtype=float)
+    """`examples_figure` saved as `out` (PNG, or any format matplotlib writes by its suffix)."""
     with plt.rc_context(_FONT):
-        fig = plt.figure(figsize=(18, 4.2 * len(rows)), layout="constrained")
-        subfigs = np.atleast_1d(fig.subfigures(len(rows), 1))
-        for sub, row in zip(subfigs, rows, strict=True):
-            caption = f"  |  {row['caption']}" if row.get("caption") else ""
-            sub.suptitle(f"{row['title']}{caption}", fontsize=12, fontweight="bold")
-            axes = sub.subplots(1, 4, width_ratios=(1, 1, 1, 2.1))
-            echo = "echo level (0 = -40 dB, 1 = peak)"
-            _polar(sub, axes[0], row["sonar"], range_m, azimuth_rad, "sonar input", "magma", echo)
-            cbar = _polar(sub, axes[1], row["truth"], range_m, azimuth_rad, "LiDAR truth", "gray_r", "LiDAR return")
-            cbar.set_ticks([0, 1])
-            level = row.get("threshold", threshold)
-            label = f"return probability (red: threshold {level:.2f})"
-            cbar = _polar(sub, axes[2], row["pred"], range_m, azimuth_rad, "prediction", "gray_r", label)
-            cbar.ax.axhline(level, color="tab:red", linewidth=2)
-            truth_r = _first_return(row["truth"], range_m, 0.5)
-            pred_r = _first_return(row["pred"], range_m, level)
-            _top_down(axes[3], truth_r, pred_r, range_m, azimuth_rad)
+        fig = examples_figure(rows, range_m, azimuth_rad, threshold=threshold)
         fig.savefig(out, dpi=90)
     plt.close(fig)
     return Path(out)
+
+
+def examples_figure(rows: list[dict], range_m, azimuth_rad, *, threshold: float = 0.5) -> Figure:
+    """One row per example: sonar input, LiDAR truth, prediction (polar images) and a top view of both
+    scans; a row without truth (recorded data) shows sonar, prediction and the predicted scan alone,
+    and its title says that the data holds no truth. The figure is left open: close it.
+
+    Args:
+        rows: Dicts with "title", "sonar" (R, A) normalised echo level in [0, 1] of the label frame,
+            "truth" (R, A) 0/1 LiDAR image or None where the data holds none, "pred" (R, A) return
+            probability, optional "caption" (metrics text) and "threshold" (this row's, instead of
+            `threshold`).
+        range_m: Range bin centres [m], ascending, shape (R,).
+        azimuth_rad: Azimuth bin centres [rad], ascending, positive left, shape (A,).
+        threshold: Probability at which a predicted cell counts as a return.
+    """
+    range_m, azimuth_rad = np.asarray(range_m, dtype=float), np.asarray(azimuth_rad, dtype=float)
+    width = 18 if any(row["truth"] is not None for row in rows) else 14  # a panel fewer without truth
+    with plt.rc_context(_FONT):
+        fig = plt.figure(figsize=(width, 4.2 * len(rows)), layout="constrained")
+        subfigs = np.atleast_1d(fig.subfigures(len(rows), 1))
+        for sub, row in zip(subfigs, rows, strict=True):
+            truth = row["truth"]
+            notes = [row.get("caption")] + ([_NO_TRUTH] if truth is None else [])
+            sub.suptitle("  |  ".join([row["title"], *filter(None, notes)]), fontsize=12, fontweight="bold")
+            if truth is None:
+                sonar_ax, pred_ax, top_ax = sub.subplots(1, 3, width_ratios=(1, 1, 2.1))
+            else:
+                sonar_ax, truth_ax, pred_ax, top_ax = sub.subplots(1, 4, width_ratios=(1, 1, 1, 2.1))
+            echo = "echo level (0 = -40 dB, 1 = peak)"
+            _polar(sub, sonar_ax, row["sonar"], range_m, azimuth_rad, "sonar input", "magma", echo)
+            if truth is not None:
+                cbar = _polar(sub, truth_ax, truth, range_m, azimuth_rad, "LiDAR truth", "gray_r", "LiDAR return")
+                cbar.set_ticks([0, 1])
+            level = row.get("threshold", threshold)
+            label = f"return probability (red: threshold {level:.2f})"
+            cbar = _polar(sub, pred_ax, row["pred"], range_m, azimuth_rad, "prediction", "gray_r", label)
+            cbar.ax.axhline(level, color="tab:red", linewidth=2)
+            truth_r = None if truth is None else _first_return(truth, range_m, 0.5)
+            pred_r = _first_return(row["pred"], range_m, level)
+            _top_down(top_ax, truth_r, pred_r, range_m, azimuth_rad)
+    return fig
 
 
 def world_points(ranges, poses, azimuth_rad) -> np.ndarray:

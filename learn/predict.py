@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -24,10 +25,11 @@ from clitools import counted
 from clitools.outputs import atomic_output, check_output
 
 from .checkpoint import load_checkpoint
-from .data import DataConfig, Frames, Windows, load_frames, recorded_path
+from .data import DataConfig, Frames, load_frames, recorded_path
 from .evaluate import check_grid, model_predictor, model_windows, return_threshold
 from .inputs import check_fits, npy_header, read_json
 from .models import ModelConfig, trained_elevations
+from .predict_pictures import has_lidar_truth, picture_indices, plot_windows
 from .scan import first_return_ranges
 
 
@@ -107,7 +109,43 @@ def _recorded_elevations(sidecar: Path) -> tuple[float, ...] | None:
         raise ValueError(f"--input's record {sidecar}: {err}") from None
 
 
-def predict(
+@dataclass(frozen=True)
+class PredictionRun:
+    """What one `learn predict` run read and wrote, for the lines it ends with.
+
+    Attributes:
+        out: The .npz written.
+        png: The picture written, None where none was asked for.
+        mcap: The bag written, None where none was asked for.
+        frame: The label frame each prediction is for, shape (N,).
+        frames_per_window: K, the consecutive frames each prediction reads.
+        beams: Azimuth beams of each scan.
+        threshold: Return threshold the scans were read at.
+        threshold_given: True: `--threshold`'s; False: the checkpoint's calibrated one.
+        elevation_deg: The elevations [deg] the model read.
+        lidar_truth: Whether the input holds LiDAR truth (the picture then draws it).
+        streamed: Run frame by frame (`--stream`; its bag also holds the poses on /tf).
+    """
+
+    out: Path
+    png: Path | None
+    mcap: Path | None
+    frame: np.ndarray
+    frames_per_window: int
+    beams: int
+    threshold: float
+    threshold_given: bool
+    elevation_deg: tuple[float, ...]
+    lidar_truth: bool
+    streamed: bool = False
+
+
+def predict(checkpoint, source, out, **options) -> Path:
+    """`run_predict`, returning the .npz's path alone."""
+    return run_predict(checkpoint, source, out, **options).out
+
+
+def run_predict(
     checkpoint,
     source,
     out,
@@ -119,21 +157,22 @@ def predict(
     mcap: str | None = None,
     overwrite: bool = False,
     progress: bool = False,
-) -> Path:
-    """Predictions of every window, saved as .npz (the suffix is added if `out` lacks it; the path
-    written is returned): "prediction" (windows, R, A) float16 images,
+) -> PredictionRun:
+    """Predictions of every window, saved as .npz (the suffix is added if `out` lacks it):
+    "prediction" (windows, R, A) float16 images,
     "ranges" (windows, A) float32 scans [m] (inf = no return), "threshold", "frame" (the label
     frame of each window), "range_m", "azimuth_rad". `threshold` overrides the checkpoint's.
-    `mcap`: also write the scans as ROS 2 LaserScans on /scan_pred (see `learn.ros`). `progress`:
-    a progress bar over the windows. Each file is written under a temporary name and renamed when
-    whole (`clitools.outputs`): an existing one is replaced only with `overwrite`, an input never
-    (both refused before any work)."""
+    `png`: also draw four of them (`learn.predict_pictures`: beside their truth where the data
+    holds one). `mcap`: also write the scans as ROS 2 LaserScans on /scan_pred (see `learn.ros`).
+    `progress`: a progress bar over the windows, then the files. Each file is written under a
+    temporary name and renamed when whole (`clitools.outputs`): an existing one is replaced only
+    with `overwrite`, an input never (both refused before any work). Returns what was written."""
     out = Path(out)
     out = out if out.suffix == ".npz" else out.with_name(out.name + ".npz")  # numpy appends it anyway
     inputs = [checkpoint, source]
     _check_outputs(out, png, mcap, overwrite=overwrite, inputs=inputs)
     model, ckpt = load_checkpoint(checkpoint, device)
-    threshold = return_threshold(ckpt, threshold, str(checkpoint))
+    given, threshold = threshold is not None, return_threshold(ckpt, threshold, str(checkpoint))
     source = Path(source)
     frames = read_input(source, ckpt)
     check_grid(frames, ckpt)
@@ -153,12 +192,14 @@ def predict(
     labelled = windows.starts + config.label_offset  # the frame each prediction is for
     images, ranges = np.concatenate(preds), np.concatenate(ranges)
     with contextlib.ExitStack() as files:  # all written before any is renamed: a failure leaves none
+        bar = files.enter_context(writing_bar([out, png, mcap], progress))
 
         def temporary(path) -> Path:
             return files.enter_context(atomic_output(path, overwrite=overwrite, inputs=inputs))
 
         if mcap:
             _write_scans(temporary(mcap), source, frames, ranges, labelled)
+            bar.update(1)
         np.savez_compressed(
             temporary(out),
             prediction=images,
@@ -168,9 +209,29 @@ def predict(
             range_m=frames.range_m,
             azimuth_rad=frames.azimuth_rad,
         )
+        bar.update(1)
         if png:
-            _plot(temporary(png), windows, images, threshold)
-    return out
+            plot_windows(temporary(png), windows, images, threshold)
+            bar.update(1)
+    return PredictionRun(
+        out=out,
+        png=Path(png) if png else None,
+        mcap=Path(mcap) if mcap else None,
+        frame=labelled,
+        frames_per_window=config.frames,
+        beams=len(frames.azimuth_rad),
+        threshold=threshold,
+        threshold_given=given,
+        elevation_deg=tuple(windows.elevation_deg),
+        lidar_truth=has_lidar_truth(frames),
+    )
+
+
+def writing_bar(paths: list, progress: bool) -> tqdm:
+    """A progress bar over the files of `paths` given (None: not asked for), each counted once
+    written: a long drive's .npz takes a while to compress."""
+    count = sum(1 for p in paths if p)
+    return tqdm(total=count, desc="writing", unit="file", disable=not progress, leave=False)
 
 
 def _write_scans(path: Path, source: Path, frames: Frames, ranges: np.ndarray, labelled: np.ndarray) -> None:
@@ -182,25 +243,6 @@ def _write_scans(path: Path, source: Path, frames: Frames, ranges: np.ndarray, l
     else:
         stamps = dataset_stamps(source)
     write_scans(path, ranges, stamps[labelled], frames.range_m, frames.azimuth_rad)
-
-
-def _plot(path: Path, windows: Windows, images: np.ndarray, threshold: float) -> None:
-    """Four predictions spread over the drive, beside their sonar input and truth."""
-    from .plots import plot_examples
-
-    rows, offset = [], windows.config.label_offset
-    for i in np.unique(np.linspace(0, len(windows) - 1, 4).round().astype(int)):
-        x, y = windows.batch([i])
-        frames = x[0] if isinstance(x, tuple) else x  # a model with memory also reads the motion
-        rows.append(
-            {
-                "title": f"frame {windows.starts[i] + offset}",
-                "sonar": frames[0, windows.level, windows.config.anchor].cpu().numpy(),
-                "truth": y[0, 0].cpu().numpy(),
-                "pred": images[i].astype(np.float32),
-            }
-        )
-    plot_examples(rows, windows.frames.range_m, windows.frames.azimuth_rad, path, threshold=threshold)
 
 
 def _check_outputs(out: Path, png, mcap, *, overwrite: bool, inputs: list) -> None:
@@ -221,13 +263,28 @@ def _check_outputs(out: Path, png, mcap, *, overwrite: bool, inputs: list) -> No
             raise ValueError(f"--png {png}: matplotlib draws no {Path(png).suffix} pictures; use .png, .pdf or .svg")
 
 
-def prediction_summary(out: str | Path, source: str | Path, seconds: float) -> str:
-    """One line on what `predict` wrote to `out` (.npz): how many frames of `source` it predicted,
-    which, on how many beams, at which threshold, and how long it took [s]."""
-    with np.load(out) as saved:
-        frame, beams, threshold = saved["frame"], len(saved["azimuth_rad"]), float(saved["threshold"])
-    which = f"label frames {frame.min()}..{frame.max()}; " if len(frame) else ""
-    return (
-        f"wrote {out}: LiDAR images and scans for {counted(len(frame), 'frame')} of {source} "
-        f"({which}{beams} beams, return threshold {threshold:.2f}) in {seconds:.1f} s"
+def prediction_summary(run: PredictionRun, source: str | Path, seconds: float) -> str:
+    """The lines `learn predict` ends with: how many frames of `source` it predicted, which, on how
+    many beams, at which threshold and whence, in how long [s]; the windows they read (and their
+    elevations, where more than one); then each other file written and what it holds."""
+    count = len(run.frame)
+    which = f"label frames {run.frame.min()}..{run.frame.max()}; " if count else ""
+    whence = "given with --threshold" if run.threshold_given else "the checkpoint's calibrated one"
+    windows = (
+        f"  read {counted(count, 'window')} of {counted(run.frames_per_window, 'frame')} (one per frame predicted)"
     )
+    if len(run.elevation_deg) > 1:
+        windows += f" at elevations {', '.join(f'{e:g}' for e in run.elevation_deg)} deg"
+    lines = [
+        f"wrote {run.out}: LiDAR images and scans for {counted(count, 'frame')} of {source} "
+        f"({which}{run.beams} beams, return threshold {run.threshold:.2f}, {whence}) in {seconds:.1f} s",
+        windows,
+    ]
+    if run.png:
+        drawn = counted(len(picture_indices(count)) if count else 0, "prediction")
+        truth = " and LiDAR truth" if run.lidar_truth else " (no LiDAR truth in this data: the predicted scans alone)"
+        lines.append(f"wrote {run.png}: {drawn} beside their sonar input{truth}")
+    if run.mcap:
+        tf = " and the poses on /tf" if run.streamed else ""
+        lines.append(f"wrote {run.mcap}: the scans as ROS 2 LaserScans on /scan_pred{tf}")
+    return "\n".join(lines)

@@ -14,21 +14,26 @@ import contextlib
 from pathlib import Path
 
 import numpy as np
-import torch
 from tqdm.auto import tqdm
 
 from clitools.outputs import atomic_output
 
 from .bag import Recording, read_bag, write_bag
 from .checkpoint import load_checkpoint
-from .data import DataConfig, DataError, normalise, shard_paths, window_starts
+from .data import DataError, shard_paths, window_starts
 from .elevations import elevation_rows
 from .evaluate import check_grid
-from .predict import _check_outputs, read_input
+from .predict import PredictionRun, _check_outputs, read_input, writing_bar
+from .predict_pictures import has_lidar_truth, plot_stream
 from .stream import Stream
 
 
-def predict_stream(
+def predict_stream(checkpoint, source, out, **options) -> Path:
+    """`run_predict_stream`, returning the .npz's path alone."""
+    return run_predict_stream(checkpoint, source, out, **options).out
+
+
+def run_predict_stream(
     checkpoint,
     source,
     out,
@@ -39,11 +44,11 @@ def predict_stream(
     mcap: str | None = None,
     overwrite: bool = False,
     progress: bool = False,
-) -> Path:
+) -> PredictionRun:
     """Stream every frame of `source` through the checkpoint and save the scans as `learn.predict.
     predict` saves them (the .npz's keys; `frame` is each scan's frame in the input's order): the
-    arguments are predict's. A model with memory is refused, before any work, on data without
-    poses."""
+    arguments are predict's, and so is what it returns. A model with memory is refused, before
+    any work, on data without poses."""
     out = Path(out)
     out = out if out.suffix == ".npz" else out.with_name(out.name + ".npz")
     inputs = [checkpoint, source]
@@ -78,6 +83,7 @@ def predict_stream(
                 ranges.append(result.ranges)
     labelled, images, ranges = np.array(labelled, np.int64), np.stack(images), np.stack(ranges)
     with contextlib.ExitStack() as files:  # all written before any is renamed: a failure leaves none
+        bar = files.enter_context(writing_bar([out, png, mcap], progress))
 
         def temporary(path) -> Path:
             return files.enter_context(atomic_output(path, overwrite=overwrite, inputs=inputs))
@@ -94,6 +100,7 @@ def predict_stream(
                 parent=drive.parent,
                 sensor=drive.sensor,
             )
+            bar.update(1)
         np.savez_compressed(
             temporary(out),
             prediction=images,
@@ -103,9 +110,23 @@ def predict_stream(
             range_m=frames.range_m,
             azimuth_rad=frames.azimuth_rad,
         )
+        bar.update(1)
         if png:
-            _plot(temporary(png), frames, stream.config, labelled, images, stream.threshold)
-    return out
+            plot_stream(temporary(png), frames, stream.config, labelled, images, stream.threshold)
+            bar.update(1)
+    return PredictionRun(
+        out=out,
+        png=Path(png) if png else None,
+        mcap=Path(mcap) if mcap else None,
+        frame=labelled,
+        frames_per_window=stream.config.frames,
+        beams=len(frames.azimuth_rad),
+        threshold=stream.threshold,
+        threshold_given=threshold is not None,
+        elevation_deg=tuple(stream.elevation_deg),
+        lidar_truth=has_lidar_truth(frames),
+        streamed=True,
+    )
 
 
 def read_drive(source: Path, ckpt: dict) -> Recording:
@@ -133,22 +154,3 @@ def _shard_poses(folder: Path) -> np.ndarray:
         with h5py.File(path, "r") as f:
             poses.append(f["pose"][:].astype(np.float64))
     return np.concatenate(poses)
-
-
-def _plot(path: Path, frames, config: DataConfig, labelled, images, threshold: float) -> None:
-    """Four scans spread over the drive, beside the sonar frame they are for and its truth."""
-    from .plots import plot_examples
-
-    rows = []
-    for i in np.unique(np.linspace(0, len(labelled) - 1, 4).round().astype(int)):
-        frame = int(labelled[i])
-        sonar = normalise(torch.from_numpy(np.asarray(frames.energyscape[frame])), config.floor_db)[frames.level]
-        rows.append(
-            {
-                "title": f"frame {frame}",
-                "sonar": sonar.numpy(),
-                "truth": frames.label[frame].astype(np.float32),
-                "pred": images[i].astype(np.float32),
-            }
-        )
-    plot_examples(rows, frames.range_m, frames.azimuth_rad, path, threshold=threshold)

@@ -172,7 +172,8 @@ def check_predict(args, cwd: Path) -> str:
     assert len(saved["frame"]) == len(images) and 0 < threshold <= 1
     report = f"{args.out}: {len(images)} images, their scans at threshold {threshold:g}"
     if args.png:
-        rows = len(axes_frames(read_rgb(cwd / args.png))) // 4  # sonar, truth, prediction, top view
+        truth = Path(args.input).suffix != ".npy"  # a .npy of energyscapes holds no LiDAR truth to draw
+        rows = len(axes_frames(read_rgb(cwd / args.png))) // (4 if truth else 3)  # sonar, (truth,) prediction, top
         assert rows == min(4, len(images)), rows
         report += f"; {args.png}: {rows} rows"
     return report
