@@ -14,7 +14,7 @@ from clitools import HelpFormatter, counted, run_command
 from clitools.errors import interrupt_after
 from clitools.outputs import OVERWRITE_HELP, atomic_folder
 
-from .cli_text import COMMANDS, DESCRIPTION, EXAMPLES, SET_HELP, VERBOSE_HELP
+from .cli_text import COMMANDS, DESCRIPTION, EXAMPLES, MESH_OPTIONS, SET_HELP, VERBOSE_HELP
 from .extras import MissingExtra  # no heavy imports: a plain exception class
 
 
@@ -37,6 +37,7 @@ def _scene_from_args(args):
         source, build, path = f"--svg {args.svg}", scenes.from_svg, (args.svg,)
     elif args.mesh:
         source, build, path = f"--mesh {args.mesh}", scenes.from_mesh, (args.mesh,)
+        kwargs = {"up": args.up, "units": args.units, "materials": args.materials, "report": print} | kwargs
     else:
         source, build, path = f"--scene {args.scene}", scenes.BUILDERS[args.scene], ()
         kwargs = {"seed": args.seed} | kwargs
@@ -53,7 +54,7 @@ def _render(args) -> int:
 
     out = Path(args.out)
     check_picture_name(out)
-    inputs = [p for p in (args.svg, args.mesh) if p]
+    inputs = [p for p in (args.svg, args.mesh, args.materials) if p]
     names = [out.name, out.with_suffix(".json").name]  # the picture and its settings, published together
     with atomic_folder(out.parent, overwrite=args.overwrite, inputs=inputs, expected=names) as stage:
         done = _render_into(args, stage / out.name)
@@ -323,6 +324,8 @@ def build_parser() -> argparse.ArgumentParser:
     source.add_argument("--scene", choices=sorted(scenes.BUILDERS), default="office", help="scene builder")
     source.add_argument("--svg", help="SVG floor plan to extrude instead of a builder")
     source.add_argument("--mesh", help="mesh file (any format trimesh loads) instead of a builder")
+    for flag, options in MESH_OPTIONS.items():  # --up, --units, --materials
+        render.add_argument(flag, **options)
     render.add_argument(
         "--scene-arg",
         action="append",

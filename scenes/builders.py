@@ -4,18 +4,16 @@ from __future__ import annotations
 
 import os
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import numpy as np
 import trimesh
 
-from clitools.limits import available_memory_bytes, format_bytes, input_file
-
 from .materials import Material
+from .mesh_import import load
 from .scene import Scene, SceneError, assemble, box_mesh, cylinder_mesh, room_shell
 
 Part = tuple[trimesh.Trimesh, "str | Material"]
-MESH_MEMORY_PER_FILE_BYTE = 32  # trimesh's arrays and our copies per byte of mesh file (8-20 measured: OBJ, STL, PLY)
 
 
 def _check_size(size: Sequence[float], minimum: Sequence[float]) -> np.ndarray:
@@ -307,40 +305,26 @@ def random_world(
 
 
 def from_mesh(
-    mesh: trimesh.Trimesh | str | os.PathLike,
+    mesh: trimesh.Trimesh | trimesh.Scene | str | os.PathLike,
     *,
+    up: str = "auto",
+    units: str = "auto",
+    materials: str | os.PathLike | Mapping[str, str] | None = None,
     material: str | Material = "painted_wall",
     name: str = "mesh",
+    report: Callable[[str], object] | None = None,
 ) -> Scene:
-    """Scene from any mesh trimesh loads (file path or Trimesh), all faces of one material.
+    """Scene from any mesh trimesh loads (file path, Trimesh or trimesh Scene); the arguments are
+    `scenes.mesh_import.load`'s, which also returns the import report as an object.
 
+    The up axis and unit come from the format (glTF: Y up, metres) or are assumed (z up,
+    metres) and checked against a building's size and shape; the file's material names are
+    mapped to ours by `materials` (a TOML [materials] table, or a mapping of names or globs)
+    and by name patterns ("floor", "glass", ...); faces left over get `material`. `report`, if
+    given (e.g. print), is called with the import report's text: each name's material and faces.
     Degenerate faces are dropped with a warning; an empty or non-finite mesh raises SceneError.
     """
-    source = os.fspath(mesh) if isinstance(mesh, (str, os.PathLike)) else None
-    if source is not None:
-        _check_mesh_file(source)
-        try:
-            # process=False: trimesh's clean-up drops NaN vertices and their faces without a word;
-            # clean_mesh refuses them instead (assemble merges duplicate vertices afterwards)
-            mesh = trimesh.load(source, force="mesh", process=False)
-        except Exception as err:
-            raise SceneError(
-                f"could not load a mesh from {source} (trimesh: {type(err).__name__}: {str(err).strip()}); give a "
-                "mesh file trimesh reads (.obj, .stl, .ply, .glb, .off, ...) whose suffix names its format"
-            ) from err
-        if isinstance(mesh, trimesh.Trimesh) and len(mesh.faces) == 0:
-            raise SceneError(f"mesh file {source} holds no faces (trimesh read {len(mesh.vertices)} vertices)")
-    return assemble([(mesh, material)], name=name, params={"source": source})
-
-
-def _check_mesh_file(path: str) -> None:
-    """A regular file (a FIFO or /dev/urandom would never end) whose mesh this machine can hold."""
-    limit = available_memory_bytes() / MESH_MEMORY_PER_FILE_BYTE
-    free = format_bytes(limit * MESH_MEMORY_PER_FILE_BYTE)
-    why = f"loading a mesh takes up to {MESH_MEMORY_PER_FILE_BYTE} times its size in memory, and {free} are free"
-    try:
-        input_file(path, what="mesh file", max_bytes=limit, bound=why)
-    except FileNotFoundError:
-        raise SceneError(f"could not load a mesh from {path}: there is no such file") from None
-    except (OSError, ValueError) as err:
-        raise SceneError(str(err)) from None
+    scene, done = load(mesh, up=up, units=units, materials=materials, material=material, name=name)
+    if report is not None:
+        report(done.text())
+    return scene
