@@ -13,6 +13,7 @@ from clitools.limits import available_memory_bytes, format_bytes, input_file
 
 from .materials import Material
 from .scene import Scene, SceneError, assemble, box_mesh, cylinder_mesh, room_shell
+from .smooth_fit import fit_curved_surfaces
 
 Part = tuple[trimesh.Trimesh, "str | Material"]
 MESH_MEMORY_PER_FILE_BYTE = 32  # trimesh's arrays and our copies per byte of mesh file (8-20 measured: OBJ, STL, PLY)
@@ -315,6 +316,8 @@ def from_mesh(
     """Scene from any mesh trimesh loads (file path or Trimesh), all faces of one material.
 
     Degenerate faces are dropped with a warning; an empty or non-finite mesh raises SceneError.
+    Smooth patches that approximate whole spheres or cylinders echo off the true surface
+    (`scenes.smooth_fit`).
     """
     source = os.fspath(mesh) if isinstance(mesh, (str, os.PathLike)) else None
     if source is not None:
@@ -330,7 +333,7 @@ def from_mesh(
             ) from err
         if isinstance(mesh, trimesh.Trimesh) and len(mesh.faces) == 0:
             raise SceneError(f"mesh file {source} holds no faces (trimesh read {len(mesh.vertices)} vertices)")
-    return assemble([(mesh, material)], name=name, params={"source": source})
+    return assemble([(mesh, material)], name=name, params={"source": source}, fit_curved=fit_curved_surfaces)
 
 
 def _check_mesh_file(path: str) -> None:
