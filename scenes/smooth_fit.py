@@ -22,10 +22,13 @@ joined smoothly to flat faces) stay as they are: faceted mirrors, as before.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import trimesh
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 from .scene import CurvedSurface
 
@@ -33,7 +36,7 @@ CREASE_DEG = 30.0  # an edge turning this much or more is a crease: the faces on
 FIT_RELATIVE = 0.01  # the most a vertex may lie off a fitted surface, as a fraction of its radius ...
 FIT_ABSOLUTE_M = 2e-4  # ... and in metres: the echo's round trip errs by at most twice this (half a sample at 450 kHz)
 CYLINDER_SPREAD = 0.05  # normals of a cylinder keep < 5 % of their weight along its axis (a sphere's: 1/3 each way)
-ROUND_SPREAD = 0.1  # a patch whose normals keep < 10 % of their weight off one plane cannot close around anything
+ROUND_SPREAD = 0.1  # normals with < 10 % of their weight off one direction (flat, gently bent) close round nothing
 AXIS_SNAP = 1e-6  # an axis this close [rad] to x, y or z is taken as exactly that (vertical poles stay vertical)
 _DIRECTIONS = 256  # directions a sphere's faces must all face within the crease angle
 
@@ -59,40 +62,51 @@ def fit_curved_surfaces(
     pairs = welded.face_adjacency[welded.face_adjacency_angles < np.deg2rad(crease_deg) - 1e-9]
     graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(face_count, face_count))
     patch_count, patch = connected_components(graph, directed=False)
+    # Plain arrays: trimesh checks each cached property against a hash of the whole mesh per access.
+    faces = _Faces(welded.vertices, welded.faces, welded.face_normals, welded.area_faces, welded.triangles_center)
+    by_patch = np.argsort(patch, kind="stable")
+    starts = np.searchsorted(patch[by_patch], np.arange(patch_count + 1))
     surfaces: list[CurvedSurface] = []
-    for candidate in _round_candidates(welded, patch, patch_count):
-        faces = np.flatnonzero(patch == candidate)
-        surface = _fit_patch(welded, faces, crease_deg)
+    for candidate in _round_candidates(faces, patch, patch_count):
+        members = by_patch[starts[candidate] : starts[candidate + 1]]
+        surface = _fit_patch(faces, members, np.deg2rad(crease_deg))
         if surface is not None:
-            face_surface[faces] = len(surfaces)
+            face_surface[members] = len(surfaces)
             surfaces.append(surface)
     return surfaces, face_surface
 
 
-def _round_candidates(mesh: trimesh.Trimesh, patch: np.ndarray, patch_count: int) -> np.ndarray:
+class _Faces(NamedTuple):
+    """A welded mesh as plain arrays [m]."""
+
+    vertices: np.ndarray  # (V, 3)
+    corners: np.ndarray  # (F, 3) vertex indices
+    normals: np.ndarray  # (F, 3) unit
+    areas: np.ndarray  # (F,) [m^2]
+    centroids: np.ndarray  # (F, 3)
+
+
+def _round_candidates(faces: _Faces, patch: np.ndarray, patch_count: int) -> np.ndarray:
     """Patches whose normals spread over more than one plane: only they can close around a centre
     or an axis (walls, box faces and every flat patch drop out here, in one array operation)."""
-    normals = mesh.face_normals
-    weight = mesh.area_faces
     scatter = np.zeros((patch_count, 3, 3))
     for i in range(3):
         for j in range(i, 3):
             scatter[:, i, j] = scatter[:, j, i] = np.bincount(
-                patch, weights=weight * normals[:, i] * normals[:, j], minlength=patch_count
+                patch, weights=faces.areas * faces.normals[:, i] * faces.normals[:, j], minlength=patch_count
             )
-    total = np.bincount(patch, weights=weight, minlength=patch_count)
+    total = np.bincount(patch, weights=faces.areas, minlength=patch_count)
     middle = np.linalg.eigvalsh(scatter)[:, 1] / np.maximum(total, np.finfo(float).tiny)
     return np.flatnonzero(middle > ROUND_SPREAD)
 
 
-def _fit_patch(mesh: trimesh.Trimesh, faces: np.ndarray, crease_deg: float) -> CurvedSurface | None:
-    """A sphere or cylinder that the patch's faces tightly and wholly approximate, or None."""
-    normals = mesh.face_normals[faces]
-    weight = mesh.area_faces[faces]
+def _fit_patch(faces: _Faces, members: np.ndarray, crease: float) -> CurvedSurface | None:
+    """A sphere or cylinder that the faces `members` tightly and wholly approximate, or None."""
+    normals = faces.normals[members]
+    weight = faces.areas[members]
     spread, directions = np.linalg.eigh(np.einsum("f,fi,fj->ij", weight, normals, normals) / weight.sum())
-    points = mesh.vertices[np.unique(mesh.faces[faces])]
-    centroids = mesh.triangles_center[faces]
-    crease = np.deg2rad(crease_deg)
+    points = faces.vertices[np.unique(faces.corners[members])]
+    centroids = faces.centroids[members]
     if spread[0] < CYLINDER_SPREAD:
         return _fit_cylinder(points, centroids, normals, _canonical_axis(directions[:, 0]), crease)
     return _fit_sphere(points, centroids, normals, crease)
@@ -104,8 +118,9 @@ def _fit_sphere(points: np.ndarray, centroids: np.ndarray, normals: np.ndarray, 
     outward = centroids - centre
     if not _tight(distance, radius) or not (np.einsum("fi,fi->f", normals, outward) > 0).all():
         return None
-    if (normals @ _fibonacci_sphere(_DIRECTIONS).T).max(axis=0).min() < np.cos(crease):
-        return None  # a part of a sphere (a dome, a cap): some directions have no face
+    gap, _ = cKDTree(normals).query(_fibonacci_sphere(_DIRECTIONS))  # chord to the nearest face normal
+    if gap.max() > 2 * np.sin(crease / 2):
+        return None  # a part of a sphere (a dome, a cap): some directions have no face within the crease angle
     return CurvedSurface("sphere", tuple(float(c) for c in centre), float(distance.max()))
 
 

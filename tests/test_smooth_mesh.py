@@ -223,6 +223,15 @@ def test_fitted_surfaces_are_the_true_ones(tmp_path):
     assert tilted.radius == pytest.approx(PIPE_RADIUS, rel=1e-9) and (faces >= 0).sum() == 2 * 48
 
 
+def test_a_triangle_soup_is_welded_first():
+    """Every face with its own corners (as OBJ files with per-face normals load): the ball and
+    the pole are still found, on all their faces."""
+    mesh = trimesh.util.concatenate([ball(), pole().apply_translation((2.0, 0.0, 0.0))])
+    soup = trimesh.Trimesh(mesh.triangles.reshape(-1, 3), np.arange(3 * len(mesh.faces)).reshape(-1, 3), process=False)
+    surfaces, faces = fit_curved_surfaces(soup)
+    assert sorted(c.kind for c in surfaces) == ["cylinder", "sphere"] and (faces >= 0).sum() == 1280 + 64
+
+
 def test_a_rebuilt_random_world_finds_the_builders_pillars():
     """A random world's mesh alone (its metadata gone), through from_mesh: the same three
     48-sided pillars as the builder made, on the same faces; its room and walls stay flat."""
