@@ -323,6 +323,8 @@ def from_mesh(
     and by name patterns ("floor", "glass", ...); faces left over get `material`. `report`, if
     given (e.g. print), is called with the import report's text: each name's material and faces.
     Degenerate faces are dropped with a warning; an empty or non-finite mesh raises SceneError.
+    Smooth patches that approximate whole spheres or cylinders echo off the true surface
+    (`scenes.smooth_fit`).
     """
     scene, done = load(mesh, up=up, units=units, materials=materials, material=material, name=name)
     if report is not None:

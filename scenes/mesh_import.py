@@ -26,6 +26,7 @@ from .material_map import MappedName, check_material_table, map_names, read_mate
 from .materials import MATERIALS, Material
 from .materials import material as preset
 from .scene import Scene, SceneError, assemble
+from .smooth_fit import fit_curved_surfaces
 
 MESH_MEMORY_PER_FILE_BYTE = 32  # trimesh's arrays and our copies per byte of mesh file (8-20 measured: OBJ, STL, PLY)
 
@@ -151,7 +152,7 @@ def load(
     for text in said:
         warnings.warn(text, stacklevel=2)
     params = {"source": path, "up": up, "units": units, "material": default.name, "material_table": dict(table)}
-    scene = assemble(by_material, name=name, params=params)
+    scene = assemble(by_material, name=name, params=params, fit_curved=fit_curved_surfaces)
     report = MeshImportReport(
         source=path,
         up=up,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 import warnings
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -19,22 +19,25 @@ class SceneError(ValueError):
 
 @dataclass(frozen=True)
 class CurvedSurface:
-    """The smooth convex surface that some faces of a scene approximate: a sphere, or a vertical
-    cylinder. A flat facet reflects specularly only where it happens to face the sensor, so
-    simulators take specular echoes off these from the surface itself; everything else (LiDAR,
-    scattering, occlusion) uses the faces.
+    """The smooth convex surface that some faces of a scene approximate: a sphere, or a cylinder
+    (vertical unless `axis` says otherwise). A flat facet reflects specularly only where it happens
+    to face the sensor, so simulators take specular echoes off these from the surface itself;
+    everything else (LiDAR, scattering, occlusion) uses the faces.
 
     Attributes:
         kind: "sphere" or "cylinder".
         centre: The sphere's centre, or a point on the cylinder's axis [m].
         radius: [m].
-        z_range: The cylinder's extent along z [m] (a sphere ignores it).
+        z_range: The cylinder's extent along its axis: the range of axis . x over it [m] (z for a
+            vertical one; a sphere ignores it).
+        axis: The cylinder's unit axis direction (a sphere ignores it).
     """
 
     kind: str
     centre: tuple[float, float, float]
     radius: float
     z_range: tuple[float, float] = (0.0, 0.0)
+    axis: tuple[float, float, float] = (0.0, 0.0, 1.0)
 
     def __post_init__(self) -> None:
         if self.kind not in ("sphere", "cylinder") or not self.radius > 0:
@@ -43,6 +46,8 @@ class CurvedSurface:
             raise SceneError(f"a curved surface needs a finite centre (x, y, z) and radius, got {self.centre}")
         if self.kind == "cylinder" and not self.z_range[0] < self.z_range[1]:
             raise SceneError(f"a cylinder's z_range must run upwards, got {self.z_range}")
+        if len(self.axis) != 3 or not abs(np.linalg.norm(self.axis) - 1.0) < 1e-6:
+            raise SceneError(f"a curved surface's axis must be a unit vector (x, y, z), got {self.axis}")
 
 
 @dataclass(eq=False)
@@ -168,9 +173,12 @@ def assemble(
     *,
     name: str,
     params: dict | None = None,
+    fit_curved: Callable[[trimesh.Trimesh], tuple[list[CurvedSurface], np.ndarray]] | None = None,
 ) -> Scene:
     """Concatenate (mesh, material) parts into one Scene with a compact material table. A part
-    made by `cylinder_mesh` or `sphere_mesh` brings its `CurvedSurface` along."""
+    made by `cylinder_mesh` or `sphere_mesh` brings its `CurvedSurface` along; `fit_curved`
+    (meshes from elsewhere: `smooth_fit.fit_curved_surfaces`) finds those of every other part:
+    (surfaces, per-face index into them or -1)."""
     table: list[Material] = []
     meshes: list[trimesh.Trimesh] = []
     ids: list[np.ndarray] = []
@@ -184,14 +192,17 @@ def assemble(
             table.append(mat)
         surface = mesh.metadata.get(CURVED_KEY) if isinstance(mesh, trimesh.Trimesh) else None
         mesh, _ = clean_mesh(mesh, what=f"{name} part")
-        on_surface = _surface_faces(mesh, surface) if surface else np.zeros(len(mesh.faces), dtype=bool)
         if surface:
-            _check_on_surface(mesh, surface, on_surface, f"{name} part")
+            found, on_found = [surface], np.where(_surface_faces(mesh, surface), 0, -1)
+            _check_on_surface(mesh, surface, on_found >= 0, f"{name} part")
+        elif fit_curved:
+            found, on_found = fit_curved(mesh)
+        else:
+            found, on_found = [], np.full(len(mesh.faces), -1)
         meshes.append(mesh)
         ids.append(np.full(len(mesh.faces), table.index(mat), dtype=np.int32))
-        face_curved.append(np.where(on_surface, len(curved), -1).astype(np.int32))
-        if surface:
-            curved.append(surface)
+        face_curved.append(np.where(on_found >= 0, on_found + len(curved), -1).astype(np.int32))
+        curved.extend(found)
     if not meshes:
         raise SceneError(f"{name}: no geometry to build a scene from")
     combined = trimesh.util.concatenate(meshes)
@@ -222,7 +233,7 @@ def _surface_faces(mesh: trimesh.Trimesh, surface: CurvedSurface) -> np.ndarray:
     (its caps stay flat mirrors)."""
     if surface.kind == "sphere":
         return np.ones(len(mesh.faces), dtype=bool)
-    return np.abs(mesh.face_normals[:, 2]) <= 0.5
+    return np.abs(mesh.face_normals @ np.asarray(surface.axis)) <= 0.5
 
 
 def _check_on_surface(mesh: trimesh.Trimesh, surface: CurvedSurface, faces: np.ndarray, what: str) -> None:
@@ -234,9 +245,11 @@ def _check_on_surface(mesh: trimesh.Trimesh, surface: CurvedSurface, faces: np.n
     if surface.kind == "sphere":
         off = np.abs(np.linalg.norm(corners - centre, axis=1) - radius)
     else:
-        off = np.abs(np.linalg.norm(corners[:, :2] - centre[:2], axis=1) - radius)
+        axis, along = np.asarray(surface.axis), (corners - centre) @ np.asarray(surface.axis)
+        off = np.abs(np.linalg.norm(corners - centre - along[:, None] * axis, axis=1) - radius)
         z0, z1 = surface.z_range
-        off = np.r_[off, np.maximum(z0 - mesh.vertices[:, 2], mesh.vertices[:, 2] - z1).clip(0)]
+        height = mesh.vertices @ axis
+        off = np.r_[off, np.maximum(z0 - height, height - z1).clip(0)]
     if off.max(initial=0.0) > tolerance:
         raise SceneError(
             f"{what}: its vertices lie up to {off.max():.3g} m off the {surface.kind} it carries (moved, scaled "

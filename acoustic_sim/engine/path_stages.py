@@ -188,6 +188,7 @@ class BatchStages:
                 surfaces.centre,
                 surfaces.radius,
                 surfaces.z_range,
+                surfaces.axis,
                 surfaces.gain,
                 poses,
                 inverse,

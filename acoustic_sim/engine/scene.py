@@ -42,7 +42,8 @@ class CurvedArrays:
     kind: wp.array  # int32, index into CURVED_KINDS
     centre: wp.array  # vec3 [m]: sphere centre, or a point on the cylinder's axis
     radius: wp.array  # float [m]
-    z_range: wp.array  # vec2 [m]: the cylinder's extent along z
+    z_range: wp.array  # vec2 [m]: the cylinder's extent along its axis (axis . x)
+    axis: wp.array  # vec3, unit: the cylinder's axis
     gain: wp.array  # float: specular pressure reflection factor sqrt(R (1 - s)) of its material
 
     @property
@@ -67,6 +68,7 @@ def curved_arrays(scene: Scene) -> dict[str, np.ndarray]:
         "centre": np.array([c.centre for c in curved], dtype=np.float32).reshape(-1, 3),
         "radius": np.array([c.radius for c in curved], dtype=np.float32),
         "z_range": np.array([c.z_range for c in curved], dtype=np.float32).reshape(-1, 2),
+        "axis": np.array([c.axis for c in curved], dtype=np.float32).reshape(-1, 3),
         "gain": np.array(gain, dtype=np.float32),
     }
 
@@ -175,6 +177,7 @@ def warp_scene(scene: Scene, device=None) -> WarpScene:
                 centre=wp.array(curved["centre"], dtype=wp.vec3),
                 radius=wp.array(curved["radius"], dtype=float),
                 z_range=wp.array(curved["z_range"], dtype=wp.vec2),
+                axis=wp.array(curved["axis"], dtype=wp.vec3),
                 gain=wp.array(curved["gain"], dtype=float),
             ),
             mesh_hash=mesh_hash,

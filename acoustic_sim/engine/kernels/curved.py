@@ -1,4 +1,4 @@
-"""Specular echoes off curved surfaces (spheres, vertical cylinders): solved on the surface itself."""
+"""Specular echoes off curved surfaces (spheres, cylinders): solved on the surface itself."""
 
 import warp as wp
 
@@ -10,11 +10,12 @@ CURVED_STEPS = wp.constant(24)  # fixed-point steps towards a curved surface's r
 
 @wp.func
 def bisecting_normal(centre: wp.vec3, radius: float, a: wp.vec3, b: wp.vec3) -> wp.vec3:
-    """Unit normal of the point of a sphere (or, with every z = 0, a circle) where a path from a
-    to b reflects: there the normal bisects the directions to a and b. From the bisector seen
-    from the centre, damped fixed-point steps: a plain step overshoots by about radius / h (h the
-    distance to the surface) and diverges once h < radius; dividing the step by 1 + that gain (a
-    Newton step on the linearised map) converges for every a, b outside the surface."""
+    """Unit normal of the point of a sphere (or, with centre, a and b in one plane through the
+    origin, a circle) where a path from a to b reflects: there the normal bisects the directions
+    to a and b. From the bisector seen from the centre, damped fixed-point steps: a plain step
+    overshoots by about radius / h (h the distance to the surface) and diverges once h < radius;
+    dividing the step by 1 + that gain (a Newton step on the linearised map) converges for every
+    a, b outside the surface."""
     n = wp.normalize(wp.normalize(a - centre) + wp.normalize(b - centre))
     for _step in range(CURVED_STEPS):
         point = centre + radius * n
@@ -44,6 +45,7 @@ def curved_echoes(
     centre: wp.array[wp.vec3],
     radius: wp.array[float],
     z_range: wp.array[wp.vec2],
+    axis: wp.array[wp.vec3],
     gain: wp.array[float],
     poses: wp.array[wp.mat44],
     inverse_poses: wp.array[wp.mat44],
@@ -56,13 +58,13 @@ def curved_echoes(
     order_out: wp.array2d[wp.int32],
     ray_queries_out: wp.array[wp.int32],
 ):
-    """First-order specular echo off each curved surface (sphere or vertical cylinder) for each
-    ping; dim = (pings, surfaces). Rays would find it only where a facet happens to face the
-    sensor; here the reflection point is solved on the surface itself (for a cylinder in the
-    horizontal plane, its height from the unfolded path), both legs are checked unoccluded, and
-    the amplitude follows geometric optics: sqrt(R (1 - s)) times the emitter's directivity times
-    (1 / d1) sqrt(rho1 rho2 / ((rho1 + d2) (rho2 + d2))), with d1, d2 the legs and rho1, rho2 the
-    reflected wavefront's principal radii (a sphere bends it in both directions, a cylinder only
+    """First-order specular echo off each curved surface (sphere or cylinder) for each ping;
+    dim = (pings, surfaces). Rays would find it only where a facet happens to face the sensor;
+    here the reflection point is solved on the surface itself (for a cylinder in the plane square
+    to its axis, its place along the axis from the unfolded path), both legs are checked
+    unoccluded, and the amplitude follows geometric optics: sqrt(R (1 - s)) times the emitter's
+    directivity times (1 / d1) sqrt(rho1 rho2 / ((rho1 + d2) (rho2 + d2))), with d1, d2 the legs
+    and rho1, rho2 the reflected wavefront's principal radii (a sphere bends it in both directions, a cylinder only
     across its axis, for any incidence; a plane would give 1 / (d1 + d2)). Writes the reflection
     point (sensor frame) as the echo's source and d1 as the path before it, like a scattered
     arrival; order 1.
@@ -83,18 +85,21 @@ def curved_echoes(
         n = bisecting_normal(o, a, e, r)
         point = o + a * n
     else:
-        flat_o = wp.vec3(o[0], o[1], 0.0)
-        flat_e = wp.vec3(e[0], e[1], 0.0)
-        flat_r = wp.vec3(r[0], r[1], 0.0)
+        u = axis[c]  # for a vertical axis (0, 0, 1) every product below is exact: x, y kept, z dropped
+        e_along = wp.dot(e, u)
+        r_along = wp.dot(r, u)
+        flat_o = o - wp.dot(o, u) * u
+        flat_e = e - e_along * u
+        flat_r = r - r_along * u
         if wp.length(flat_e - flat_o) <= a or wp.length(flat_r - flat_o) <= a:
             return
         n = bisecting_normal(flat_o, a, flat_e, flat_r)
         foot = flat_o + a * n
         to_e = wp.length(flat_e - foot)
-        z = e[2] + (r[2] - e[2]) * to_e / (to_e + wp.length(flat_r - foot))
+        z = e_along + (r_along - e_along) * to_e / (to_e + wp.length(flat_r - foot))
         if z <= z_range[c][0] or z >= z_range[c][1]:
             return
-        point = wp.vec3(foot[0], foot[1], z)
+        point = foot + z * u
     d1 = wp.length(e - point)
     d2 = wp.length(r - point)
     cosine = wp.dot(n, e - point) / d1
@@ -116,7 +121,7 @@ def curved_echoes(
     else:
         # Curved only across its axis (tangent t): one principal direction gains 2/a weighted by
         # how t lies to the plane of incidence (cos phi), the other keeps the incident 1 / d1.
-        tangent = wp.normalize(wp.cross(wp.vec3(0.0, 0.0, 1.0), n))
+        tangent = wp.normalize(wp.cross(axis[c], n))
         incident = (point - e) / d1
         along = incident - wp.dot(incident, n) * n  # the plane of incidence's tangent direction
         cos_phi = float(1.0)
