@@ -251,7 +251,7 @@ def test_boxes_stay_flat_and_box_rooms_unchanged():
     cube = trimesh.creation.box(extents=(0.5, 0.5, 0.5)).apply_translation((2.0, 2.0, 0.25))
     mesh = trimesh.util.concatenate([box_room(), cube])
     fitted = scenes.from_mesh(mesh)
-    plain = assemble([(mesh, "painted_wall")], name="mesh", params={"source": None})
+    plain = assemble([(mesh, "painted_wall")], name="mesh", params=fitted.params)
     assert fitted.curved == () and (fitted.face_curved == -1).all()
     for got, want in ((fitted.mesh.vertices, plain.mesh.vertices), (fitted.mesh.faces, plain.mesh.faces)):
         assert np.array_equal(got, want)
