@@ -194,11 +194,15 @@ def recorded_path(path: str | Path) -> str:
     return os.path.relpath(Path(path).absolute())
 
 
-def load_frames(folder: str | Path) -> Frames:
+def load_frames(folder: str | Path, *, elevation_deg=None) -> Frames:
     """Read every shard of a dataset folder: each checked as `learn.shardfile` says, all of one run
     (one plan id and variant, no shard twice: episode ids restart at 0 in every run, so shards of
     two runs would join unrelated drives into windows), on one grid, and within the memory
-    available before anything is allocated."""
+    available before anything is allocated.
+
+    `elevation_deg` [deg], if given, keeps only those elevation beams (a model that reads the
+    level slice of a five-elevation dataset holds a fifth of it); where the data lacks one, all
+    are kept, for the reader to refuse naming both."""
     folder = Path(folder)
     info = {"folder": recorded_path(folder)}
     manifest = _manifest(folder)
@@ -214,7 +218,10 @@ def load_frames(folder: str | Path) -> Frames:
                 f"{list(first.elevation_deg)}: one dataset is beamformed at one set of elevations"
             )
     total, shape = sum(h.frames for h in headers), (first.range_count, first.azimuth_count)
-    elevations = len(first.elevation_deg)
+    keep = list(range(len(first.elevation_deg)))
+    if elevation_deg is not None and not missing_elevations(first.elevation_deg, elevation_deg):
+        keep = sorted(set(elevation_rows(first.elevation_deg, elevation_deg)))
+    elevations = len(keep)
     held = total * (shape[0] * shape[1] * (2 * elevations + 1) + 16)  # float16 energyscape, uint8 label, two int64
     check_fits(
         held + 2 * max(h.read_bytes for h in headers),  # and one shard's arrays as read, then converted
@@ -236,7 +243,7 @@ def load_frames(folder: str | Path) -> Frames:
         names += [n for n in header.scenarios if n not in names]
         remap = np.array([names.index(n) for n in header.scenarios], dtype=np.int64)
         rows = slice(start, start + header.frames)
-        energyscape[rows], label[rows], episode[rows] = arrays.energyscape, arrays.label, arrays.episode
+        energyscape[rows], label[rows], episode[rows] = arrays.energyscape[:, keep], arrays.label, arrays.episode
         scenario[rows] = remap[arrays.scenario]
         if pose is not None and arrays.pose is not None:
             pose[rows] = arrays.pose
@@ -245,7 +252,8 @@ def load_frames(folder: str | Path) -> Frames:
         start += header.frames
     info |= {k: manifest.get(k) for k in ("suite", "variant", "physics")}
     info |= {"plan_id": first.plan_id, "config": first.config}
-    return Frames(energyscape, label, episode, scenario, names, grid[0], grid[1], info, pose, first.elevation_deg)
+    kept_deg = tuple(first.elevation_deg[i] for i in keep)
+    return Frames(energyscape, label, episode, scenario, names, grid[0], grid[1], info, pose, kept_deg)
 
 
 def _manifest(folder: Path) -> dict:

@@ -176,7 +176,8 @@ def _train_in(data, out: Path, config: LearnConfig, *, device: str, folds: int, 
     dist_info, dev = _init_distributed(device)
     if dev.type == "cpu":
         torch.set_flush_denormal(True)  # denormal gradients make CPU steps many times slower
-    frames = data if isinstance(data, Frames) else load_frames(data)
+    # only the elevations the model reads: a level-slice model of five-elevation data holds a fifth
+    frames = data if isinstance(data, Frames) else load_frames(data, elevation_deg=config.model.elevation_deg)
     if (suite := frames.info.get("suite")) in ("crossengine", "crossengine_rough"):
         raise ValueError(f"{frames.info['folder']} is the {suite} test set: score models on it, never train on it")
     config = with_grid(config, frames)

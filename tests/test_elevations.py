@@ -235,3 +235,17 @@ def test_onnx_export_takes_every_elevation_and_names_them(tmp_path):
     (got,) = session.run(None, {"energyscapes": x.numpy()})
     with torch.no_grad():
         np.testing.assert_allclose(got, model(x).numpy(), atol=1e-4)
+
+
+def test_frames_read_only_the_elevations_a_model_reads(three_elevations):
+    """load_frames(elevation_deg=) keeps those rows in order, whose windows equal the windows that
+    pick them out of all three; data lacking one keeps every row for the reader to refuse."""
+    every = load_frames(three_elevations)
+    for want, rows in (([0.0], [1]), ([20.0, -20.0], [0, 2])):
+        some = load_frames(three_elevations, elevation_deg=want)
+        assert some.elevation_deg == tuple(every.elevation_deg[r] for r in rows)
+        assert np.array_equal(some.energyscape, every.energyscape[:, rows])
+        picked = Windows(every, DataConfig(frames=3), elevation_deg=want)
+        held = Windows(some, DataConfig(frames=3), elevation_deg=want)
+        assert torch.equal(picked.batch([2, 5])[0], held.batch([2, 5])[0])
+    assert load_frames(three_elevations, elevation_deg=[0.0, 10.0]).elevation_deg == every.elevation_deg
