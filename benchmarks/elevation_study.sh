@@ -7,7 +7,10 @@
 #
 #   e1   polar UNet, K = 5, the level slice alone (model.elevation_deg=[0]): today's model, which
 #        trains bit for bit as on a dataset beamformed at 0 deg only
-#   e3   polar UNet, K = 5, every elevation as input channels
+#   e3   polar UNet, K = 5, the elevations -20, 0 and 20 deg as input channels
+#   e5   polar UNet, K = 5, every elevation of a five-elevation dataset (ARMS="e1 e3 e5" with
+#        ELEVATIONS=[-20,-10,0,10,20]: the e1 and e3 arms read the same frames' rows, bit for bit those
+#        of a dataset beamformed at their elevations alone, and each run holds only its rows)
 #
 # Scored by `learn evaluate` (both arms of a seed side by side, with the echo peak and the empty
 # image; no occupancy grids) on the held-out episodes of the training data, on `reality`, on
@@ -32,9 +35,10 @@
 # A process left running in the background does not outlive its call: the machine stops it when
 # the call returns (a nohup'd train phase ended mid-epoch in session 23), so every phase ends
 # within its call, and a long training runs in legs.
-# Six runs of 30,000 frames at three elevations hold 7.8 GB each on the GPU and in host memory.
+# A run holds 2.6 GB per elevation it reads of 30,000 frames, on the GPU and in host memory: six runs of
+# e1 and e3, 31 GB; nine of e1, e3 and e5, 70 GB (one H100 holds that with FRAMES=24000, or GPUS=2).
 #
-# Environment: FRAMES (40000), ELEVATIONS ([-20,0,20]), REALITY_FRAMES (the suite's 1,500),
+# Environment: ARMS ("e1 e3"), FRAMES (40000), ELEVATIONS ([-20,0,20]), REALITY_FRAMES (the suite's 1,500),
 # CROSS_FRAMES (1000), FRESH_FRAMES (1000), DEVICE (cuda; GPUS=2 spreads runs over cuda:0..),
 # GEN_DEVICE (cuda:0), WORKERS (8), CROSS_WORKERS (12), MINUTES (per run, 12), EPOCHS (100),
 # PATIENCE (4), SUBEPOCH (12000), VAL (2000).
@@ -44,7 +48,7 @@ shift 2
 export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
 D=$W/data
 DEVICE=${DEVICE:-cuda}
-ARMS=(e1 e3)
+read -r -a ARMS <<< "${ARMS:-e1 e3}"
 ELEVATIONS=${ELEVATIONS:-[-20,0,20]}
 BEAMS=(--set "processing.elevation_deg=$ELEVATIONS")
 mkdir -p "$W/logs" "$W/runs" "$W/scores" "$W/summary"
@@ -53,7 +57,8 @@ python3 benchmarks/provenance.py write "$W/logs/provenance-$phase-$(date -u +%Y%
 arm_options() { # the options that make an arm
   case $1 in
   e1) echo "--set model.elevation_deg=[0]" ;;
-  e3) echo "" ;;
+  e3) echo "--set model.elevation_deg=[-20,0,20]" ;;
+  e5) echo "" ;;
   *)
     echo "unknown arm $1" >&2
     exit 2
