@@ -20,7 +20,7 @@ from typing import Literal
 import numpy as np
 import torch
 
-from .elevations import elevation_rows, level_index, missing_elevations
+from .elevations import elevation_rows, level_index, missing_elevations, rows_to_hold
 from .inputs import check_fits, read_json
 from .odometry import relative
 from .shardfile import FORMAT as FORMAT  # re-exported: learn.data is where readers look for them
@@ -198,11 +198,8 @@ def load_frames(folder: str | Path, *, elevation_deg=None) -> Frames:
     """Read every shard of a dataset folder: each checked as `learn.shardfile` says, all of one run
     (one plan id and variant, no shard twice: episode ids restart at 0 in every run, so shards of
     two runs would join unrelated drives into windows), on one grid, and within the memory
-    available before anything is allocated.
-
-    `elevation_deg` [deg], if given, keeps only those elevation beams (a model that reads the
-    level slice of a five-elevation dataset holds a fifth of it); where the data lacks one, all
-    are kept, for the reader to refuse naming both."""
+    available before anything is allocated. `elevation_deg` [deg] keeps only those beams (a level-slice
+    model of five-elevation data holds a fifth); data lacking one keeps all, for the reader to refuse."""
     folder = Path(folder)
     info = {"folder": recorded_path(folder)}
     manifest = _manifest(folder)
@@ -218,9 +215,7 @@ def load_frames(folder: str | Path, *, elevation_deg=None) -> Frames:
                 f"{list(first.elevation_deg)}: one dataset is beamformed at one set of elevations"
             )
     total, shape = sum(h.frames for h in headers), (first.range_count, first.azimuth_count)
-    keep = list(range(len(first.elevation_deg)))
-    if elevation_deg is not None and not missing_elevations(first.elevation_deg, elevation_deg):
-        keep = sorted(set(elevation_rows(first.elevation_deg, elevation_deg)))
+    keep = rows_to_hold(first.elevation_deg, elevation_deg)
     elevations = len(keep)
     held = total * (shape[0] * shape[1] * (2 * elevations + 1) + 16)  # float16 energyscape, uint8 label, two int64
     check_fits(
@@ -252,8 +247,8 @@ def load_frames(folder: str | Path, *, elevation_deg=None) -> Frames:
         start += header.frames
     info |= {k: manifest.get(k) for k in ("suite", "variant", "physics")}
     info |= {"plan_id": first.plan_id, "config": first.config}
-    kept_deg = tuple(first.elevation_deg[i] for i in keep)
-    return Frames(energyscape, label, episode, scenario, names, grid[0], grid[1], info, pose, kept_deg)
+    kept = tuple(first.elevation_deg[i] for i in keep)
+    return Frames(energyscape, label, episode, scenario, names, grid[0], grid[1], info, pose, kept)
 
 
 def _manifest(folder: Path) -> dict:

@@ -23,3 +23,11 @@ def missing_elevations(have_deg, want_deg) -> list[float]:
     """Those of `want_deg` [deg] that `have_deg` (a dataset's elevations) lacks."""
     have = np.asarray(have_deg, dtype=np.float64)
     return [float(e) for e in want_deg if np.abs(have - e).min() > MATCH_DEG]
+
+
+def rows_to_hold(have_deg, want_deg) -> list[int]:
+    """The rows of `have_deg` [deg] a reader of `want_deg` needs, in order (all of them where `want_deg` is None,
+    or where the data lacks one of it: the reader then refuses, naming both)."""
+    if want_deg is None or missing_elevations(have_deg, want_deg):
+        return list(range(len(have_deg)))
+    return sorted(set(elevation_rows(have_deg, want_deg)))
