@@ -13,6 +13,7 @@ from acoustic_sim import Sonar, SonarConfig, TracerConfig
 from acoustic_sim.engine.paths import KIND_SPECULAR
 from scenes.scene import assemble
 from scenes.smooth_fit import fit_curved_surfaces
+from tests.test_curved_echoes import poses_around
 
 ROOM = np.array([9.0, 9.0, 3.0])
 BALL_CENTRE, BALL_RADIUS = np.array([4.5, 4.5, 1.0]), 0.01  # a 2 cm ball
@@ -57,16 +58,6 @@ def loaded(objects: trimesh.Trimesh, how: str, folder) -> scenes.Scene:
     path = folder / f"room_{len(mesh.faces)}.obj"
     mesh.export(path)
     return scenes.from_mesh(path)
-
-
-def poses_around(centre_xy, count, seed, heights):
-    """Poses 0.5-4 m from a vertical line through centre_xy, facing it within +-60 deg."""
-    rng = np.random.default_rng(seed)
-    distance = rng.uniform(0.5, 4.0, count)
-    bearing = rng.uniform(0, 2 * np.pi, count)
-    xy = centre_xy + distance[:, None] * np.c_[np.cos(bearing), np.sin(bearing)]
-    yaw = bearing + np.pi + rng.uniform(-np.pi / 3, np.pi / 3, count)
-    return scenes.poses(xy, yaw, rng.uniform(*heights, count))
 
 
 def poses_beside_pipe(count, seed):
