@@ -19,9 +19,9 @@ import pytest
 import trimesh
 
 from acoustic_sim.datasets import mesh_scenarios
-from acoustic_sim.datasets.generate import generate
+from acoustic_sim.datasets.generate import SuiteRenderer, generate
 from acoustic_sim.datasets.plan import plan
-from acoustic_sim.datasets.suites import load_suite
+from acoustic_sim.datasets.suites import load_suite, mesh_files
 
 from .cli_runner import run_commands
 from .reference.raycast import first_hits
@@ -184,6 +184,30 @@ def test_a_mesh_changed_after_loading_is_refused(tmp_path, monkeypatch):
         f.write("# edited\n")
     with pytest.raises(ValueError, match="changed since its suite was loaded"):
         mesh_scenarios.mesh_scene(mesh)
+
+
+def test_several_meshes_with_physics_drawn_per_episode(tmp_path):
+    """Two scenarios, two files: the episodes are dealt to both, each prepared in its own mesh (its
+    bounds), and the suite's surfaces table draws what the walls reflect per episode, as for a builder."""
+    path = write_suite(tmp_path)
+    (tmp_path / "hall.obj").write_text(obj_text(room_parts(size=(8.0, 6.0, 4.0), corner=(0.0, 0.0, 0.0), crate=None)))
+    surfaces = 'surfaces = { walls = { reflection = [0.5, 0.6] } }\n[[scenarios]]\nname = "room"'
+    path.write_text(
+        path.read_text().replace('[[scenarios]]\nname = "room"', surfaces)
+        + '[[scenarios]]\nname = "hall"\nmesh = "hall.obj"\nup = "z"\nunits = "m"\n'
+    )
+    suite = load_suite(path)
+    renderer = SuiteRenderer(mesh_files(suite))
+    tasks = plan(suite, tmp_path / "out", frames=8)
+    seen = {}
+    for episode in tasks[0].episodes:
+        ready = renderer.prepare(tasks[0], episode)
+        seen[episode.scenario_name] = ready.scene.mesh.bounds
+        walls = [m for m in ready.scene.materials if m.name.endswith(":walls")]
+        assert walls and all(0.5 <= m.acoustic_reflection <= 0.6 for m in walls)
+        assert 0.5 <= ready.acoustics["walls"]["reflection"] <= 0.6
+    np.testing.assert_allclose(seen["room"], [CORNER, CORNER + ROOM])
+    np.testing.assert_allclose(seen["hall"], [(0.0, 0.0, 0.0), (8.0, 6.0, 4.0)])
 
 
 def test_builder_and_mesh_fields_do_not_mix(tmp_path):
