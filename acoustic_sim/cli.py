@@ -342,7 +342,8 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument(
         "--suite",
         required=True,
-        help=f"one of {sorted(SUITES)}, crossengine, crossengine_rough, or a suite file (.toml/.json)",
+        help=f"one of {sorted(SUITES)}, crossengine, crossengine_rough, or a suite file (.toml/.json; its "
+        "scenarios may be mesh files of your building: mesh = FILE)",
     )
     gen.add_argument("--out", required=True, help="output folder")
     gen.add_argument("--frames", type=int, default=None, help="frames per variant (default: the suite's)")

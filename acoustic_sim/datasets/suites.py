@@ -345,6 +345,12 @@ def load_suite(name_or_path: str | Path) -> Suite:
         builder = "corridor"
         params = { reflectors = "many" }
         vary = { length = [20.0, 30.0] }
+        [[scenarios]]             # a mesh file of your building, read from this file's folder
+        name = "my_lab"
+        mesh = "lab.obj"
+        materials = "lab_materials.toml"   # optional: [materials] file name or glob -> ours
+        up = "z"                  # optional: auto (y for glTF, z otherwise), z or y
+        units = "m"               # optional: auto (metres, checked), m, cm, mm, in or ft
     """
     text = str(name_or_path)
     if text in SUITES:
