@@ -14,39 +14,9 @@ from clitools import HelpFormatter, counted, run_command
 from clitools.errors import interrupt_after
 from clitools.outputs import OVERWRITE_HELP, atomic_folder
 
+from .cli_scene import check_mesh_options, scene_from_args
 from .cli_text import COMMANDS, DESCRIPTION, EXAMPLES, MESH_OPTIONS, SET_HELP, VERBOSE_HELP
 from .extras import MissingExtra  # no heavy imports: a plain exception class
-
-
-def _scene_from_args(args):
-    import scenes
-
-    kwargs = {}
-    for item in args.scene_arg or []:
-        key, sep, value = item.partition("=")
-        if not sep or not key.strip():
-            raise ValueError(f"--scene-arg expects KEY=VALUE, got {item!r}")
-        try:
-            kwargs[key.replace("-", "_")] = json.loads(value)
-        except json.JSONDecodeError:
-            kwargs[key.replace("-", "_")] = value
-    if "seed" in kwargs:  # the builder's seed is --seed's (it seeds the drive and noise too)
-        raise ValueError("--scene-arg seed: give the seed with --seed")
-    given = " ".join(f"--scene-arg {k}={json.dumps(v)}" for k, v in kwargs.items())
-    if args.svg:
-        source, build, path = f"--svg {args.svg}", scenes.from_svg, (args.svg,)
-    elif args.mesh:
-        source, build, path = f"--mesh {args.mesh}", scenes.from_mesh, (args.mesh,)
-        kwargs = {"up": args.up, "units": args.units, "materials": args.materials, "report": print} | kwargs
-    else:
-        source, build, path = f"--scene {args.scene}", scenes.BUILDERS[args.scene], ()
-        kwargs = {"seed": args.seed} | kwargs
-    try:
-        return build(*path, **kwargs)
-    except (TypeError, ValueError) as err:  # SceneError names its field; an unknown or mistyped argument may not
-        if isinstance(err, ValueError) and not given:  # nothing of the user's to add: it names its file
-            raise
-        raise ValueError(f"{source} {given}: {err}; see help(scenes.{build.__name__})") from None
 
 
 def _render(args) -> int:
@@ -54,6 +24,7 @@ def _render(args) -> int:
 
     out = Path(args.out)
     check_picture_name(out)
+    check_mesh_options(args)  # before anything is written
     inputs = [p for p in (args.svg, args.mesh, args.materials) if p]
     names = [out.name, out.with_suffix(".json").name]  # the picture and its settings, published together
     with atomic_folder(out.parent, overwrite=args.overwrite, inputs=inputs, expected=names) as stage:
@@ -85,7 +56,7 @@ def _render_into(args, picture: Path) -> str:
     if args.sonar and np.ndim(rig.processing.elevation_deg):
         raise ValueError("render --sonar draws one energyscape a ping: set processing.elevation_deg to one angle")
     check_scan(args.frames, rig, "--frames: a drive")  # before the drive and its scan are made
-    scene = _scene_from_args(args)
+    scene = scene_from_args(args)
     poses = scenes.trajectory(scene, frames=args.frames, dt=args.dt, speed=args.speed, seed=args.seed)
     if not 0 <= args.frame < len(poses):
         raise ValueError(f"--frame must lie in 0..{len(poses) - 1}")
@@ -371,7 +342,8 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument(
         "--suite",
         required=True,
-        help=f"one of {sorted(SUITES)}, crossengine, crossengine_rough, or a suite file (.toml/.json)",
+        help=f"one of {sorted(SUITES)}, crossengine, crossengine_rough, or a suite file (.toml/.json; its "
+        "scenarios may be mesh files of your building: mesh = FILE)",
     )
     gen.add_argument("--out", required=True, help="output folder")
     gen.add_argument("--frames", type=int, default=None, help="frames per variant (default: the suite's)")

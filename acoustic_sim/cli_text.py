@@ -17,11 +17,11 @@ SET_HELP = (
     "processing.grid.range_max_m=4, sonar.atmosphere.temperature_c=30, lidar=multibeam_64x1024 for a preset)"
 )
 VERBOSE_HELP = "show Warp's messages (start-up, compiles); SONAR2LIDAR_WARP_VERBOSE=1 does so everywhere"
-MESH_OPTIONS = {  # render's options for --mesh (scenes.from_mesh's arguments)
-    "--up": {"default": "auto", "help": "--mesh: the file's up axis, auto (y for glTF, z for others), z or y"},
+MESH_OPTIONS = {  # render's options for --mesh (scenes.from_mesh's arguments); None: not given (auto)
+    "--up": {"help": "--mesh: the file's up axis, auto (the default: y for glTF, z for others), z or y"},
     "--units": {
-        "default": "auto",
-        "help": "--mesh: the file's unit, auto (metres, refused if absurd for a building), m, cm, mm, in or ft",
+        "help": "--mesh: the file's unit, auto (the default: metres, refused if absurd for a building), m, cm, mm, "
+        "in or ft",
     },
     "--materials": {
         "metavar": "TABLE.toml",

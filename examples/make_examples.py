@@ -1,8 +1,11 @@
-"""Make the README's example inputs: plan.svg, building.obj and pings.npz (my_suite.toml is hand-written).
+"""Make the README's example inputs: plan.svg, building.obj, lab.obj, lab_materials.toml, lab_suite.toml
+and pings.npz (my_suite.toml is hand-written).
 
 Run from the repository root: `.venv/bin/python examples/make_examples.py` (about 10 s on a 2-core CPU).
-The same three rooms appear as a floor plan (plan.svg) and as a mesh (building.obj); pings.npz holds
-eight pings simulated by our sonar along a drive through the office, as a recording would hold them.
+The same three rooms appear as a floor plan (plan.svg) and as a mesh (building.obj); lab.obj is a room
+whose faces carry material names (usemtl), with a round pillar made by trimesh, its material table
+and a suite that makes a dataset of it; pings.npz holds eight pings simulated by our sonar along a
+drive through the office, as a recording would hold them.
 """
 
 from __future__ import annotations
@@ -79,6 +82,83 @@ def building_obj() -> str:
     return "\n".join(out + faces) + "\n"
 
 
+# The lab, in metres, z up: a 6 x 4 m room 2.6 m high whose wall at y = 4 m is glass from x = 2 to 4 m,
+# a steel cabinet against the wall at y = 0, and a round pillar from floor to ceiling.
+LAB_SIZE = (6.0, 4.0, 2.6)
+LAB_GLASS_X = (2.0, 4.0)
+LAB_CABINET = ((4.6, 0.1, 0.0), (5.8, 0.6, 1.9))  # low and high corners [m]
+LAB_PILLAR = (2.0, 1.8, 0.15)  # centre x, y and radius [m]
+LAB_MATERIALS = """\
+# examples/lab_materials.toml
+# lab.obj's material names (usemtl) -> ours, before the name patterns
+[materials]
+walls = "brick"           # the pattern would say painted_wall; the table comes first
+pillar = "painted_wall"   # no pattern knows "pillar": without this line it gets the default, with a warning
+"""
+LAB_SUITE = """\
+# examples/lab_suite.toml
+# a dataset of your own building (lab.obj, made by make_examples.py)
+name = "lab"
+frames = 16
+episode_frames = 8
+[physics]
+ray_count = 5000
+[[scenarios]]
+name = "lab"
+mesh = "lab.obj"                   # read from this file's folder, as is the table
+materials = "lab_materials.toml"
+up = "z"
+units = "m"
+"""
+
+
+def _quad(corners) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices (4, 3) and the two triangles of a planar quad, wound as its corners go."""
+    return np.array(corners, dtype=np.float64), np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def lab_parts() -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """The lab's parts: (material name, vertices (V, 3) [m], triangles (F, 3)); the room's surfaces
+    face into it, the cabinet and the pillar out of themselves."""
+    import trimesh
+
+    x1, y1, z1 = LAB_SIZE
+    g0, g1 = LAB_GLASS_X
+
+    def wall(a, b):  # from (x, y) a to b with the room on its left (anticlockwise seen from above)
+        return _quad([(*a, 0.0), (*a, z1), (*b, z1), (*b, 0.0)])
+
+    walls = [wall((0.0, 0.0), (x1, 0.0)), wall((x1, 0.0), (x1, y1)), wall((x1, y1), (g1, y1))]
+    walls += [wall((g0, y1), (0.0, y1)), wall((0.0, y1), (0.0, 0.0))]
+    parts = [
+        ("floor", *_quad([(0.0, 0.0, 0.0), (x1, 0.0, 0.0), (x1, y1, 0.0), (0.0, y1, 0.0)])),
+        ("ceiling", *_quad([(0.0, 0.0, z1), (0.0, y1, z1), (x1, y1, z1), (x1, 0.0, z1)])),
+        *(("walls", v, f) for v, f in walls),
+        ("glass", *wall((g1, y1), (g0, y1))),
+        ("metal", *_box(*LAB_CABINET)),
+    ]
+    x, y, r = LAB_PILLAR
+    pillar = trimesh.creation.cylinder(radius=r, height=z1, sections=32)
+    pillar.apply_translation((x, y, z1 / 2))
+    side = np.abs(pillar.face_normals[:, 2]) < 0.5  # its caps would lie in the floor and the ceiling
+    pillar = pillar.submesh([np.flatnonzero(side)], append=True)
+    parts.append(("pillar", np.asarray(pillar.vertices), np.asarray(pillar.faces)))
+    return parts
+
+
+def lab_obj() -> str:
+    """The lab as an OBJ file: one `usemtl` group per material name."""
+    out = ["# a lab: 6 x 4 m, 2.6 m high, a glass wall, a steel cabinet, a round pillar; metres, z up;"]
+    out.append("# made by examples/make_examples.py (the pillar by trimesh.creation.cylinder)")
+    offset = 1
+    for name, vertices, faces in lab_parts():
+        out += [f"v {a:.6f} {b:.6f} {c:.6f}" for a, b, c in vertices]
+        out.append(f"usemtl {name}")
+        out += [f"f {a} {b} {c}" for a, b, c in faces + offset]
+        offset += len(vertices)
+    return "\n".join(out) + "\n"
+
+
 def pings(count: int = 8) -> dict[str, np.ndarray]:
     """`count` pings of the eRTIS along a drive through the office, as a recording holds them.
 
@@ -111,8 +191,11 @@ def pings(count: int = 8) -> dict[str, np.ndarray]:
 def main() -> None:
     (HERE / "plan.svg").write_text(plan_svg())
     (HERE / "building.obj").write_text(building_obj())
+    (HERE / "lab.obj").write_text(lab_obj())
+    (HERE / "lab_materials.toml").write_text(LAB_MATERIALS)
+    (HERE / "lab_suite.toml").write_text(LAB_SUITE)
     np.savez_compressed(HERE / "pings.npz", **pings())
-    for name in ("plan.svg", "building.obj", "pings.npz"):
+    for name in ("plan.svg", "building.obj", "lab.obj", "lab_materials.toml", "lab_suite.toml", "pings.npz"):
         print(f"{HERE / name}: {(HERE / name).stat().st_size:,} bytes")
 
 

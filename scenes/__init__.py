@@ -11,10 +11,11 @@ from .svg import from_svg
 from .trajectory import FreeSpace, free_space, pose, poses, trajectory
 
 REVISION = 3
-"""Bumped whenever a builder makes other scenes from the same arguments; part of every dataset's
-plan id, so data made before is never taken for data made after (2: floor and ceiling materials
-of room shells the right way round; 3: cylinders carry their curved surface, which echoes
-specularly from every side)."""
+"""Bumped whenever a builder makes other scenes from the same arguments, or the mesh import
+(`mesh_import`, `material_map`, `smooth_fit`) another scene from the same file's bytes (a suite's
+mesh scenario counts by the hash of its bytes); part of every dataset's plan id, so data made
+before is never taken for data made after (2: floor and ceiling materials of room shells the
+right way round; 3: cylinders carry their curved surface, which echoes specularly from every side)."""
 
 BUILDERS = {
     "box_room": box_room,

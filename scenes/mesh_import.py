@@ -59,6 +59,7 @@ class MeshImportReport:
         unmapped: Names that neither the table nor a name pattern maps (they got the default).
         unused_keys: Table keys that matched no name of the file (a typo?).
         warnings: The warnings `load` gave.
+        curved: The round surfaces fitted to its smooth patches (`smooth_fit`), one line each.
     """
 
     source: str | None
@@ -71,6 +72,7 @@ class MeshImportReport:
     unmapped: tuple[str, ...]
     unused_keys: tuple[str, ...]
     warnings: tuple[str, ...]
+    curved: tuple[str, ...] = ()
 
     def to_dict(self) -> dict:
         """The report as plain JSON-serialisable values."""
@@ -89,6 +91,9 @@ class MeshImportReport:
             lines.append(f"  {name}: {faces} -> {entry.material} ({entry.rule})")
         if len(self.names) > max_names:
             lines.append(f"  ... and {len(self.names) - max_names} more names")
+        if self.curved:
+            shown = "; ".join(self.curved[:max_names]) + ("; ..." if len(self.curved) > max_names else "")
+            lines.append(f"  round surfaces fitted, echoing off the true surface: {shown}")
         return "\n".join(lines)
 
 
@@ -164,8 +169,18 @@ def load(
         unmapped=tuple(unmapped),
         unused_keys=tuple(unused),
         warnings=tuple(said),
+        curved=tuple(_described(surface) for surface in scene.curved),
     )
     return scene, report
+
+
+def _described(surface) -> str:
+    """A fitted sphere or cylinder in a few words [m]."""
+    centre = ", ".join(f"{c:.3g}" for c in surface.centre)
+    if surface.kind == "sphere":
+        return f"sphere r {surface.radius:.3g} m at ({centre})"
+    axis = ", ".join(f"{a:.3g}" for a in surface.axis)
+    return f"cylinder r {surface.radius:.3g} m through ({centre}) along ({axis})"
 
 
 def _frame(path: str | None, up: str, units: str) -> tuple[str, str, str, str]:

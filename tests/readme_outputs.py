@@ -17,6 +17,7 @@ import numpy as np
 from clitools import counted
 from tests.pictures import axes_frames, near, read_rgb
 
+README = Path(__file__).resolve().parents[1] / "README.md"
 GRID_SHAPE = (240, 181)
 """README: "0.2-5 m in 2 cm bins (240) x -90..+90 deg in 1 deg bins (181)"."""
 
@@ -56,6 +57,7 @@ def check_render(args, cwd: Path, stdout: str) -> str:
     assert written["picture"] == picture.name and written["options"] == json.loads(json.dumps(options))
     assert set(written["sim"]) == {"lidar", "sonar", "tracer", "processing"}
     assert f"wrote {args.out} and its settings in {sidecar.name}" in stdout, stdout
+    mapped = _check_mesh_report(args, cwd, stdout) if args.mesh else ""
     image = read_rgb(picture)
     frames = axes_frames(image)
     if args.sonar:
@@ -67,7 +69,32 @@ def check_render(args, cwd: Path, stdout: str) -> str:
     top_view = min(frames, key=lambda box: box.left)
     for colour in ("tab:blue", "tab:red"):
         assert (near(image, colour, 0.1) & top_view.inside(image.shape)).sum() > 20, f"no {colour} in the top view"
-    return f"{picture.name}: top view with trajectory and scan beside the polar image; {sidecar.name}: the options"
+    return (
+        f"{picture.name}: top view with trajectory and scan beside the polar image; {sidecar.name}: the options{mapped}"
+    )
+
+
+def _check_mesh_report(args, cwd: Path, stdout: str) -> str:
+    """`render --mesh` prints the import report: the file, its frame and unit (as given), and one
+    line per material name of the file with the material it got, each key of --materials by the
+    table (read here from the file)."""
+    from scenes.material_map import read_material_table
+
+    lines = stdout.splitlines()
+    assert lines[0].startswith(f"mesh {args.mesh}: "), lines[0]
+    for option, said in (("up", f": {args.up} up (given)"), ("units", f", {args.units} (given)")):
+        if getattr(args, option):
+            assert said in lines[0], lines[0]
+    table = read_material_table(cwd / args.materials) if args.materials else {}
+    for key, ours in table.items():
+        assert any(line.endswith(f"-> {ours} (table: {key!r})") for line in lines), f"{key} -> {ours} not reported"
+    names = [line for line in lines if re.match(r"  .+: \d+ faces? -> \w+ \(", line)]  # '(no name)' too
+    assert names, "no material names reported"
+    readme = README.read_text()
+    if lines[0] in readme:  # the README quotes this report: every line of it as printed
+        report = lines[: 1 + next(i for i, line in enumerate(lines[1:]) if not line.startswith("  "))]
+        assert all(line in readme for line in report), [line for line in report if line not in readme]
+    return f"; the import report: {len(names)} material names, {len(table)} by the table"
 
 
 def check_generate(args, cwd: Path, stdout: str, frames: int) -> str:
@@ -152,6 +179,31 @@ def check_import_chirp(args, cwd: Path, source: Path | None) -> str:
     peak = np.abs(want["energyscape"].astype(np.float32)).max(axis=(1, 2, 3))
     assert np.all(error <= 0.002 * peak), (error / peak).max()
     return f"{args.out}: the labels of {source} exactly, energyscapes within {(error / peak).max():.2%} of the peak"
+
+
+def check_evaluate(args, cwd: Path, stdout: str) -> str:
+    """`evaluate` writes metrics.json and report.md into --out and prints one line per predictor: every
+    window of K frames within one drive of the data is scored (K from the checkpoint), with the
+    shipped baselines beside the model."""
+    metrics = json.loads((cwd / args.out / "metrics.json").read_text())
+    assert (cwd / args.out / "report.md").is_file()
+    episodes = read_arrays(cwd / args.data, "episode")["episode"]
+    frames = metrics["model"]["frames"]
+    windows = sum(max(0, n - frames + 1) for n in np.unique(episodes, return_counts=True)[1])
+    if metrics["split"] == "all":
+        assert metrics["windows"] == windows, (metrics["windows"], windows)
+    assert {"echo peak", "empty"} <= set(metrics["results"]), list(metrics["results"])
+    for name, result in metrics["results"].items():
+        assert 0.0 <= result["all"]["scan_f1"]["mean"] <= 1.0, name
+        assert any(
+            line.strip().startswith(f"{name}: scan F1 {result['all']['scan_f1']['mean']:.3f}")
+            for line in stdout.splitlines()
+        ), f"{name} not printed"
+    lines = stdout.strip().splitlines()
+    assert lines[0] == f"{counted(metrics['windows'], 'window')} ({metrics['split']} split) of {args.data}:", lines[0]
+    assert lines[-1] == f"report: {args.out}/report.md", lines[-1]
+    model = metrics["results"][next(iter(metrics["checkpoints"]))]["all"]["scan_f1"]["mean"]
+    return f"{args.out}: {metrics['windows']} windows of {frames} frames scored, scan F1 {model:.3f}"
 
 
 def check_predict(args, cwd: Path) -> str:

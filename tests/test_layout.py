@@ -149,7 +149,7 @@ def part(module: str) -> str | None:
         return None
     if names[1] in BASE:
         return "base"
-    if names[1] in ("__main__", "cli", "cli_text"):
+    if names[1] in ("__main__", "cli", "cli_text", "cli_scene"):
         return "cli"
     return names[1]
 

@@ -18,8 +18,9 @@ earlier one wrote.
   the README quotes them; a command that runs without such a check fails the test.
 - python: runs as written in a subprocess (cwd the temporary folder); the shapes its comments give
   (`ranges = ...  # (50, 1081) metres`) are checked on the values.
-- toml: loaded as a suite file, as `generate --suite FILE` loads it; a block whose first line is
-  `# PATH` must equal that file of the repository.
+- toml: loaded as a suite file, as `generate --suite FILE` loads it (a `[materials]` table alone as a
+  mesh's material table); a block whose first line is `# PATH` must equal that file of the repository,
+  and that file is loaded (so its relative paths resolve beside it).
 - a block without a language is text (the layout).
 
 What ran and what was only parsed (and why) is printed: `pytest tests/test_readme.py -rP`.
@@ -56,7 +57,8 @@ MAX_CPU_FRAMES = 100
 READER_INPUTS = {"rec/": "the reader's own eRTIS recordings (raw PDM); none ship with the repository"}
 """Inputs that stand for the reader's files: a command naming one is parsed, not run."""
 
-INPUT_DESTS = ("svg", "mesh", "suite", "recordings", "dataset", "data", "init_from", "checkpoint", "input")
+INPUT_DESTS = ("svg", "mesh", "materials", "suite", "recordings", "dataset", "data", "init_from", "checkpoint")
+INPUT_DESTS += ("input",)
 INPUT_DESTS += ("train", "test", "ablation", "reality", "runs", "reports")
 """argparse destinations that name files or folders a command reads (values may be NAME=PATH)."""
 
@@ -264,6 +266,8 @@ class Walk:
             return out.check_import_chirp(args, self.cwd, source)
         if command.subcommand == "learn predict":
             return out.check_predict(args, self.cwd)
+        if command.subcommand == "learn evaluate":
+            return out.check_evaluate(args, self.cwd, stdout)
         if command.subcommand == "learn export":
             return out.check_onnx(args, self.cwd, stdout)
         raise AssertionError("it ran, but tests/readme_outputs.py has no check of what it writes")
@@ -313,12 +317,19 @@ class Walk:
 
     def toml(self, code: str, number: int) -> None:
         from acoustic_sim.datasets.suites import load_suite
+        from scenes.material_map import read_material_table
 
         first = code.splitlines()[0]
         if first.startswith("# ") and (ROOT / first[2:]).is_file():
             assert (ROOT / first[2:]).read_text() == code, f"README.md:{number} differs from {first[2:]}"
-        path = self.cwd / f"readme_suite_{number}.toml"
-        path.write_text(code)
+            path = self.cwd / first[2:]
+        else:
+            path = self.cwd / f"readme_suite_{number}.toml"
+            path.write_text(code)
+        if set(tomllib.loads(code)) == {"materials"}:
+            table = read_material_table(path)
+            self.report.append(f"loaded       toml block at README.md:{number} as a material table: {table}")
+            return
         suite = load_suite(path)
         self.report.append(f"loaded       toml block at README.md:{number} as a suite: variants {list(suite.variants)}")
 

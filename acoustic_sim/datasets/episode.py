@@ -12,6 +12,7 @@ import numpy as np
 from scenes.surfaces import with_surfaces
 
 from ..config import SimConfig, SonarConfig
+from .mesh_scenarios import MESH_BUILDER, MeshFile, mesh_scene
 from .physics import Physics
 from .plan import Episode
 from .suites import episode_drive
@@ -54,11 +55,19 @@ class PreparedEpisode:
     snr_db: float
 
 
-def build_scene(episode: Episode, suite_name: str):
-    """The episode's scene (`scenes.Scene`) from its scenario's builder; a builder's refusal
-    (SceneError, a wrong argument) names the suite, the scenario and the arguments it was given."""
+def build_scene(episode: Episode, suite_name: str, meshes: dict[str, MeshFile] | None = None):
+    """The episode's scene (`scenes.Scene`) from its scenario's builder, or its mesh file (`meshes`:
+    by scenario name; loaded once per process); a builder's refusal (SceneError, a wrong argument)
+    names the suite, the scenario and the arguments it was given."""
     import scenes
 
+    if episode.builder == MESH_BUILDER:
+        if episode.scenario_name not in (meshes or {}):
+            raise ValueError(
+                f"suite {suite_name!r}, scenario {episode.scenario_name!r}: its mesh file "
+                f"{episode.scene_params.get('file')!r} was not given to this renderer (SuiteRenderer(meshes=...))"
+            )
+        return mesh_scene(meshes[episode.scenario_name])
     try:
         return scenes.BUILDERS[episode.builder](**episode.scene_params)
     except (TypeError, ValueError) as err:
@@ -69,12 +78,15 @@ def build_scene(episode: Episode, suite_name: str):
         ) from None
 
 
-def prepare_episode(episode: Episode, physics: Physics, nominal: SimConfig, suite: dict) -> PreparedEpisode:
+def prepare_episode(
+    episode: Episode, physics: Physics, nominal: SimConfig, suite: dict, meshes: dict[str, MeshFile] | None = None
+) -> PreparedEpisode:
     """Everything of an episode that runs on the host: its scene, drive and drawn physics. Needs no
-    device, so `generate` prepares the next episode while the GPU renders this one."""
+    device, so `generate` prepares the next episode while the GPU renders this one. `meshes`: the
+    mesh files of the suite's mesh scenarios, by name (`suites.mesh_files`)."""
     import scenes
 
-    scene = build_scene(episode, suite["name"])
+    scene = build_scene(episode, suite["name"], meshes)
     drive = episode_drive(suite, episode.seed)
     acoustics = physics.draw_surfaces(np.random.default_rng([episode.seed, 4]))
     if acoustics:
@@ -90,9 +102,10 @@ def prepare_episode(episode: Episode, physics: Physics, nominal: SimConfig, suit
             seed=episode.seed,
         )
     except scenes.SceneError as err:
+        mesh = f" (mesh {episode.scene_params['file']})" if episode.builder == MESH_BUILDER else ""
         raise scenes.SceneError(
-            f"suite {suite['name']!r}, scenario {episode.scenario_name!r} (episode {episode.index}): no drive of "
-            f"{episode.frames} frames: {err}; give the scenario a larger scene or the suite other drive settings"
+            f"suite {suite['name']!r}, scenario {episode.scenario_name!r}{mesh} (episode {episode.index}): no drive "
+            f"of {episode.frames} frames: {err}; give the scenario a larger scene or the suite other drive settings"
         ) from None
     drawn, draws = physics.draw(nominal, np.random.default_rng([episode.seed, 3]))
     sonar_config, snr_db = episode_sonar_config(physics, drawn.sonar, np.random.default_rng([episode.seed, 2]))

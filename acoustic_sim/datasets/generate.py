@@ -36,20 +36,23 @@ from .folder import (
     remove_temporaries,
 )
 from .manifest import About, FactTable, rig_facts, write_manifest
+from .mesh_scenarios import MeshFile
 from .physics import Physics, rig
 from .plan import Episode, ShardTask, check_shard_memory, plan
 from .runner import PARTS, Renderer, ShardHeader, run_task, run_tasks
-from .suites import Suite
+from .suites import Suite, mesh_files
 from .workers import LocalWorkers
 
 
 class SuiteRenderer:
     """Our engine (`episode`): a task's physics variant and its suite's settings make the rig, each
     episode is prepared (`prepare_episode`: scene, drive, draws) and simulated (`simulate_episode`:
-    LiDAR and sonar)."""
+    LiDAR and sonar). `meshes`: where the suite's mesh files lie on this machine, by scenario name
+    (`suites.mesh_files`); the tasks name them only by file name and hash."""
 
-    def __init__(self) -> None:
+    def __init__(self, meshes: dict[str, MeshFile] | None = None) -> None:
         self._rigs: dict[str, tuple[Physics, SimConfig]] = {}  # task path -> (physics, rig before per-episode draws)
+        self.meshes = dict(meshes or {})
 
     def rig(self, task: ShardTask) -> tuple[Physics, SimConfig]:
         """The task's physics and its variant's rig before per-episode draws (made once per task:
@@ -60,7 +63,7 @@ class SuiteRenderer:
         return self._rigs[task.path]
 
     def prepare(self, task: ShardTask, episode: Episode):
-        return prepare_episode(episode, *self.rig(task), task.suite)
+        return prepare_episode(episode, *self.rig(task), task.suite, self.meshes)
 
     def render(self, task: ShardTask, prepared, *, device: str, on_frames, seconds: dict) -> tuple[dict, dict]:
         physics, nominal = self.rig(task)
@@ -89,6 +92,9 @@ class SuiteRenderer:
         settings = list(suite.get("settings", ()))
         sim = self.rig(tasks[0])[1].to_dict()  # the rig before per-episode draws
         fields = {"description": suite["description"], "physics": physics, "sim": sim, "settings": settings}
+        meshes = {s["name"]: s["mesh"] for s in suite["scenarios"] if s.get("mesh")}
+        if meshes:
+            fields["meshes"] = meshes
         tables = (
             FactTable(
                 "The rig as simulated (after every setting; per-episode draws below come on top):",
@@ -101,7 +107,23 @@ class SuiteRenderer:
                 columns=("setting", "value"),
             ),
         )
+        if meshes:
+            tables += (
+                FactTable(
+                    "The mesh files its scenes are, by name and SHA-256 of their bytes (`manifest.json`: `meshes`):",
+                    tuple((name, _mesh_fact(mesh)) for name, mesh in meshes.items()),
+                    columns=("scenario", "mesh file"),
+                ),
+            )
         return About(fields, tables)
+
+
+def _mesh_fact(mesh: dict) -> str:
+    """A mesh file on a dataset card: name, hash, frame and unit as given, its material table."""
+    text = f"`{mesh['file']}` (sha256 {mesh['sha256'][:16]}...), up {mesh['up']}, units {mesh['units']}"
+    if "materials" in mesh:
+        text += f"; materials `{mesh['materials']}` (sha256 {mesh['materials_sha256'][:16]}...)"
+    return text
 
 
 def generate(
@@ -138,13 +160,13 @@ def generate(
     with warnings.catch_warnings():  # the run itself says what its scenes leave out
         warnings.simplefilter("ignore")
         for episode in first.values():  # a builder's refusal comes now, before any file is written
-            build_scene(episode, suite.name)
+            build_scene(episode, suite.name, mesh_files(suite))
     frames = sum(t.frame_count for t in tasks) // len(suite.variants)
     meta = {"suite": suite.name, "frames": frames, "shards": len(tasks) // len(suite.variants), "seed": seed}
     meta |= {"variants": list(suite.variants), "suite_config": suite.to_json()}
     return make_dataset(
         tasks,
-        SuiteRenderer(),
+        SuiteRenderer(mesh_files(suite)),
         out,
         plan_meta=meta,
         device=device,

@@ -17,6 +17,7 @@ import scenes
 from clitools.limits import check_fits, check_memory, free_disk_bytes
 
 from ..config import SimConfig
+from .mesh_scenarios import content_key
 from .physics import Physics, rig
 from .shards import FORMAT_VERSION
 from .suites import Suite
@@ -210,7 +211,9 @@ def plan(
     if not 1 <= shards <= len(episodes):
         raise ValueError(f"shards must lie in 1..{len(episodes)} (one episode at least per shard), got {shards}")
     suite_json = suite.to_json()
-    key = {"suite": suite_json, "frames": frames, "shards": shards, "seed": seed, "format_version": FORMAT_VERSION}
+    # a mesh counts by its content (the hash of its bytes), not by its file's name or place
+    key = {"suite": content_key(suite_json), "frames": frames, "shards": shards, "seed": seed}
+    key["format_version"] = FORMAT_VERSION
     key["scenes_revision"] = scenes.REVISION
     key |= {"keep_signals": keep_signals, "keep_arrivals": keep_arrivals}
     run_id = plan_id(key)

@@ -41,6 +41,7 @@ SUITE_FIELDS = {
 
 SCENARIO_FIELDS = {"name": "a string", "builder": "a string", "params": "a table", "vary": "a table"}
 SCENARIO_FIELDS |= {"weight": "a number"}
+SCENARIO_FIELDS |= {"mesh": "a string", "materials": "a string", "up": "a string", "units": "a string"}  # a mesh file
 
 
 def read_suite_file(path: Path, named: list[str]) -> dict:
@@ -72,8 +73,10 @@ def read_suite_file(path: Path, named: list[str]) -> dict:
         where = f"{path}: scenarios[{i}]"
         if unknown := sorted(set(scenario) - set(SCENARIO_FIELDS)):
             raise ValueError(f"{where}: unknown keys {unknown}; allowed: {sorted(SCENARIO_FIELDS)}")
-        if missing := [k for k in ("name", "builder") if k not in scenario]:
-            raise ValueError(f"{where}: give its {' and '.join(missing)}")
+        needed = ("name",) if "mesh" in scenario else ("name", "builder")  # a mesh file is its scene's builder
+        if missing := [k for k in needed if k not in scenario]:
+            or_mesh = ' (or its mesh file: mesh = "building.obj")' if "builder" in missing else ""
+            raise ValueError(f"{where}: give its {' and '.join(missing)}{or_mesh}")
         for key, value in scenario.items():
             _check(value, SCENARIO_FIELDS[key], f"{where} ({scenario['name']!r}) {key}")
     tables = [("physics", data.get("physics", {}))] + [

@@ -19,6 +19,7 @@ from clitools.outputs import check_name
 from scenes.surfaces import SURFACE_CLASSES
 
 from ..config import check_finite
+from .mesh_scenarios import MESH_BUILDER, MESH_FIELDS, MeshFile, mesh_file
 from .physics import Physics, draw_value, rig
 from .suite_file import read_suite_file
 
@@ -30,17 +31,19 @@ __all__ = ["SUITES", "Physics", "Scenario", "Suite", "load_suite", "rig"]  # Phy
 
 @dataclass(frozen=True, kw_only=True)
 class Scenario:
-    """One scenario family: a scene builder with fixed and randomised arguments.
+    """One scenario family: a scene builder with fixed and randomised arguments, or a mesh file.
 
     Attributes:
         name: Identifier, unique within the suite; stored per frame.
-        builder: Key of `scenes.BUILDERS` ("box_room", "corridor", "office", "random_world").
+        builder: Key of `scenes.BUILDERS` ("box_room", "corridor", "office", "random_world"), or
+            "mesh" for the scene of `mesh` (then without params or vary: the file is the scene).
         params: Fixed builder arguments.
         vary: Randomised builder arguments, drawn per episode: [low, high] (uniform; integers
             if both ends are integers) or {"choice": [...]}. A list of [low, high] pairs
             varies a sequence argument (e.g. a room size) element by element; plain numbers in
             it stay fixed.
         weight: Share of the suite's episodes (relative).
+        mesh: The mesh file of a "mesh" scenario (`mesh_scenarios.mesh_file` checks it), else None.
     """
 
     name: str
@@ -48,18 +51,34 @@ class Scenario:
     params: dict = field(default_factory=dict)
     vary: dict = field(default_factory=dict)
     weight: float = 1.0
+    mesh: MeshFile | None = None
 
     def __post_init__(self) -> None:
-        if self.builder not in scenes.BUILDERS:
-            raise ValueError(f"scenario {self.name!r}: unknown builder {self.builder!r}; use {sorted(scenes.BUILDERS)}")
+        if self.builder == MESH_BUILDER:
+            if not isinstance(self.mesh, MeshFile):
+                raise ValueError(f'scenario {self.name!r}: a mesh scenario needs its file: mesh = "building.obj"')
+            if given := [k for k in ("params", "vary") if getattr(self, k)]:
+                raise ValueError(
+                    f"scenario {self.name!r}: {' and '.join(given)} {'apply' if len(given) > 1 else 'applies'} to "
+                    "builders, not to a mesh file (its scene is the file, the same in every episode); drop them, give "
+                    "more scenarios for more scenes, and draw the physics per episode with [physics] vary and surfaces"
+                )
+        elif self.mesh is not None:
+            raise ValueError(f"scenario {self.name!r}: give a builder or a mesh, not both (builder {self.builder!r})")
+        elif self.builder not in scenes.BUILDERS:
+            raise ValueError(
+                f"scenario {self.name!r}: unknown builder {self.builder!r}; use {sorted(scenes.BUILDERS)}, "
+                'or give a mesh file (mesh = "building.obj")'
+            )
         if not 0 < self.weight < np.inf:  # an infinite weight deals episodes by NaN shares
             raise ValueError(f"scenario {self.name!r}: weight must be a finite number > 0, got {self.weight}")
         for key, spec in self.vary.items():
             draw_value(np.random.default_rng(0), key, spec)  # validates the spec
 
     def scene_params(self, rng: np.random.Generator, seed: int) -> dict:
-        """Builder arguments of one episode: fixed ones, drawn ones and the scene seed."""
-        out = dict(self.params)
+        """Builder arguments of one episode: fixed ones, drawn ones and the scene seed (a mesh
+        scenario's: what its file is, by name and hash)."""
+        out = self.mesh.to_json() if self.mesh else dict(self.params)
         for key, spec in sorted(self.vary.items()):
             out[key] = draw_value(rng, key, spec)
         out["seed"] = seed
@@ -125,12 +144,29 @@ class Suite:
 
     def to_json(self) -> dict:
         out = dataclasses.asdict(self) | {"variants": {k: p.to_json() for k, p in self.variants.items()}}
+        out["scenarios"] = [_scenario_json(s) for s in self.scenarios]
         for name, default in DRIVE.items():  # left out at their defaults, as suites before them had
             if out[name] == default:
                 del out[name]
         if not out["settings"]:  # so that suites without settings keep the plan ids of earlier runs
             del out["settings"]
         return out
+
+
+def _scenario_json(scenario: Scenario) -> dict:
+    """A scenario as plans and manifests record it: a mesh by file name and hash, never its path;
+    builders' without the `mesh` field, so that their suites keep the plan ids of earlier runs."""
+    out = dataclasses.asdict(scenario)
+    if scenario.mesh is None:
+        del out["mesh"]
+    else:
+        out["mesh"] = scenario.mesh.to_json()
+    return out
+
+
+def mesh_files(suite: Suite) -> dict[str, MeshFile]:
+    """The mesh file of each mesh scenario of `suite`, by scenario name."""
+    return {s.name: s.mesh for s in suite.scenarios if s.mesh is not None}
 
 
 def episode_drive(suite: dict, seed: int) -> dict:
@@ -309,6 +345,12 @@ def load_suite(name_or_path: str | Path) -> Suite:
         builder = "corridor"
         params = { reflectors = "many" }
         vary = { length = [20.0, 30.0] }
+        [[scenarios]]             # a mesh file of your building, read from this file's folder
+        name = "my_lab"
+        mesh = "lab.obj"
+        materials = "lab_materials.toml"   # optional: [materials] file name or glob -> ours
+        up = "z"                  # optional: auto (y for glTF, z otherwise), z or y
+        units = "m"               # optional: auto (metres, checked), m, cm, mm, in or ft
     """
     text = str(name_or_path)
     if text in SUITES:
@@ -329,7 +371,7 @@ def load_suite(name_or_path: str | Path) -> Suite:
         values["scenarios"] = [Scenario(**s) for s in values.get("scenarios", [])]
     else:
         values["scenarios"] = [
-            _built(Scenario, s, f"{path}: scenarios[{i}] ({s['name']!r})") for i, s in enumerate(scenarios)
+            _file_scenario(s, path.parent, f"{path}: scenarios[{i}] ({s['name']!r})") for i, s in enumerate(scenarios)
         ]
     variants = data.pop("variants", None) or values.get("variants") or {"": {}}
     physics = data.pop("physics", {})
@@ -350,6 +392,22 @@ def load_suite(name_or_path: str | Path) -> Suite:
     values.setdefault("description", f"custom suite from {path.name}")
     values["scenarios"] = tuple(values["scenarios"])
     return _built(Suite, values, str(path))
+
+
+def _file_scenario(table: dict, folder: Path, where: str) -> Scenario:
+    """A scenario of a suite file; one naming a mesh file (paths relative to `folder`, the suite
+    file's) has it checked and hashed now (`mesh_scenarios.mesh_file`)."""
+    if not any(k in table for k in MESH_FIELDS):
+        return _built(Scenario, table, where)
+    if "mesh" not in table:
+        given = ", ".join(k for k in MESH_FIELDS if k in table)
+        raise ValueError(f'{where}: {given} describe a mesh file; give it too (mesh = "building.obj") or drop them')
+    if table.get("builder", MESH_BUILDER) != MESH_BUILDER:
+        raise ValueError(f"{where}: give a builder or a mesh, not both (builder {table['builder']!r})")
+    fields = {k: v for k, v in table.items() if k not in MESH_FIELDS}
+    if any(fields.get(k) for k in ("params", "vary")):  # refused by Scenario before the mesh is loaded
+        return _built(Scenario, fields | {"builder": MESH_BUILDER, "mesh": MeshFile(path="", sha256="")}, where)
+    return _built(Scenario, fields | {"builder": MESH_BUILDER, "mesh": mesh_file(table, folder, where)}, where)
 
 
 def _variant_where(name: str, physics: dict) -> str:
