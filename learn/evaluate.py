@@ -69,6 +69,7 @@ def score(
     (B, 1, R, A) in [0, 1], whose cells >= threshold are returns. `progress` names a progress bar."""
     bar = tqdm(total=len(indices), desc=progress, unit="win", disable=progress is None, leave=False)
     per = score_predictions(predict_batches(predict, windows, indices, batch_size), windows, threshold, bar.update)
+    bar.refresh()  # the final count, even when every window came within tqdm's first 0.1 s (one batch)
     bar.close()
     return per
 
