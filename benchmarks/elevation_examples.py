@@ -50,6 +50,8 @@ def read_scans(frames, checkpoints: list[str], device: str) -> tuple[Windows, np
     scans = {}
     for name, model, ckpt in models:
         theirs, predict, threshold = model_windows(frames, ckpt, device), model_predictor(model), ckpt["threshold"]
+        if not np.array_equal(theirs.starts + theirs.config.label_offset, windows.starts + windows.config.label_offset):
+            raise SystemExit(f"{name} labels other frames than {models[0][0]} (another window length or history)")
         scans[name] = np.concatenate([ranges_of(predict, theirs, chunk, float(threshold)) for chunk in chunks])
     return windows, truth, scans
 

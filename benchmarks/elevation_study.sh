@@ -8,7 +8,7 @@
 #   e1   polar UNet, K = 5, the level slice alone (model.elevation_deg=[0]): today's model, which
 #        trains bit for bit as on a dataset beamformed at 0 deg only
 #   e3   polar UNet, K = 5, the elevations -20, 0 and 20 deg as input channels
-#   e5   polar UNet, K = 5, every elevation of a five-elevation dataset (ARMS="e1 e3 e5" with
+#   e5   polar UNet, K = 5, the elevations -20, -10, 0, 10 and 20 deg (ARMS="e1 e3 e5" with
 #        ELEVATIONS=[-20,-10,0,10,20]: the e1 and e3 arms read the same frames' rows, bit for bit those
 #        of a dataset beamformed at their elevations alone, and each run holds only its rows)
 #
@@ -58,7 +58,7 @@ arm_options() { # the options that make an arm
   case $1 in
   e1) echo "--set model.elevation_deg=[0]" ;;
   e3) echo "--set model.elevation_deg=[-20,0,20]" ;;
-  e5) echo "" ;;
+  e5) echo "--set model.elevation_deg=[-20,-10,0,10,20]" ;;
   *)
     echo "unknown arm $1" >&2
     exit 2

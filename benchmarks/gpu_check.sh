@@ -13,7 +13,7 @@
 # On the lent machine: install Warp as ../shared/device/README.md says, `python benchmarks/provenance.py
 # source` here before the call and carry .provenance.json (the machine has no git), and give the
 # reference office as OFFICE_85K. Results land in OUTDIR/<phase>/ with provenance-<phase>.json;
-# OUTDIR/pytest_cuda.txt holds the test run. A phase that fails says so and the others still run;
+# OUTDIR/tests/pytest_cuda.txt holds the test run. A phase that fails says so and the others still run;
 # the script's status is the first failure's.
 set -uo pipefail
 OUT=$1
