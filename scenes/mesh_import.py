@@ -43,7 +43,8 @@ Blender's glTF importer does."""
 BUILDING_MAX_ACROSS_M = 1000.0  # a mesh wider than this is no building a robot maps: a unit mistake
 BUILDING_MAX_HEIGHT_M = 100.0  # a room in centimetres is 250 m tall but may be under 1000 m across
 BUILDING_MIN_ACROSS_M = 0.5  # smaller than the robot: not a room in metres
-SIDE_RATIO = 2.0  # height over width in y beyond which a Y-up room read z-up is suspected
+STOREYS_MAX_HEIGHT_M = 30.0  # a building of storeys is lower; a room in inches (8 x 6 x 2.4 m: 94.5 m tall) is not
+SIDE_RATIO = 2.0  # height over width in y beyond which a glTF (Y-up by specification) written Z-up is suspected
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,9 +113,10 @@ def load(
         source: A file trimesh reads (.obj, .glb/.gltf, .ply, .stl, ...) or a trimesh.Trimesh /
             trimesh.Scene (taken as z up, metres, unless `up`/`units` say otherwise).
         up: The file's up axis: "z", "y", or "auto" (glTF: y, by specification; other files:
-            z, with a warning where the mesh looks like a room lying on its side).
+            z, with a warning where the mesh is taller than it is deep in y, as a Y-up room is).
         units: The file's unit, a key of UNITS_M, or "auto" (metres; a file whose size is absurd
-            for a building is refused, naming the units that would fit).
+            for a building is refused, one taller than STOREYS_MAX_HEIGHT_M warned, each naming
+            the units that would fit).
         materials: A TOML file with a `[materials]` table, or that table as a mapping: file name
             or glob (case-insensitive, first match in table order) -> one of MATERIALS.
         material: What faces get that the file names nothing, or whose names map to nothing.
@@ -198,7 +200,8 @@ def _frame(path: str | None, up: str, units: str) -> tuple[str, str, str, str]:
 
 
 def _check_size(path: str, size: np.ndarray, units: str, reason: str, *, refuse: bool) -> list[str]:
-    """Refuse (or, with the unit given, warn about) a mesh too large for a building; warn about one
+    """Refuse (or, with the unit given, warn about) a mesh too large for a building; with the unit
+    assumed, warn about one taller than a building of storeys (a room in inches); warn about one
     smaller than a robot. Names the units that would give a building."""
     across, height = float(size.max()), float(size[2])
     shape = " x ".join(f"{s:.4g}" for s in size)
@@ -213,6 +216,14 @@ def _check_size(path: str, size: np.ndarray, units: str, reason: str, *, refuse:
         if refuse:
             raise SceneError(f"{text}; --units {units} keeps it as it is")
         return [text]
+    if refuse and height > STOREYS_MAX_HEIGHT_M:  # a hall or tower may be, so warned, not refused
+        lower = [u for u in _units_that_fit(size / UNITS_M[units], max_height=STOREYS_MAX_HEIGHT_M) if u[0] != units]
+        advice = " or ".join(f"--units {u} (it would be {dims} m)" for u, dims in lower[:3])
+        return [
+            f"mesh {path} is {shape} m (x, y, z) read in {units} ({reason}): {height:.4g} m tall, taller than a "
+            f"building of storeys; a file in other units? give {advice or 'its unit with --units'}; "
+            f"if it is that tall, give --units {units} to say so"
+        ]
     if across < BUILDING_MIN_ACROSS_M:
         return [
             f"mesh {path} is {shape} m (x, y, z) read in {units} ({reason}): smaller than a robot, no room to "
@@ -221,23 +232,28 @@ def _check_size(path: str, size: np.ndarray, units: str, reason: str, *, refuse:
     return []
 
 
-def _units_that_fit(size_in_file_units: np.ndarray) -> list[tuple[str, str]]:
-    """(unit, "x x y x z") for each unit that makes the mesh building-sized, the most usual storey
-    height (3 m) first."""
+def _units_that_fit(
+    size_in_file_units: np.ndarray, *, max_height: float = BUILDING_MAX_HEIGHT_M
+) -> list[tuple[str, str]]:
+    """(unit, "x x y x z") for each unit that makes the mesh building-sized (at most `max_height`
+    [m] tall), the most usual storey height (3 m) first."""
     fits = []
     for unit, metres in UNITS_M.items():
         size = size_in_file_units * metres
-        if BUILDING_MIN_ACROSS_M <= size.max() <= BUILDING_MAX_ACROSS_M and size[2] <= BUILDING_MAX_HEIGHT_M:
+        if BUILDING_MIN_ACROSS_M <= size.max() <= BUILDING_MAX_ACROSS_M and size[2] <= max_height:
             fits.append((abs(np.log(max(size[2], 1e-3) / 3.0)), unit, " x ".join(f"{s:.4g}" for s in size)))
     return [(unit, dims) for _, unit, dims in sorted(fits)]
 
 
 def _check_upright(path: str, size: np.ndarray, up: str) -> list[str]:
-    """Warn where the mesh looks like a room lying on its side: rooms are wider than tall, so a
-    height over SIDE_RATIO times the width in y, y being the narrower horizontal extent, suggests
-    that the file's y axis is the vertical one (or, for a glTF, that it was written Z-up)."""
+    """Warn where the mesh looks like a room lying on its side, the up axis not given. Read z up
+    (assumed, as for OBJ), any mesh taller than it is deep in y: a Y-up room (as Blender writes
+    OBJ) of any usual shape is, a room standing upright is not unless it is a narrow corridor
+    along x. Read y up (glTF, by specification), a height over SIDE_RATIO times the width in y
+    (y being the narrower horizontal extent): such a file was likely written Z-up."""
     ex, ey, ez = (float(s) for s in size)
-    if not (ey <= ex and ez > SIDE_RATIO * ey):
+    lying = ez > ey if up == "z" else ey <= ex and ez > SIDE_RATIO * ey
+    if not lying:
         return []
     other = "y" if up == "z" else "z"
     why = (
@@ -247,8 +263,8 @@ def _check_upright(path: str, size: np.ndarray, up: str) -> list[str]:
     )
     return [
         f"mesh {path} read {up} up is {ex:.4g} x {ey:.4g} x {ez:.4g} m (x, y, z): {ez:.4g} m tall and {ey:.4g} m "
-        f"across in y, like a room lying on its side; if the file is {other.upper()}-up ({why}), give --up {other}; "
-        f"if it stands upright (a narrow corridor, a tall hall), give --up {up} to say so"
+        f"across in y, taller than it is deep, like a room lying on its side; if the file is {other.upper()}-up "
+        f"({why}), give --up {other}; if it stands upright (a narrow corridor, a tall hall), give --up {up} to say so"
     ]
 
 

@@ -15,6 +15,11 @@ builders know their round parts; for any other mesh (`from_mesh`) this module fi
    round room or tank stays faceted, the tracer reflects only off the outside); the patch closing
    all the way round (a cylinder's side around its axis, a sphere in every direction), since the
    tracer reflects off the whole surface and part of one would echo from where nothing is.
+4. Only objects: a radius above MAX_RADIUS_M (1 m) is not fitted. A round room, tank, silo or
+   large pipe that a robot drives inside, modelled with its normals outward (as a Blender or
+   `trimesh.creation` cylinder used as a room is), passes the convexity check, and fitted as a
+   solid it would put the sensor inside it, where no echo is solved: its walls would go silent.
+   Left faceted, its wide facets echo as flat mirrors, as they do for the inside of such a room.
 
 Flat faces, sharp edges and every other shape (cones, tori, capsules, half pillars, fillets
 joined smoothly to flat faces) stay as they are: faceted mirrors, as before.
@@ -37,6 +42,7 @@ FIT_RELATIVE = 0.01  # the most a vertex may lie off a fitted surface, as a frac
 FIT_ABSOLUTE_M = 2e-4  # ... and in metres: the echo's round trip errs by at most twice this (half a sample at 450 kHz)
 CYLINDER_SPREAD = 0.05  # normals of a cylinder keep < 5 % of their weight along its axis (a sphere's: 1/3 each way)
 ROUND_SPREAD = 0.1  # normals with < 10 % of their weight off one direction (flat, gently bent) close round nothing
+MAX_RADIUS_M = 1.0  # round pillars, poles, pipes, balls are smaller; a round room or tank (seen from inside) larger
 AXIS_SNAP = 1e-6  # an axis this close [rad] to x, y or z is taken as exactly that (vertical poles stay vertical)
 _DIRECTIONS = 256  # directions a sphere's faces must all face within the crease angle
 
@@ -108,8 +114,12 @@ def _fit_patch(faces: _Faces, members: np.ndarray, crease: float) -> CurvedSurfa
     points = faces.vertices[np.unique(faces.corners[members])]
     centroids = faces.centroids[members]
     if spread[0] < CYLINDER_SPREAD:
-        return _fit_cylinder(points, centroids, normals, _canonical_axis(directions[:, 0]), crease)
-    return _fit_sphere(points, centroids, normals, crease)
+        surface = _fit_cylinder(points, centroids, normals, _canonical_axis(directions[:, 0]), crease)
+    else:
+        surface = _fit_sphere(points, centroids, normals, crease)
+    if surface is not None and surface.radius > MAX_RADIUS_M + FIT_ABSOLUTE_M:  # (a unit sphere is 1 m, within the fit)
+        return None  # a room or tank to drive inside, whatever way its normals face: its facets stay mirrors
+    return surface
 
 
 def _fit_sphere(points: np.ndarray, centroids: np.ndarray, normals: np.ndarray, crease: float) -> CurvedSurface | None:

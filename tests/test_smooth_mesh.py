@@ -4,6 +4,8 @@ OBJ file, give their first-order specular echo within one sample of Fermat's sho
 the true surface, as strong as geometric optics says; boxes, prisms of 12 sides or fewer, parts
 of round things, hollows and other shapes stay faceted (`scenes.smooth_fit`)."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 import trimesh
@@ -290,3 +292,33 @@ def test_parts_hollows_rough_and_other_shapes_stay_faceted():
     }
     found = {name: fit_curved_surfaces(mesh)[0] for name, mesh in shapes.items()}
     assert all(surfaces == [] for surfaces in found.values()), found
+
+
+def round_room() -> trimesh.Trimesh:
+    """A round room 3 m in radius and 3 m tall around the box room's middle, 48 sides, modelled as
+    a solid (normals outward, as trimesh.creation or Blender make a cylinder used as a room)."""
+    return trimesh.creation.cylinder(radius=3.0, height=3.0, sections=48).apply_translation((4.5, 4.5, 1.5))
+
+
+@pytest.mark.filterwarnings("ignore:.*lie behind the surfaces")  # its normals face out: seen from behind
+def test_a_round_room_stays_faceted_and_its_walls_echo(device):
+    """Round things over 1 m in radius are rooms or tanks driven inside: not fitted (as a solid the
+    sensor would be inside it, its walls silent), the scene and its echoes those assembled without
+    the fit, its wide facets mirrors at every pose. A 0.5 m pillar in it is still fitted."""
+    room = round_room()
+    fitted = scenes.from_mesh(room)
+    plain = assemble([(room, "painted_wall")], name="mesh", params=fitted.params)
+    assert fitted.curved == () and (fitted.face_curved == -1).all()
+    assert np.array_equal(fitted.mesh.faces, plain.mesh.faces) and fitted.describe() == plain.describe()
+    rng = np.random.default_rng(4)
+    bearing, distance = rng.uniform(0, 2 * np.pi, 6), rng.uniform(0.0, 2.0, 6)
+    xy = 4.5 + distance[:, None] * np.c_[np.cos(bearing), np.sin(bearing)]
+    poses = scenes.poses(xy, rng.uniform(0, 2 * np.pi, 6), rng.uniform(0.2, 1.5, 6))
+    sonar = Sonar(SONAR, TracerConfig(max_bounces=1, scattering=False, ray_count=1_000), device=device)
+    got, want = sonar.trace(fitted, poses), sonar.trace(plain, poses)
+    for field in dataclasses.fields(want):
+        np.testing.assert_array_equal(getattr(got, field.name), getattr(want, field.name), err_msg=field.name)
+    assert all(len(first_order(got, i)) >= 3 for i in range(len(poses)))  # floor, ceiling and a wall at least
+    pillar = trimesh.creation.cylinder(radius=0.5, height=2.0, sections=48).apply_translation((5.5, 4.5, 1.0))
+    (surface,) = scenes.from_mesh(trimesh.util.concatenate([room, pillar])).curved
+    assert surface.kind == "cylinder" and surface.radius == pytest.approx(0.5, rel=1e-9)

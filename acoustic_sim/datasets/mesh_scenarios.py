@@ -11,6 +11,7 @@ id changes with their content and never with where they lie; what a dataset reco
 from __future__ import annotations
 
 import hashlib
+import re
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -110,7 +111,7 @@ def mesh_file(fields: dict, folder: Path, where: str) -> MeshFile:
 
 def _as_fields(text: str) -> str:
     """The import's words for the render command's options, as a suite's fields."""
-    text = text.replace("--units ", "units = ").replace("--up ", "up = ")
+    text = re.sub(r"--(units|up) (\w+)", r'\1 = "\2"', text)  # TOML strings: up = "y"
     return text.replace("--materials TABLE.toml", 'materials = "TABLE.toml"')
 
 
