@@ -6,6 +6,7 @@ from __future__ import annotations
 import dataclasses
 import fnmatch
 import os
+import re
 import tomllib
 from collections.abc import Mapping
 
@@ -30,9 +31,20 @@ NAME_PATTERNS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("floor", ("floor", "ground")),
     ("painted_wall", ("wall", "plaster", "paint", "concrete")),
 )
-"""Defaults for names a table does not map: (our material, words a lower-case name may contain),
-first match wins. No word hides in common others ("iron" would in "environment", "pane" in
-"panel")."""
+"""Defaults for names a table does not map: (our material, word beginnings), first match wins. A
+name matches where one of its words (`name_words`) equals a beginning or starts with it ("walls",
+"flooring", "windows", "wooden"); a word inside another never matches ("door" is not in "Indoor",
+"ground" not in "Underground"). No beginning starts common other words ("pane" would start "panel")."""
+
+NAME_WORD = re.compile(r"[A-Z]+(?![a-z])|[A-Z]?[a-z]+")
+"""A word of a name: a run of capitals not followed by a small letter (an acronym, "WALL"), or a
+capital and the small letters after it, or small letters alone; digits and anything else split."""
+
+
+def name_words(name: str) -> list[str]:
+    """The lower-case words of a file's material name: split at anything not a letter (digits
+    included) and where camelCase starts a word ("FloorTiles.001" -> ["floor", "tiles"])."""
+    return [word.lower() for word in NAME_WORD.findall(name)]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -82,6 +94,11 @@ def check_material_table(table: Mapping[str, str], *, where: str) -> dict[str, s
         if isinstance(value, Mapping):  # TOML reads Floor.001 = "wood" as {"Floor": {"001": "wood"}}
             dotted = ".".join([key, *list(value)[:1]])
             raise SceneError(f'{where}: {key!r} holds a table; quote names with dots: "{dotted}" = ...')
+        if not isinstance(value, str):  # a list or a number is no material name (and a list is unhashable)
+            raise SceneError(
+                f"{where}: {key!r} = {value!r} is a {type(value).__name__}; give one of our materials as a "
+                f'string ({key!r} = "floor"); ours are {ours}'
+            )
         if value not in MATERIALS:
             raise SceneError(f"{where}: {key!r} = {value!r} is not one of our materials; ours are {ours}")
     return dict(table)
@@ -93,10 +110,11 @@ def material_for(name: str, table: dict[str, str]) -> tuple[str | None, str, str
     for key, ours in table.items():
         if low == key.lower() or fnmatch.fnmatchcase(low, key.lower()):
             return ours, f"table: {key!r}", key
-    for ours, words in NAME_PATTERNS:
-        for word in words:
-            if word in low:
-                return ours, f"name contains {word!r}", None
+    words = name_words(name)
+    for ours, beginnings in NAME_PATTERNS:
+        for beginning in beginnings:
+            if any(word.startswith(beginning) for word in words):
+                return ours, f"name contains {beginning!r}", None
     return None, "unmapped: the default", None
 
 

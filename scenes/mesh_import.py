@@ -134,13 +134,13 @@ def load(
     table = check_material_table(table or {}, where="material table")
     default = preset(material)
     path = os.fspath(source) if isinstance(source, (str, os.PathLike)) else None
-    parts = _read_parts(path) if path is not None else _given_parts(source)
+    said = []
+    parts = _read_parts(path, said) if path is not None else _given_parts(source)
     up, up_reason, units, units_reason = _frame(path, up, units)
     rotation = Y_UP_TO_Z_UP if up == "y" else np.eye(3)
     scale = UNITS_M[units]
     if up != "z" or scale != 1.0:
         parts = [(n, _transformed(m, rotation, scale)) for n, m in parts]
-    said = []
     if path is not None:  # a mesh given in Python is the caller's own frame: nothing to guess
         corners = np.concatenate([m.bounds for _, m in parts])
         size = corners.max(axis=0) - corners.min(axis=0)
@@ -284,8 +284,9 @@ def _check_mesh_file(path: str) -> None:
 Part = tuple[str | None, trimesh.Trimesh]  # a material name of the file (None: none) and its faces
 
 
-def _read_parts(path: str) -> list[Part]:
-    """The triangles of mesh file `path`, in parts by material name (node transforms applied)."""
+def _read_parts(path: str, said: list[str]) -> list[Part]:
+    """The triangles of mesh file `path`, in parts by material name (node transforms applied);
+    warnings for the report go to `said`."""
     _check_mesh_file(path)
     try:
         if path.lower().endswith(".obj"):
@@ -299,7 +300,7 @@ def _read_parts(path: str) -> list[Part]:
             f"could not load a mesh from {path} (trimesh: {type(err).__name__}: {str(err).strip()}); give a "
             "mesh file trimesh reads (.obj, .stl, .ply, .glb, .off, ...) whose suffix names its format"
         ) from err
-    parts = _parts_of(loaded, known)
+    parts = _parts_of(loaded, known, said)
     if not parts:
         vertices = sum(len(g.vertices) for g in _geometries(loaded) if hasattr(g, "vertices"))
         raise SceneError(f"mesh file {path} holds no faces (trimesh read {vertices} vertices)")
@@ -308,7 +309,7 @@ def _read_parts(path: str) -> list[Part]:
 
 def _given_parts(source) -> list[Part]:
     if isinstance(source, trimesh.Scene):
-        if parts := _parts_of(source, None):
+        if parts := _parts_of(source, None, []):
             return parts
         raise SceneError("the trimesh.Scene given holds no faces")
     if not isinstance(source, trimesh.Trimesh):  # the message clean_mesh gives
@@ -350,9 +351,10 @@ def _geometries(loaded) -> list:
     return [loaded]
 
 
-def _parts_of(loaded, known: list[str] | None) -> list[Part]:
+def _parts_of(loaded, known: list[str] | None, said: list[str]) -> list[Part]:
     """Parts by material name: glTF/GLB primitives by material, OBJ by `known` names, PLY faces by
-    their `material_index` slot; geometries without a material name by their own name, if several."""
+    their `material_index` slot; geometries without a material name by their own name, if several.
+    What the file's slots leave unsaid goes to `said`."""
     meshes = [g for g in _geometries(loaded) if isinstance(g, trimesh.Trimesh) and len(g.faces)]
     parts = []
     for mesh in meshes:
@@ -361,25 +363,38 @@ def _parts_of(loaded, known: list[str] | None) -> list[Part]:
             name = name if name in known else None
         elif name is None and len(meshes) > 1:
             name = mesh.metadata.get("name")
-        parts += _ply_slots(mesh) or [(name, mesh)]
+        parts += _ply_slots(mesh, said) or [(name, mesh)]
     if known:  # trimesh gives an OBJ's materials last first
         order = {name: i for i, name in enumerate(known)}
         parts.sort(key=lambda part: order.get(part[0], -1))
     return parts
 
 
-def _ply_slots(mesh: trimesh.Trimesh) -> list[Part]:
-    """A PLY's faces by their `material_index` property (named "material_<index>"); [] for others.
-    trimesh keeps the PLY's raw elements in metadata["_ply_raw"]."""
+def _ply_slots(mesh: trimesh.Trimesh, said: list[str]) -> list[Part]:
+    """A PLY's faces by their `material_index` property (named "material_<index>"); [] for others
+    (a count that does not fit the triangles is said in `said`). trimesh keeps the PLY's raw
+    elements in metadata["_ply_raw"]; a quad or n-gon's index goes to each of its triangles."""
     raw = mesh.metadata.get("_ply_raw", {}).get("face", {}).get("data", {})
     index = raw.get("material_index") if isinstance(raw, dict) else None
     if index is None:
         return []
     index = np.asarray(index).reshape(-1)
+    polygons = next((raw[k] for k in ("vertex_indices", "vertex_index") if k in raw), None)
+    if polygons is not None and len(polygons) == len(index):
+        index = index[_polygon_of_triangle(polygons)]
     if len(index) != len(mesh.faces):
-        warnings.warn(f"PLY material_index ignored: {len(index)} values for {len(mesh.faces)} triangles", stacklevel=4)
+        said.append(f"PLY material_index ignored: {len(index)} values for {len(mesh.faces)} triangles")
         return []
     return [(f"material_{i}", mesh.submesh([np.flatnonzero(index == i)], append=True)) for i in np.unique(index)]
+
+
+def _polygon_of_triangle(polygons) -> np.ndarray:
+    """The polygon each triangle of trimesh's triangulation comes from, shape (triangle_count,).
+    trimesh puts the triangles first, then the quads' first halves, then their second halves, then
+    the n-gons' fans: triangulating polygons whose every vertex index is their own number gives
+    that order without copying it."""
+    own = [np.full(len(p), k) for k, p in enumerate(polygons)]
+    return trimesh.geometry.triangulate_quads(own)[:, 0].astype(np.int64)
 
 
 def _transformed(mesh: trimesh.Trimesh, rotation: np.ndarray, scale: float) -> trimesh.Trimesh:

@@ -126,6 +126,14 @@ def test_dataset_records_the_mesh_by_name_and_hash(mesh_dataset):
     assert json.loads((out / "plan.json").read_text())["suite_config"]["scenarios"][0]["mesh"]["sha256"] == sha
     card = (out / "README.md").read_text()
     assert "`room.obj` (sha256 " + sha[:16] in card and "`room_materials.toml`" in card
+    mapped = [(m["name"], m["material"], m["faces"]) for m in manifest["meshes"]["room"]["material_map"]]
+    assert mapped == [
+        ("floor", "floor", 2),
+        ("walls", "brick", 8),
+        ("ceiling", "ceiling_tile", 2),
+        ("crate", "wood", 12),
+    ]
+    assert "| room: `crate` | wood (12 faces; table: 'crate') |" in card
     with h5py.File(out / "shard-00000.h5") as f:
         attrs = json.dumps({k: str(v) for k, v in f.attrs.items()})
     for text in (attrs, card, (out / "plan.json").read_text(), (out / "manifest.json").read_text()):
@@ -230,6 +238,11 @@ CLI_CASES = {
         "generate",
         ["scenarios[0]", "bad.toml", "'walls' = 'granite' is not one of our materials"],
     ),
+    "list-material": (
+        SUITE.replace("{table}", "list.toml"),
+        "generate",
+        ["scenarios[0]", "list.toml", "'walls' = ['brick'] is a list"],
+    ),
     "vary": (
         SUITE.replace('up = "z"', 'up = "z"\nvary = {{ size = [3.0, 5.0] }}'),
         "generate",
@@ -254,6 +267,7 @@ def cli_results(tmp_path_factory):
             write_suite(folder)
             (folder / "closet.obj").write_text(obj_text(room_parts(size=(0.6, 0.6, 2.5), crate=None)))
             (folder / "bad.toml").write_text('[materials]\nwalls = "granite"\n')
+            (folder / "list.toml").write_text('[materials]\nwalls = ["brick"]\n')
             (folder / "suite.toml").write_text(suite.format(mesh="room.obj", table="room_materials.toml"))
             argv = f"generate --suite {folder / 'suite.toml'} --out {folder / 'out'} --device cpu"
         commands[name] = ("acoustic_sim", argv.format(tmp=tmp).split())

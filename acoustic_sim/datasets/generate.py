@@ -36,7 +36,7 @@ from .folder import (
     remove_temporaries,
 )
 from .manifest import About, FactTable, rig_facts, write_manifest
-from .mesh_scenarios import MeshFile
+from .mesh_scenarios import MeshFile, mesh_material_map
 from .physics import Physics, rig
 from .plan import Episode, ShardTask, check_shard_memory, plan
 from .runner import PARTS, Renderer, ShardHeader, run_task, run_tasks
@@ -93,6 +93,10 @@ class SuiteRenderer:
         sim = self.rig(tasks[0])[1].to_dict()  # the rig before per-episode draws
         fields = {"description": suite["description"], "physics": physics, "sim": sim, "settings": settings}
         meshes = {s["name"]: s["mesh"] for s in suite["scenarios"] if s.get("mesh")}
+        mapped = {name: mesh_material_map(self.meshes[name]) for name in meshes if name in self.meshes}
+        meshes = {
+            name: mesh | ({"material_map": mapped[name]} if name in mapped else {}) for name, mesh in meshes.items()
+        }
         if meshes:
             fields["meshes"] = meshes
         tables = (
@@ -114,8 +118,33 @@ class SuiteRenderer:
                     tuple((name, _mesh_fact(mesh)) for name, mesh in meshes.items()),
                     columns=("scenario", "mesh file"),
                 ),
+                FactTable(
+                    "What the material names of each mesh became (`manifest.json`: `meshes.<scenario>.material_map`; "
+                    "map a name otherwise with the scenario's material table):",
+                    tuple(
+                        _mapped_fact(scenario, entry)
+                        for scenario, entries in mapped.items()
+                        for entry in entries[:MAPPED_NAMES_ON_CARD]
+                    )
+                    + tuple(
+                        (scenario, f"... and {len(entries) - MAPPED_NAMES_ON_CARD} more names in `manifest.json`")
+                        for scenario, entries in mapped.items()
+                        if len(entries) > MAPPED_NAMES_ON_CARD
+                    ),
+                    columns=("scenario: name in the file", "our material"),
+                ),
             )
         return About(fields, tables)
+
+
+MAPPED_NAMES_ON_CARD = 30  # a card lists this many names of a mesh; the manifest lists all
+
+
+def _mapped_fact(scenario: str, entry: dict) -> tuple[str, str]:
+    """One material name of a mesh on a dataset card: what it became, for how many faces, and why."""
+    name = "(no name)" if entry["name"] is None else f"`{entry['name']}`"
+    faces = f"{entry['faces']:,} face" + ("" if entry["faces"] == 1 else "s")
+    return f"{scenario}: {name}", f"{entry['material']} ({faces}; {entry['rule']})"
 
 
 def _mesh_fact(mesh: dict) -> str:

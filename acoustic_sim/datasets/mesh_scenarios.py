@@ -11,14 +11,16 @@ id changes with their content and never with where they lie; what a dataset reco
 from __future__ import annotations
 
 import hashlib
+import json
 import re
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from urllib.parse import unquote
 
 import scenes
 from clitools.limits import regular_file
-from scenes.mesh_import import UNITS_M, UP_AXES, load
+from scenes.mesh_import import UNITS_M, UP_AXES, MeshImportReport, load
 
 MESH_BUILDER = "mesh"
 """A scenario's `builder` when its scene is a mesh file (it is no key of `scenes.BUILDERS`)."""
@@ -34,7 +36,7 @@ class MeshFile:
 
     Attributes:
         path: The file on this machine (absolute); loads it, never recorded.
-        sha256: Hex SHA-256 of its bytes.
+        sha256: Hex SHA-256 of its content (`mesh_sha256`: a .gltf's with the files it references).
         up: The file's up axis as the scenario gives it ("auto", "z" or "y").
         units: The file's unit as the scenario gives it ("auto" or a key of UNITS_M).
         materials_path: Its material table (TOML, absolute) or None; never recorded.
@@ -65,6 +67,44 @@ def file_sha256(path: str | Path) -> str:
         return hashlib.file_digest(f, "sha256").hexdigest()
 
 
+def mesh_sha256(path: str | Path) -> str:
+    """Hex SHA-256 of a mesh file's content: its bytes, and for a .gltf also those of every file its
+    `buffers[].uri` and `images[].uri` reference (in that order; `data:` URIs are in the .gltf
+    already), since rewriting its .bin changes the geometry. Raises FileNotFoundError naming a
+    referenced file that is missing."""
+    path = Path(path)
+    if path.suffix.lower() != ".gltf":
+        return file_sha256(path)
+    data = path.read_bytes()
+    digest = hashlib.sha256(data)
+    for field, uri in _gltf_uris(data):
+        referenced = path.parent / unquote(uri)
+        if not referenced.is_file():
+            raise FileNotFoundError(
+                f"glTF {path.name} references {uri!r} ({field}), which does not exist ({referenced}); keep the "
+                "files a .gltf names beside it, or give the .glb that holds them"
+            )
+        digest.update(b"\0" + file_sha256(referenced).encode())  # one digest per file: lengths cannot blur
+    return digest.hexdigest()
+
+
+def _gltf_uris(data: bytes) -> list[tuple[str, str]]:
+    """(field, uri) of each file a glTF's JSON references, buffers then images; [] where it is no
+    JSON (the import refuses it, naming the cause)."""
+    try:
+        doc = json.loads(data)
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        return []
+    found = []
+    for key in ("buffers", "images"):
+        items = doc.get(key, []) if isinstance(doc, dict) else []
+        for i, item in enumerate(items if isinstance(items, list) else []):
+            uri = item.get("uri") if isinstance(item, dict) else None
+            if isinstance(uri, str) and not uri.startswith("data:"):
+                found.append((f"{key}[{i}].uri", uri))
+    return found
+
+
 def mesh_file(fields: dict, folder: Path, where: str) -> MeshFile:
     """The mesh of a scenario table's `fields` (mesh, materials, up, units; paths relative to
     `folder`), checked: the files exist and load, the table maps to our materials, a robot finds
@@ -78,9 +118,13 @@ def mesh_file(fields: dict, folder: Path, where: str) -> MeshFile:
     table = (
         _found(fields["materials"], folder, f"{where} materials", "material table") if "materials" in fields else None
     )
+    try:
+        sha256 = mesh_sha256(path)
+    except FileNotFoundError as err:
+        raise FileNotFoundError(f"{where} mesh {fields['mesh']!r}: {err}") from None
     mesh = MeshFile(
         path=str(path),
-        sha256=file_sha256(path),
+        sha256=sha256,
         up=up,
         units=units,
         materials_path=None if table is None else str(table),
@@ -128,7 +172,7 @@ def _found(value: str, folder: Path, where: str, what: str) -> Path:
         raise type(err)(f"{where}: {err}") from None
 
 
-_SCENES: dict[MeshFile, scenes.Scene] = {}
+_SCENES: dict[MeshFile, tuple[scenes.Scene, MeshImportReport]] = {}
 """Meshes this process has loaded: a worker loads each once, whatever the number of episodes (a
 forked one finds those its parent loaded with the suite)."""
 
@@ -136,10 +180,23 @@ forked one finds those its parent loaded with the suite)."""
 def mesh_scene(mesh: MeshFile, *, quiet: bool = True) -> scenes.Scene:
     """The scene of `mesh`, loaded once per process; refused if the file's bytes no longer hash to
     what they did when the suite was loaded. `quiet` hides the import's warnings (said at load)."""
+    return _loaded(mesh, quiet=quiet)[0]
+
+
+def mesh_material_map(mesh: MeshFile) -> list[dict]:
+    """What each material name of `mesh` became, in the file's order: name (None: faces the file
+    names nothing), our material, its triangle count and the rule that chose it."""
+    return [{"name": n.name, "material": n.material, "faces": n.faces, "rule": n.rule} for n in _loaded(mesh)[1].names]
+
+
+def _loaded(mesh: MeshFile, *, quiet: bool = True) -> tuple[scenes.Scene, MeshImportReport]:
     if mesh in _SCENES:
         return _SCENES[mesh]
-    for path, digest in ((mesh.path, mesh.sha256), (mesh.materials_path, mesh.materials_sha256)):
-        if path is not None and file_sha256(path) != digest:
+    for path, digest, content in (
+        (mesh.path, mesh.sha256, mesh_sha256),
+        (mesh.materials_path, mesh.materials_sha256, file_sha256),
+    ):
+        if path is not None and content(path) != digest:
             raise ValueError(
                 f"{path} changed since its suite was loaded (its SHA-256 is no longer {digest[:12]}...); "
                 "rerun generate to plan with the file as it is now"
@@ -147,11 +204,11 @@ def mesh_scene(mesh: MeshFile, *, quiet: bool = True) -> scenes.Scene:
     with warnings.catch_warnings():
         if quiet:
             warnings.simplefilter("ignore")
-        scene, _ = load(mesh.path, up=mesh.up, units=mesh.units, materials=mesh.materials_path, name=mesh.name)
+        scene, report = load(mesh.path, up=mesh.up, units=mesh.units, materials=mesh.materials_path, name=mesh.name)
     used = {k: v for k, v in scene.params.items() if k != "source"}  # the frame as used; the source is a path
     scene.params = mesh.to_json() | used
-    _SCENES[mesh] = scene
-    return scene
+    _SCENES[mesh] = scene, report
+    return scene, report
 
 
 def content_key(suite_json: dict) -> dict:
