@@ -20,6 +20,7 @@ import trimesh
 import scenes
 from acoustic_sim.cli import main
 from scenes.mesh_import import load
+from tests.gltf_files import gltf_document, gltf_text
 
 ROOM = (8.0, 6.0, 2.5)  # x forward, y left, z up [m]
 PILLAR = (1.5, 4.5)  # (x, y) of a 0.4 m square pillar: on the left when facing +x (y > 3)
@@ -55,31 +56,8 @@ def obj_text(parts: list[tuple[str, np.ndarray, np.ndarray]]) -> str:
 def write_glb(path, primitives: list[tuple[str, np.ndarray, np.ndarray]]) -> None:
     """A glTF 2.0 binary (GLB) by the specification: one mesh whose primitives are (material name,
     positions (N, 3), triangles (M, 3)), one node, one scene."""
-    blob, views, accessors, prims = b"", [], [], []
-    for i, (_, positions, faces) in enumerate(primitives):
-        for data, kind, target in ((positions, "VEC3", 34962), (faces, "SCALAR", 34963)):
-            raw = np.ascontiguousarray(data, dtype=np.float32 if kind == "VEC3" else np.uint32).tobytes()
-            views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": len(raw), "target": target})
-            accessor = {"bufferView": len(views) - 1, "componentType": 5126 if kind == "VEC3" else 5125, "type": kind}
-            accessor["count"] = len(positions) if kind == "VEC3" else faces.size
-            if kind == "VEC3":
-                accessor |= {"min": positions.min(axis=0).tolist(), "max": positions.max(axis=0).tolist()}
-            accessors.append(accessor)
-            blob += raw + b"\0" * (-len(raw) % 4)
-        prims.append({"attributes": {"POSITION": 2 * i}, "indices": 2 * i + 1, "material": i, "mode": 4})
-    doc = {
-        "asset": {"version": "2.0"},
-        "scene": 0,
-        "scenes": [{"nodes": [0]}],
-        "nodes": [{"mesh": 0, "name": "building"}],
-        "meshes": [{"primitives": prims}],
-        "materials": [{"name": name} for name, _, _ in primitives],
-        "buffers": [{"byteLength": len(blob)}],
-        "bufferViews": views,
-        "accessors": accessors,
-    }
-    text = json.dumps(doc).encode()
-    text += b" " * (-len(text) % 4)
+    doc, blob = gltf_document(primitives)
+    text = gltf_text(doc)
     chunks = struct.pack("<I4s", len(text), b"JSON") + text + struct.pack("<I4s", len(blob), b"BIN\0") + blob
     path.write_bytes(struct.pack("<4sII", b"glTF", 2, 12 + len(chunks)) + chunks)
 

@@ -24,6 +24,7 @@ from acoustic_sim.datasets.suites import load_suite, mesh_files
 from scenes import mesh_import
 from scenes.material_map import material_for, read_material_table
 
+from .gltf_files import gltf_document
 from .test_mesh_suite import SUITE, TABLE, room_parts, write_suite
 
 
@@ -119,31 +120,12 @@ def test_a_ply_slot_count_that_does_not_fit_is_in_the_report(tmp_path, monkeypat
 def write_gltf(folder: Path, parts, *, binary_name: str = "room_buffer_0.bin", scale: float = 1.0) -> Path:
     """A glTF 2.0 (JSON) whose one buffer lies in `binary_name` beside it: one primitive a part of
     (material name, z-up mesh), written Y-up as the specification says, lengths times `scale`."""
-    blob, views, accessors, prims = b"", [], [], []
-    for i, (_, mesh) in enumerate(parts):
+    primitives = []
+    for name, mesh in parts:
         x, y, z = (np.asarray(mesh.vertices) * scale).T
-        positions = np.stack([x, z, -y], axis=1)  # z-up (x, y, z) -> Y-up (x, z, -y)
-        for data, kind in ((positions, "VEC3"), (np.asarray(mesh.faces), "SCALAR")):
-            raw = np.ascontiguousarray(data, dtype=np.float32 if kind == "VEC3" else np.uint32).tobytes()
-            views.append({"buffer": 0, "byteOffset": len(blob), "byteLength": len(raw)})
-            accessor = {"bufferView": len(views) - 1, "componentType": 5126 if kind == "VEC3" else 5125, "type": kind}
-            accessor["count"] = len(positions) if kind == "VEC3" else data.size
-            if kind == "VEC3":
-                accessor |= {"min": positions.min(axis=0).tolist(), "max": positions.max(axis=0).tolist()}
-            accessors.append(accessor)
-            blob += raw + b"\0" * (-len(raw) % 4)
-        prims.append({"attributes": {"POSITION": 2 * i}, "indices": 2 * i + 1, "material": i, "mode": 4})
-    doc = {
-        "asset": {"version": "2.0"},
-        "scene": 0,
-        "scenes": [{"nodes": [0]}],
-        "nodes": [{"mesh": 0, "name": "building"}],
-        "meshes": [{"primitives": prims}],
-        "materials": [{"name": name} for name, _ in parts],
-        "buffers": [{"uri": binary_name, "byteLength": len(blob)}],
-        "bufferViews": views,
-        "accessors": accessors,
-    }
+        primitives.append((name, np.stack([x, z, -y], axis=1), np.asarray(mesh.faces)))  # z-up -> Y-up (x, z, -y)
+    doc, blob = gltf_document(primitives)
+    doc["buffers"][0]["uri"] = binary_name
     (folder / binary_name).write_bytes(blob)
     path = folder / "room.gltf"
     path.write_text(json.dumps(doc))
