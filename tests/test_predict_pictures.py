@@ -62,6 +62,15 @@ def _rows(truth: bool) -> list[dict]:
     return rows
 
 
+def _drawn_examples(rows: list[dict]) -> list[dict]:
+    """`_drawn` of the examples figure of `rows`, the figure closed after."""
+    fig = examples_figure(rows, RANGE_M, AZIMUTH_RAD, threshold=THRESHOLD)
+    try:
+        return _drawn(fig)
+    finally:
+        plt.close(fig)
+
+
 def _drawn(fig) -> list[dict]:
     """Per row of the figure: its title, its axes' titles, and its top view's legend texts and
     scattered points {label: (N, 2) y, x [m]}."""
@@ -91,11 +100,7 @@ def test_without_truth_the_picture_draws_the_predicted_scan_alone():
     says the data holds no LiDAR truth; the top view's legend names the predicted scan with its
     count of returns and nothing "false" nor "truth"; its points are the prediction's first returns."""
     rows = _rows(truth=False)
-    fig = examples_figure(rows, RANGE_M, AZIMUTH_RAD, threshold=THRESHOLD)
-    try:
-        drawn = _drawn(fig)
-    finally:
-        plt.close(fig)
+    drawn = _drawn_examples(rows)
     for row, got in zip(rows, drawn, strict=True):
         want = _first_returns(row["pred"], THRESHOLD)
         assert "no LiDAR truth in this data" in got["title"], got["title"]
@@ -111,11 +116,7 @@ def test_with_truth_the_picture_draws_it_and_marks_hits_and_false_returns():
     0.10 m of its column's truth counted as such and the others as "off / false" (row 0: all 31
     columns, one 0.08 m bin off; row 1: none); no "no LiDAR truth" in the title."""
     rows = _rows(truth=True)
-    fig = examples_figure(rows, RANGE_M, AZIMUTH_RAD, threshold=THRESHOLD)
-    try:
-        drawn = _drawn(fig)
-    finally:
-        plt.close(fig)
+    drawn = _drawn_examples(rows)
     for row, got in zip(rows, drawn, strict=True):
         truth, pred = _first_returns(row["truth"], 0.5), _first_returns(row["pred"], THRESHOLD)
         with np.errstate(invalid="ignore"):
