@@ -12,12 +12,18 @@ drive of `--batches` batches of 256 pings (the steady state of a trajectory), 3 
 `--rays`. Each round times every revision once, and the order turns by one each round (a b c,
 b c a, c a b), so neither drift nor going first falls on one revision; each figure is the median
 over rounds. Writes sonar_same_job_<device>.json and .md under --out.
+
+The lent GPU machine has no git: export the revisions here, carry the folder, and name the exports:
+
+    python benchmarks/sonar_same_job.py --revs base=cbd9c98 --revs now=HEAD --export-to .device/revs
+    python benchmarks/sonar_same_job.py --revs base=.device/revs/base --revs now=.device/revs/now  # there
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -81,14 +87,20 @@ def run_checked(cmd: list[str], what: str, **kwargs) -> subprocess.CompletedProc
 
 
 def export(rev: str, into: Path, *, repo: Path = ROOT) -> str:
-    """The revision's simulator (acoustic_sim, scenes) of the git repository `repo` under `into`;
-    returns its full commit id."""
+    """The revision's simulator (acoustic_sim, scenes) of the git repository `repo` under `into`
+    (with its full commit id in `into/COMMIT`); returns that id. A `rev` that is a folder made so
+    (on a machine without git) is copied, and its COMMIT read."""
+    exported = Path(rev)
+    if (exported / "COMMIT").is_file() and (exported / "acoustic_sim").is_dir():
+        shutil.copytree(exported, into)
+        return (exported / "COMMIT").read_text().strip()
     commit = run_checked(
         ["git", "rev-parse", "--verify", "--quiet", rev + "^{commit}"], f"revision {rev!r}", cwd=repo, text=True
     ).stdout.strip()
     into.mkdir(parents=True)
     archive = run_checked(["git", "archive", commit, "acoustic_sim", "scenes"], f"git archive {rev}", cwd=repo).stdout
     run_checked(["tar", "-x", "-C", str(into)], f"unpacking {rev}", input=archive)
+    (into / "COMMIT").write_text(commit + "\n")
     return commit
 
 
@@ -142,6 +154,9 @@ def main(argv=None) -> dict:
     parser.add_argument("--batches", type=int, default=8, help="batches per end-to-end run")
     parser.add_argument("--rounds", type=positive, default=3, help="timed runs per revision, in turning order")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
+    parser.add_argument(
+        "--export-to", type=Path, help="only export each revision to FOLDER/NAME (with git), to time them elsewhere"
+    )
     parser.add_argument("--child", type=Path, help=argparse.SUPPRESS)  # an exported tree to time
     args = parser.parse_args(argv)
     rays = args.rays
@@ -149,6 +164,10 @@ def main(argv=None) -> dict:
         print(json.dumps(child(args.child, rays, args.bounces, args.pings, args.batches, args.device)))
         return {}
     revs = parse_revs(args.revs)
+    if args.export_to:
+        for name, rev in revs.items():
+            print(f"{name}: {rev} = {export(rev, args.export_to / name)} in {args.export_to / name}")
+        return {}
     runs: dict[str, list[dict]] = {name: [] for name in revs}
     with tempfile.TemporaryDirectory() as tmp:
         commits = {name: export(rev, Path(tmp) / name) for name, rev in revs.items()}

@@ -131,3 +131,16 @@ def test_bad_settings_are_refused_before_any_work(bad, capsys):
     with pytest.raises(SystemExit):
         sonar_same_job.main(["--revs", "a=HEAD", "--revs", "b=HEAD", *bad])
     assert "error" in capsys.readouterr().err
+
+
+def test_an_exported_folder_stands_for_its_commit(tmp_path, history):
+    """On a machine without git, the folder an export wrote (here, with git) is the revision: the
+    same files and the commit it recorded; a folder without that record is not taken for one."""
+    commit = sonar_same_job.export("HEAD~1", tmp_path / "carried", repo=history)
+    again = sonar_same_job.export(str(tmp_path / "carried"), tmp_path / "tree", repo=history)
+    assert again == commit
+    for path in SIMULATOR:
+        assert (tmp_path / "tree" / path).read_bytes() == git("show", f"HEAD~1:{path}", cwd=history)
+    (tmp_path / "plain" / "acoustic_sim").mkdir(parents=True)
+    with pytest.raises(SystemExit, match="revision"):
+        sonar_same_job.export(str(tmp_path / "plain"), tmp_path / "other", repo=history)
