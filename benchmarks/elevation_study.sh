@@ -35,8 +35,10 @@
 # A process left running in the background does not outlive its call: the machine stops it when
 # the call returns (a nohup'd train phase ended mid-epoch in session 23), so every phase ends
 # within its call, and a long training runs in legs.
-# A run holds 2.6 GB per elevation it reads of 30,000 frames, on the GPU and in host memory: six runs of
-# e1 and e3, 31 GB; nine of e1, e3 and e5, 70 GB (one H100 holds that with FRAMES=24000, or GPUS=2).
+# A run holds 2.6 GB per elevation it reads of 30,000 frames, on the GPU and in host memory, plus its
+# activations and CUDA graphs: six runs of e1 and e3 at 30,000 frames fit one 80 GB H100, but nine of e1,
+# e3 and e5 at 20,000 frames (47 GB of frames) filled it (71 GB) and three runs died out of memory
+# (session 24): spread nine runs over two GPUs (GPUS=2), or train one arm at a time (ARMS=e3).
 #
 # Environment: ARMS ("e1 e3"), FRAMES (40000), ELEVATIONS ([-20,0,20]), REALITY_FRAMES (the suite's 1,500),
 # CROSS_FRAMES (1000), FRESH_FRAMES (1000), DEVICE (cuda; GPUS=2 spreads runs over cuda:0..),
