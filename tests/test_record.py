@@ -129,22 +129,9 @@ def test_impulses_of_many_echoes_match_a_per_tap_reference(device):
     np.testing.assert_allclose(got, expected, rtol=0, atol=2e-3)
 
 
-def test_row_blocks_sum_the_same_impulses_as_per_echo_atomics(device):
-    """The GPU's kernel (a block sums a stretch of a microphone row in shared memory) against the
-    CPU's (one global atomic per tap), launched alike, give the same fixed-point impulses bit for
-    bit: 3 pings of 3,000 echoes from 1 mm to 13 m in random slot order, one ping's count short
-    of its slots and one's beyond them, some amplitudes 0; 31 microphones in rows of 32 with their
-    own gains and delays (some negative, so taps fall before sample 0), a record that ends inside
-    a chunk and taps beyond its end. On the CPU the block's threads run as cooperative fibers, so
-    its barrier and thread stride are exercised too."""
-    from acoustic_sim.engine.echoes import PointEchoes
-    from acoustic_sim.engine.kernels import signals as kernels
-    from acoustic_sim.engine.signals import ROW_BLOCK_DIM, Recorder
-
-    rng = np.random.default_rng(5)
-    rec = Recorder(CONFIG, device=device)
-    pings, slots, mics, rows = 3, 3000, 31, 32
-    samples, chunk = CONFIG.record_samples - 1007, 3000  # 5 chunks, the last one partial
+def random_echoes(rng, pings: int, slots: int, mic_position: np.ndarray, loud: float = 1.0):
+    """Echoes from 1 mm to 13 m in random slot order, some amplitudes 0 (amplitudes up to
+    `loud`), the first-tap sample of each on each microphone, without channel delays."""
     direction = rng.normal(size=(pings, slots, 3))
     direction /= np.linalg.norm(direction, axis=2, keepdims=True)
     near = rng.random((pings, slots, 1)) < 0.05
@@ -152,14 +139,43 @@ def test_row_blocks_sum_the_same_impulses_as_per_echo_atomics(device):
         near, rng.uniform(0.001, 0.05, (pings, slots, 1)), rng.uniform(0.02, 8.0, (pings, slots, 1))
     )
     extra = np.where(~near[..., 0] & (rng.random((pings, slots)) < 0.5), rng.uniform(0.0, 5.0, (pings, slots)), 0.0)
-    amplitude = np.where(rng.random((pings, slots)) < 0.1, 0.0, rng.uniform(1e-4, 1.0, (pings, slots)))
-    count = np.array([slots, slots - 700, slots + 50])  # the last beyond its slots: only the slots count
+    amplitude = np.where(rng.random((pings, slots)) < 0.1, 0.0, rng.uniform(1e-4, loud, (pings, slots)))
+    path = extra[..., None] + np.linalg.norm(source[:, :, None] - mic_position, axis=3)
+    return source, extra, amplitude, path
+
+
+def test_row_blocks_sum_the_impulses_of_per_echo_atomics_in_their_units(device):
+    """The GPU's kernel (a block sums a stretch of a microphone row in 32-bit shared memory, in
+    units of 2^-k per stretch) against the CPU's (one 64-bit global atomic per tap, 2^-32), launched
+    alike: each sample within its taps' count of one 2^-k unit of the CPU's, and the same bits in
+    the stretches quiet enough for k = 32 (ping 0, amplitudes below 1e-6). 3 pings of 3,000 echoes,
+    one ping's count short of its slots and one's beyond them; 31 microphones in rows of 32 with
+    their own gains and delays (some negative, so taps fall before sample 0), a record that ends
+    inside a chunk and taps beyond its end; ping 2 adds 300 echoes of amplitude 4 at one point,
+    whose sums (~1,800) would overflow 32 bits in the CPU's units, on both sides of a stretch's start
+    (so both stretches must know of them). On the CPU the block's threads run
+    as cooperative fibers, so its barrier and thread stride are exercised too."""
+    from acoustic_sim.engine.echoes import PointEchoes
+    from acoustic_sim.engine.kernels import signals as kernels
+    from acoustic_sim.engine.signals import ROW_BLOCK_DIM, Recorder
+
+    rng = np.random.default_rng(5)
+    rec = Recorder(CONFIG, device=device)
+    pings, slots, mics, rows = 3, 3300, 31, 32
+    samples, chunk = CONFIG.record_samples - 1007, 3000  # 5 chunks, the last one partial
     mic_position = np.asarray(CONFIG.microphones_m)[:mics]
+    source, extra, amplitude, _ = random_echoes(rng, pings, slots, mic_position)
+    amplitude[0] *= 1e-6
+    # 300 echoes of one point heard ~3 samples before stretch 2 starts: taps on both sides of it
+    point = np.array([1.0, 0.1, 0.05]) / np.linalg.norm([1.0, 0.1, 0.05]) * (2 * kernels.STRETCH - 3) * C / FS
+    source[2, :300], extra[2, :300], amplitude[2, :300] = point, 0.0, 4.0
+    count = np.array([slots, slots - 700, slots + 50])  # the last beyond its slots: only the slots count
     gain, delay = rng.uniform(0.5, 1.5, mics), rng.uniform(-40.0, 20.0, mics)  # [samples]
     path = extra[..., None] + np.linalg.norm(source[:, :, None] - mic_position, axis=3)
-    lowest = np.floor(path * FS / C + delay) - 1  # the first of 4 taps
+    lowest = (np.floor(path * FS / C + delay) - 1).astype(int)  # the first of 4 taps
     live = (amplitude > 0) & (np.arange(slots) < count[:, None])
     assert (lowest[live] < 0).any() and (lowest[live] + 3 >= samples).any()
+    reach = np.linalg.norm(mic_position, axis=1).max() * FS / C + np.abs(delay).max() + 6
     with wp.ScopedDevice(device):
         echoes = PointEchoes(
             source=wp.array(source.astype(np.float32), dtype=wp.vec3),
@@ -182,6 +198,13 @@ def test_row_blocks_sum_the_same_impulses_as_per_echo_atomics(device):
             samples,
             rec.block,
         ]
+        stretches = -(-samples // kernels.STRETCH)
+        bounds = wp.zeros((pings, stretches), dtype=wp.int64)
+        bound_inputs = [*inputs[:4], FS / C, float(reach), kernels.STRETCH]
+        wp.launch(kernels.stretch_bounds, dim=(pings, slots), inputs=bound_inputs, outputs=[bounds])
+        exponents = wp.empty((pings, stretches), dtype=wp.int32)
+        largest = float(gain.max() * np.abs(rec._taps.numpy()).max())
+        wp.launch(kernels.stretch_exponents, dim=exponents.shape, inputs=[bounds, largest], outputs=[exponents])
         shape = (pings * rows, rec.block + CONFIG.record_samples + rec._size)
         per_echo, per_row = wp.zeros(shape, dtype=wp.int64), wp.zeros(shape, dtype=wp.int64)
         wp.launch(kernels.accumulate_echoes, dim=(pings, slots, mics), inputs=inputs, outputs=[per_echo])
@@ -190,27 +213,94 @@ def test_row_blocks_sum_the_same_impulses_as_per_echo_atomics(device):
             wp.launch_tiled(
                 kernels.row_accumulation(chunk),
                 dim=[pings, mics, -(-samples // chunk)],
-                inputs=inputs,
+                inputs=[*inputs, exponents],
                 outputs=[per_row],
                 block_dim=ROW_BLOCK_DIM,
             )
         finally:
             wp.config.enable_cpu_blocks = blocks
-    expected, got = per_echo.numpy(), per_row.numpy()
+    expected, got, k = per_echo.numpy(), per_row.numpy(), exponents.numpy()
     written = np.nonzero(expected.any(axis=0))[0] - rec.block
     assert written.min() == 0 and written.max() == samples - 1  # the row's ends are reached
     assert not expected[rows - 1 :: rows].any() and expected.any(axis=1).sum() == pings * mics  # row 32 unused
-    np.testing.assert_array_equal(got, expected)
+    assert (k[0] == 32).all() and k[1].max() < 32 and k[2].min() < k[1].min()  # the 300 echoes: coarser
+    assert np.abs(expected[2 * rows :]).max() > 2**31  # they overflow 32 bits in the CPU's units
+    loud = np.abs(expected[2 * rows :, rec.block : rec.block + samples]) > 2**31
+    assert {1, 2} <= set(np.nonzero(loud.any(axis=0))[0] // kernels.STRETCH)  # in both stretches
+    # Taps per sample: each (echo, microphone) adds 4 taps from its first one on (counted one
+    # sample wider each side: float32 may round the first tap's sample the other way).
+    taps = np.zeros((pings, rows, samples), np.int64)
+    p, s, m = np.nonzero(live[..., None] & np.ones(mics, bool))
+    for j in range(-1, 5):
+        n = lowest[p, s, m] + j
+        inside = (n >= 0) & (n < samples)
+        np.add.at(taps, (p[inside], m[inside], n[inside]), 1)
+    unit = 2.0 ** (32 - np.repeat(k, kernels.STRETCH, axis=1)[:, :samples])  # CPU units per GPU unit
+    columns = slice(rec.block, rec.block + samples)
+    difference = np.abs(got[:, columns] - expected[:, columns]).reshape(pings, rows, samples)
+    assert (difference <= taps * unit[:, None]).all()
+    np.testing.assert_array_equal(got[:rows], expected[:rows])  # ping 0: k = 32, the same bits
+    assert not got[:, : rec.block].any() and not got[:, rec.block + samples :].any()
+
+
+def test_stretch_units_leave_no_32_bit_sum_room_to_overflow(device):
+    """`Recorder.sum_exponents` against every tap of 2 pings of random echoes (one of them 10^4
+    times louder, the other with 200 loud echoes of one point across a stretch's start) on the
+    eRTIS's microphones: in each stretch, the largest possible |sum| of a
+    sample (every |tap| added) stays below 2^31 in that stretch's units, and every unit is at most
+    1e-6 of the ping's largest possible |sample| (the stretches bound the summed |amplitude| of all
+    echoes that can reach them, which is coarser than a sample's own sum needs)."""
+    from acoustic_sim.engine.echoes import PointEchoes
+    from acoustic_sim.engine.kernels import signals as kernels
+    from acoustic_sim.engine.signals import Recorder
+
+    rng = np.random.default_rng(8)
+    rec = Recorder(CONFIG, device=device)
+    mics = np.asarray(CONFIG.microphones_m)
+    source, extra, amplitude, path = random_echoes(rng, 2, 4000, mics)
+    amplitude[1] *= 1e4
+    # 200 loud echoes of one point heard 15 samples before stretch 3 starts at the array's origin, later on
+    # some microphones: both stretches must count them
+    point = np.array([0.5, -0.8, 0.3]) / np.linalg.norm([0.5, -0.8, 0.3]) * (3 * kernels.STRETCH - 15) * C / FS
+    source[0, :200], extra[0, :200], amplitude[0, :200] = point, 0.0, 50.0
+    path = extra[..., None] + np.linalg.norm(source[:, :, None] - mics, axis=3)
+    with wp.ScopedDevice(device):
+        echoes = PointEchoes(
+            source=wp.array(source.astype(np.float32), dtype=wp.vec3),
+            extra_length=wp.array(extra.astype(np.float32), dtype=float),
+            amplitude=wp.array(amplitude.astype(np.float32), dtype=float),
+            count=wp.array(np.array([4000, 4000], np.int32), dtype=wp.int32),
+            order=wp.zeros((2, 4000), dtype=wp.int32),
+        )
+        k = rec.sum_exponents(echoes, 2).numpy()
+    samples = CONFIG.record_samples
+    delay = path * FS / C + CONFIG.channel_delay_s()[None, None] * FS
+    worst = np.zeros((2, len(mics), samples + 8))
+    p, s, m = np.indices(delay.shape).reshape(3, -1)
+    first = np.floor(delay.ravel()).astype(int) - 1
+    largest = np.abs(CONFIG.channel_gain()).max() * np.abs(rec._taps.numpy()).max()
+    for j in range(4):
+        n = np.clip(first + j, 0, samples + 7)
+        np.add.at(worst, (p, m, n), np.abs(amplitude[p, s]) * largest)
+    worst = worst[:, :, :samples].max(axis=1)  # (ping, sample)
+    stretch = np.arange(samples) // kernels.STRETCH
+    units = 2.0 ** k[:, stretch]
+    assert (worst * units < 2**31).all()
+    assert (k < 32).any() and (k[1] < k[0]).all()
+    # Fine enough: a unit is at most 1e-6 (-120 dB) of the ping's largest possible |sample|.
+    assert (2.0 ** -k.astype(float) <= 1e-6 * worst.max(axis=1, keepdims=True)).all()
 
 
 def test_row_chunks_fit_the_shared_memory_of_a_block():
-    """A block sums a whole 16,384-sample row with the 227 KB of an H100 or 163 KB of an A100,
-    half of it with the 99 KB of a consumer GPU, and no more than a short record needs."""
+    """A block sums a whole 16,384-sample row of 32-bit sums with the 227 KB of an H100, the 163 KB of
+    an A100 or the 99 KB of a consumer GPU, half of it with 48 KB, and no more than a short record
+    needs; 64-bit sums took twice the memory."""
     from acoustic_sim.engine.signals import row_chunk
 
-    assert row_chunk(16384, 227 * 1024) == row_chunk(16384, 163 * 1024) == 16384
-    assert row_chunk(16384, 99 * 1024) == 8192 and row_chunk(16384, 48 * 1024) == 4096
+    assert row_chunk(16384, 227 * 1024) == row_chunk(16384, 99 * 1024) == 16384
+    assert row_chunk(16384, 48 * 1024) == 8192 and row_chunk(16384, 24 * 1024) == 4096
     assert row_chunk(5000, 227 * 1024) == 8192 and row_chunk(40000, 227 * 1024) == 16384
+    assert row_chunk(16384, 99 * 1024, sample_bytes=8) == 8192
     assert row_chunk(16384, 0) == 256
 
 
@@ -264,3 +354,47 @@ def test_delay_filters_are_pure_delays_across_the_band(chirp, taps):
         offsets = np.arange(taps) - taps // 2 + 1 - fraction
         response = np.exp(-2j * np.pi * f * offsets / chirp.sample_rate_hz) @ table[j]
         assert np.abs(response - 1.0).max() < 1e-3
+
+
+def test_office_pings_record_and_image_alike_with_32_bit_row_sums(device):
+    """Issue 42's tolerance for the GPU's row sums: 4 office pings at 3 bounces (rough walls:
+    thousands of scattered echoes a ping), recorded with 32-bit row sums and with exact 64-bit
+    atomics on the same device, then beamformed: signals within 1e-5 of each ping's peak (2e-6
+    measured on the CPU), the energyscapes' largest difference 1e-5 of their peak (4e-7), the same
+    strongest range bin at every azimuth where its peak stands out, and the noise's level
+    unchanged. On the CPU the row kernel runs as cooperative fibers."""
+    import scenes
+    from acoustic_sim.engine.signals import echo_buffer, recorder
+
+    sonar = sim.Sonar(CONFIG, max_bounces=3, ray_count=4000, device=device)
+    poses = np.stack([scenes.pose(2.0 + 0.8 * i, 2.0 + 0.4 * i, 0.3, 0.5 * i) for i in range(4)])
+    arrivals = sonar.trace(scenes.office(seed=0), poses)
+    assert np.bincount(arrivals.pose_index).min() > 2000
+    rec = recorder(CONFIG, True, str(sonar.device))
+    echoes = [echo_buffer(arrivals, 4, sonar.device)]
+    blocks, wp.config.enable_cpu_blocks = wp.config.enable_cpu_blocks, True
+    try:
+        impulses = {rows: rec.impulses(echoes, 4, row_sums=rows) for rows in (True, False)}
+    finally:
+        wp.config.enable_cpu_blocks = blocks
+    assert (impulses[True].numpy() != impulses[False].numpy()).any()  # the 32-bit units are coarser
+    signals, images = {}, {}
+    for rows, made in impulses.items():
+        rec.impulses = lambda *args, made=made, **kwargs: made  # the rest of the recording as it is
+        try:
+            signals[rows] = {
+                noise: rec(echoes, 4, noise=noise, seeds=np.arange(4, dtype=np.int32)).numpy()
+                for noise in ("none", "gaussian")
+            }
+        finally:
+            del rec.impulses
+        images[rows] = sonar.energyscape(signals[rows]["none"])
+    peak = np.abs(signals[False]["none"]).max(axis=(1, 2), keepdims=True)
+    assert (np.abs(signals[True]["none"] - signals[False]["none"]) <= 1e-5 * peak).all()
+    noise = {rows: (signals[rows]["gaussian"] - signals[rows]["none"]).std() for rows in (True, False)}
+    assert noise[True] == pytest.approx(noise[False], rel=1e-5)
+    exact, summed = images[False], images[True]
+    assert np.abs(summed - exact).max() <= 1e-5 * exact.max()
+    clear = exact.max(axis=1) > 2 * np.median(exact, axis=1)  # (ping, azimuth) with a standing peak
+    assert clear.mean() > 0.5
+    np.testing.assert_array_equal(summed.argmax(axis=1)[clear], exact.argmax(axis=1)[clear])

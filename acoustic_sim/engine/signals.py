@@ -26,18 +26,19 @@ FRACTION_STEPS = 32
 # for calls longer than half of it).
 NODE_FFT_MIN_SIZE = 4096
 # GPU recording (`kernels.row_accumulation`): threads of a block, and the most samples of a
-# microphone row it sums in shared memory (int64: 128 KB; an H100 measured 2.7x the per-echo
-# atomics with these, 1.8x with 8,192 samples and 512 threads).
+# microphone row it sums in shared memory (int32: 64 KB, two blocks per SM of an H100; its int64
+# sums took twice as long: benchmarks/results/record_kernels/).
 ROW_BLOCK_DIM = 1024
 ROW_CHUNK_MAX = 16384
 ROW_SHARED_SPARE = 8192  # [bytes] of a block's shared memory left to Warp's own use
+ROW_SAMPLE_BYTES = 4
 
 
-def row_chunk(samples: int, shared_bytes: int) -> int:
+def row_chunk(samples: int, shared_bytes: int, sample_bytes: int = ROW_SAMPLE_BYTES) -> int:
     """Samples of a microphone row one block of `kernels.row_accumulation` sums, with
     `shared_bytes` of shared memory a block: a power of two that covers `samples` where that
     fits (up to ROW_CHUNK_MAX), else the largest that does."""
-    budget = (shared_bytes - ROW_SHARED_SPARE) // 8
+    budget = (shared_bytes - ROW_SHARED_SPARE) // sample_bytes
     chunk = min(ROW_CHUNK_MAX, 1 << max(int(samples) - 1, 1).bit_length())
     while chunk > budget and chunk > 256:
         chunk //= 2
@@ -159,20 +160,34 @@ class Recorder:
             self._mics = wp.array(np.asarray(config.microphones_m, dtype=np.float32), dtype=wp.vec3)
             self._mic_gain = wp.array(config.channel_gain().astype(np.float32), dtype=float)
             self._mic_delay = wp.array((config.channel_delay_s() * fs).astype(np.float32), dtype=float)
+        # The GPU's 32-bit sums (kernels.stretch_bounds): how far from its arrival at the array's
+        # origin an echo's taps can land on any microphone [samples], and the largest tap per unit
+        # amplitude.
+        taps = fractional_delay_table(config)
+        spread_m = float(np.linalg.norm(np.asarray(config.microphones_m, dtype=np.float64), axis=1).max())
+        self._reach = spread_m * fs / c + float(np.abs(config.channel_delay_s() * fs).max()) + taps.shape[1] + 2
+        self._largest_gain_tap = float(np.abs(config.channel_gain()).max() * np.abs(taps).max())
         self._convolve = kernels.node_convolution(size)
 
-    def impulses(self, echoes, pings: int) -> wp.array:
+    def impulses(self, echoes, pings: int, *, row_sums: bool | None = None) -> wp.array:
         """The echoes' fractional-delay impulses, fixed point (2^32 per unit amplitude), int64.
 
         Row p * 2 * pairs + m is ping p's microphone m (pairs = ceil(mics / 2)); column
         `block` + n is sample n. Before them one block of zeros (node 0 reaches back one block),
-        after them room for the last node's FFT.
+        after them room for the last node's FFT. `row_sums` (default: on GPUs) sums each row in
+        32-bit shared memory (`kernels.row_accumulation`: within a unit of 2^-29 of the summed
+        |amplitude| near each sample of the exact sums), else every tap is a 64-bit atomic (the
+        exact sums, the CPU's way: Warp's CPU tile memory is one per module, which threads
+        recording at once would share).
         """
         cfg = self.config
         mics = cfg.microphone_count
         zeros, _, launch, launch_tiled = device_calls(self.device)
         rows = pings * 2 * ((mics + 1) // 2)
         impulses = zeros((rows, (self.nodes - 1) * self.block + self._size), dtype=wp.int64)
+        row_sums = self.device.is_cuda if row_sums is None else row_sums
+        shared = self.device.max_shared_memory_per_block if self.device.is_cuda else 64 * 1024
+        chunk = row_chunk(cfg.record_samples, shared)
         for e in echoes:
             if e.slots == 0:
                 continue
@@ -190,18 +205,46 @@ class Recorder:
                 cfg.record_samples,
                 self.block,
             ]
-            if self.device.is_cuda:  # a block per stretch of a row: atomics in shared memory
-                chunk = row_chunk(cfg.record_samples, self.device.max_shared_memory_per_block)
+            if row_sums:  # a block per stretch of a row: 32-bit atomics in shared memory
                 launch_tiled(
                     kernels.row_accumulation(chunk),
                     dim=[pings, mics, -(-cfg.record_samples // chunk)],
-                    inputs=inputs,
+                    inputs=[*inputs, self.sum_exponents(e, pings)],
                     outputs=[impulses],
                     block_dim=ROW_BLOCK_DIM,
                 )
-            else:  # Warp's CPU tile memory is one per module, which threads recording at once would share
+            else:
                 launch(kernels.accumulate_echoes, dim=(pings, e.slots, mics), inputs=inputs, outputs=[impulses])
         return impulses
+
+    def sum_exponents(self, echoes, pings: int) -> wp.array:
+        """k per (ping, stretch of kernels.STRETCH samples): the GPU sums that stretch's taps in
+        units of 2^-k of unit amplitude, the finest (k <= 32) at which no sum there can overflow
+        32 bits, from the |amplitude| of every echo that can reach it."""
+        cfg = self.config
+        zeros, empty, launch, _ = device_calls(self.device)
+        stretches = -(-cfg.record_samples // kernels.STRETCH)
+        bounds = zeros((pings, stretches), dtype=wp.int64)
+        spm = cfg.chirp.sample_rate_hz / cfg.atmosphere.speed_of_sound
+        launch(
+            kernels.stretch_bounds,
+            dim=(pings, echoes.slots),
+            inputs=[
+                echoes.source,
+                echoes.extra_length,
+                echoes.amplitude,
+                echoes.count,
+                spm,
+                self._reach,
+                kernels.STRETCH,
+            ],
+            outputs=[bounds],
+        )
+        exponents = empty((pings, stretches), dtype=wp.int32)
+        launch(
+            kernels.stretch_exponents, dim=exponents.shape, inputs=[bounds, self._largest_gain_tap], outputs=[exponents]
+        )
+        return exponents
 
     def __call__(
         self, echoes, pings: int, *, noise: str = "none", snr_db: float = 40.0, seeds: np.ndarray | None = None

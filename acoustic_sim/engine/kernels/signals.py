@@ -84,18 +84,79 @@ def accumulate_echoes(
 def block_sync(): ...
 
 
+# The GPU sums a row's taps in 32-bit integers (half the shared memory of 64-bit, two blocks per
+# SM, twice as fast on an H100: benchmarks/results/record_kernels/). Each stretch of STRETCH samples
+# of a ping's rows gets its own power-of-two unit, the finest (at most the 2^-32 of the CPU's int64
+# path) at which no sum there can reach 2^SUM_BITS: stretches that are quiet enough keep the int64
+# path's bits, loud ones lose the bits below 2^-29 of their summed |amplitude|.
+STRETCH = 1024
+SUM_BITS = wp.constant(30)
+FINEST_EXPONENT = wp.constant(32)  # 2^32 units per unit amplitude, FIXED_POINT_SCALE
+
+
+@wp.kernel(enable_backward=False)
+def stretch_bounds(
+    # in
+    source: wp.array2d[wp.vec3],
+    extra_length: wp.array2d[float],
+    amplitude: wp.array2d[float],
+    count: wp.array[wp.int32],
+    samples_per_m: float,
+    reach: float,
+    stretch: int,
+    # out (zeroed first)
+    bounds_out: wp.array2d[wp.int64],
+):
+    """One thread per (ping, echo slot): |amplitude| (fixed point, rounded up) added to every
+    stretch of the ping's rows its taps can reach on any microphone, i.e. within `reach` samples
+    of its arrival at the array's origin. Integer sums: the same bounds in any order."""
+    p, s = wp.tid()
+    a = wp.abs(amplitude[p, s])
+    if s >= count[p] or a == 0.0:
+        return
+    centre = (extra_length[p, s] + wp.length(source[p, s])) * samples_per_m
+    first = int(wp.floor((centre - reach) / float(stretch)))
+    last = int(wp.floor((centre + reach) / float(stretch)))
+    if last < 0 or first >= bounds_out.shape[1]:
+        return
+    units = wp.int64(a * FIXED_POINT_SCALE) + wp.int64(1)
+    for b in range(wp.max(first, 0), wp.min(last, bounds_out.shape[1] - 1) + 1):
+        wp.atomic_add(bounds_out, p, b, units)
+
+
+@wp.kernel(enable_backward=False)
+def stretch_exponents(
+    # in
+    bounds: wp.array2d[wp.int64],
+    largest_gain_tap: float,
+    # out
+    exponents_out: wp.array2d[wp.int32],
+):
+    """One thread per (ping, stretch): k in [0, FINEST_EXPONENT], the unit of its sums being
+    2^-k of unit amplitude, the largest with bound * largest_gain_tap * 2^k below 2^(SUM_BITS - 1)
+    (a tap is at most the largest |gain| times the largest |filter tap|; air absorption only
+    lowers it): no sum of the stretch can overflow 32 bits."""
+    p, b = wp.tid()
+    bound = float(bounds[p, b]) / FIXED_POINT_SCALE * largest_gain_tap
+    k = FINEST_EXPONENT
+    if bound > 0.0:
+        k = wp.min(k, int(wp.floor(float(SUM_BITS) - wp.log2(bound))) - 1)
+    exponents_out[p, b] = wp.int32(wp.max(k, 0))
+
+
 @functools.cache
 def row_accumulation(chunk: int):
-    """`accumulate_echoes` with one block per (ping, microphone, `chunk` samples of its row);
+    """The GPU's `accumulate_echoes`: one block per (ping, microphone, `chunk` samples of its row);
     launch `wp.launch_tiled(dim=[pings, mics, ceil(samples / chunk)])`.
 
     The block owns its stretch of the row: its threads walk the ping's echo slots and add their
-    taps with 64-bit atomics in shared memory (chunk * 8 bytes), then add the sums to the
-    impulses once, without global atomics. Integer sums: the same bits as `accumulate_echoes`.
+    taps, in the units of `stretch_exponents` (2^-k, k = exponents[p, n // STRETCH]), with 32-bit atomics in shared
+    memory (chunk * 4 bytes), then add the sums to the impulses once, in FIXED_POINT_SCALE units
+    (an exact shift), without global atomics. Integer sums: the same bits in any order.
     """
 
     @wp.func_native("wp::tile_atomic_add_value(&row.data(wp::tile_coord(i)), value);")
-    def shared_add(row: wp.tile(dtype=wp.int64, shape=(chunk,)), i: int, value: wp.int64): ...
+    def shared_add(row: wp.tile(dtype=wp.int32, shape=(chunk,)), i: int, value: wp.int32): ...
 
     @wp.kernel(enable_backward=False, module="unique")
     def accumulate_rows(
@@ -112,12 +173,13 @@ def row_accumulation(chunk: int):
         taps: wp.array2d[float],
         samples: int,
         lead: int,
+        exponents: wp.array2d[wp.int32],
         # in-out: the impulses the echoes are added to
         impulses_inout: wp.array2d[wp.int64],
     ):
         p, m, c, lane = wp.tid()
         threads = wp.block_dim()
-        row = wp.tile_zeros(shape=chunk, dtype=wp.int64, storage="shared")
+        row = wp.tile_zeros(shape=chunk, dtype=wp.int32, storage="shared")
         start = c * chunk
         mic = microphones[m]
         for s in range(lane, wp.min(count[p], amplitude.shape[1]), threads):
@@ -132,13 +194,19 @@ def row_accumulation(chunk: int):
                     # Taps before sample 0 fall before chunk 0; those after the record, in the
                     # last chunk's tail, which the sums below leave out.
                     if n >= start and n < start + chunk:
-                        shared_add(row, n - start, tap_value(taps, i, v, j, scale))
+                        # scale holds FIXED_POINT_SCALE: powers of two, exact in and out
+                        k = exponents[p, wp.min(n // STRETCH, exponents.shape[1] - 1)]
+                        ratio = float(wp.int64(1) << wp.int64(k)) / FIXED_POINT_SCALE
+                        tap = (1.0 - v) * taps[i, j] + v * taps[i + 1, j]
+                        shared_add(row, n - start, wp.int32(tap * (scale * ratio)))
         block_sync()
         out = p * (impulses_inout.shape[0] // count.shape[0]) + m
         for k in range(lane, wp.min(chunk, samples - start), threads):
             total = row[k]
-            if total != wp.int64(0):
-                impulses_inout[out, lead + start + k] = impulses_inout[out, lead + start + k] + total
+            if total != 0:
+                n = start + k
+                shift = FINEST_EXPONENT - exponents[p, wp.min(n // STRETCH, exponents.shape[1] - 1)]
+                impulses_inout[out, lead + n] = impulses_inout[out, lead + n] + (wp.int64(total) << wp.int64(shift))
 
     return accumulate_rows
 
