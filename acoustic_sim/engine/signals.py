@@ -207,7 +207,7 @@ class Recorder:
             ]
             if row_sums:  # a block per stretch of a row: 32-bit atomics in shared memory
                 launch_tiled(
-                    kernels.row_accumulation(chunk),
+                    kernels.row_accumulation(chunk, -(-cfg.record_samples // kernels.STRETCH)),
                     dim=[pings, mics, -(-cfg.record_samples // chunk)],
                     inputs=[*inputs, self.sum_exponents(e, pings)],
                     outputs=[impulses],
@@ -222,24 +222,12 @@ class Recorder:
         units of 2^-k of unit amplitude, the finest (k <= 32) at which no sum there can overflow
         32 bits, from the |amplitude| of every echo that can reach it."""
         cfg = self.config
-        zeros, empty, launch, _ = device_calls(self.device)
+        _, empty, launch, launch_tiled = device_calls(self.device)
         stretches = -(-cfg.record_samples // kernels.STRETCH)
-        bounds = zeros((pings, stretches), dtype=wp.int64)
+        bounds = empty((pings, stretches), dtype=wp.int64)
         spm = cfg.chirp.sample_rate_hz / cfg.atmosphere.speed_of_sound
-        launch(
-            kernels.stretch_bounds,
-            dim=(pings, echoes.slots),
-            inputs=[
-                echoes.source,
-                echoes.extra_length,
-                echoes.amplitude,
-                echoes.count,
-                spm,
-                self._reach,
-                kernels.STRETCH,
-            ],
-            outputs=[bounds],
-        )
+        inputs = [echoes.source, echoes.extra_length, echoes.amplitude, echoes.count, spm, self._reach, kernels.STRETCH]
+        launch_tiled(kernels.stretch_bounds(stretches), dim=[pings], inputs=inputs, outputs=[bounds], block_dim=1024)
         exponents = empty((pings, stretches), dtype=wp.int32)
         launch(
             kernels.stretch_exponents, dim=exponents.shape, inputs=[bounds, self._largest_gain_tap], outputs=[exponents]

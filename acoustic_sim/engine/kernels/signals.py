@@ -94,34 +94,53 @@ SUM_BITS = wp.constant(30)
 FINEST_EXPONENT = wp.constant(32)  # 2^32 units per unit amplitude, FIXED_POINT_SCALE
 
 
-@wp.kernel(enable_backward=False)
-def stretch_bounds(
-    # in
-    source: wp.array2d[wp.vec3],
-    extra_length: wp.array2d[float],
-    amplitude: wp.array2d[float],
-    count: wp.array[wp.int32],
-    samples_per_m: float,
-    reach: float,
-    stretch: int,
-    # out (zeroed first)
-    bounds_out: wp.array2d[wp.int64],
-):
-    """One thread per (ping, echo slot): |amplitude| (fixed point, rounded up) added to every
-    stretch of the ping's rows its taps can reach on any microphone, i.e. within `reach` samples
-    of its arrival at the array's origin. Integer sums: the same bounds in any order."""
-    p, s = wp.tid()
-    a = wp.abs(amplitude[p, s])
-    if s >= count[p] or a == 0.0:
-        return
-    centre = (extra_length[p, s] + wp.length(source[p, s])) * samples_per_m
-    first = int(wp.floor((centre - reach) / float(stretch)))
-    last = int(wp.floor((centre + reach) / float(stretch)))
-    if last < 0 or first >= bounds_out.shape[1]:
-        return
-    units = wp.int64(a * FIXED_POINT_SCALE) + wp.int64(1)
-    for b in range(wp.max(first, 0), wp.min(last, bounds_out.shape[1] - 1) + 1):
-        wp.atomic_add(bounds_out, p, b, units)
+@functools.cache
+def stretch_bounds(stretches: int):
+    """Tiled kernel, one block per ping (`wp.launch_tiled(dim=[pings])`): |amplitude| (fixed point,
+    rounded up) of every echo added to each of the `stretches` stretches of the ping's rows its taps
+    can reach on any microphone, i.e. within `reach` samples of its arrival at the array's origin.
+    Each thread sums its echoes in registers, then the block adds the threads' sums in shared
+    memory: one global write per stretch (a global atomic per echo, all on a ping's 16 stretches,
+    took longer than the recording it served). Integer sums: the same bounds in any order."""
+    Bins = wp.types.vector(length=stretches, dtype=wp.int64)
+
+    @wp.func_native("wp::tile_atomic_add_value(&sums.data(wp::tile_coord(i)), value);")
+    def shared_add(sums: wp.tile(dtype=wp.int64, shape=(stretches,)), i: int, value: wp.int64): ...
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def bound_stretches(
+        # in
+        source: wp.array2d[wp.vec3],
+        extra_length: wp.array2d[float],
+        amplitude: wp.array2d[float],
+        count: wp.array[wp.int32],
+        samples_per_m: float,
+        reach: float,
+        stretch: int,
+        # out
+        bounds_out: wp.array2d[wp.int64],
+    ):
+        p, lane = wp.tid()
+        threads = wp.block_dim()
+        own = Bins()
+        for s in range(lane, wp.min(count[p], amplitude.shape[1]), threads):
+            a = wp.abs(amplitude[p, s])
+            if a != 0.0:
+                centre = (extra_length[p, s] + wp.length(source[p, s])) * samples_per_m
+                first = wp.max(int(wp.floor((centre - reach) / float(stretch))), 0)
+                last = wp.min(int(wp.floor((centre + reach) / float(stretch))), stretches - 1)
+                units = wp.int64(a * FIXED_POINT_SCALE) + wp.int64(1)
+                for b in range(first, last + 1):
+                    own[b] = own[b] + units
+        sums = wp.tile_zeros(shape=stretches, dtype=wp.int64, storage="shared")
+        for b in range(stretches):
+            if own[b] != wp.int64(0):
+                shared_add(sums, b, own[b])
+        block_sync()
+        for b in range(lane, stretches, threads):
+            bounds_out[p, b] = sums[b]
+
+    return bound_stretches
 
 
 @wp.kernel(enable_backward=False)
@@ -145,7 +164,7 @@ def stretch_exponents(
 
 
 @functools.cache
-def row_accumulation(chunk: int):
+def row_accumulation(chunk: int, stretches: int):
     """The GPU's `accumulate_echoes`: one block per (ping, microphone, `chunk` samples of its row);
     launch `wp.launch_tiled(dim=[pings, mics, ceil(samples / chunk)])`.
 
@@ -180,6 +199,7 @@ def row_accumulation(chunk: int):
         p, m, c, lane = wp.tid()
         threads = wp.block_dim()
         row = wp.tile_zeros(shape=chunk, dtype=wp.int32, storage="shared")
+        exponent = wp.tile_load(exponents, shape=(1, stretches), offset=(p, 0), storage="shared")
         start = c * chunk
         mic = microphones[m]
         for s in range(lane, wp.min(count[p], amplitude.shape[1]), threads):
@@ -195,7 +215,7 @@ def row_accumulation(chunk: int):
                     # last chunk's tail, which the sums below leave out.
                     if n >= start and n < start + chunk:
                         # scale holds FIXED_POINT_SCALE: powers of two, exact in and out
-                        k = exponents[p, wp.min(n // STRETCH, exponents.shape[1] - 1)]
+                        k = exponent[0, wp.min(n // STRETCH, stretches - 1)]
                         ratio = float(wp.int64(1) << wp.int64(k)) / FIXED_POINT_SCALE
                         tap = (1.0 - v) * taps[i, j] + v * taps[i + 1, j]
                         shared_add(row, n - start, wp.int32(tap * (scale * ratio)))
@@ -205,7 +225,7 @@ def row_accumulation(chunk: int):
             total = row[k]
             if total != 0:
                 n = start + k
-                shift = FINEST_EXPONENT - exponents[p, wp.min(n // STRETCH, exponents.shape[1] - 1)]
+                shift = FINEST_EXPONENT - exponent[0, wp.min(n // STRETCH, stretches - 1)]
                 impulses_inout[out, lead + n] = impulses_inout[out, lead + n] + (wp.int64(total) << wp.int64(shift))
 
     return accumulate_rows
