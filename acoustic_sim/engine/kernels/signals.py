@@ -163,6 +163,12 @@ def stretch_exponents(
     exponents_out[p, b] = wp.int32(wp.max(k, 0))
 
 
+@wp.func
+def in_units(k: wp.int32) -> float:
+    """FIXED_POINT_SCALE units to 2^k units: 2^(k - 32), exact."""
+    return float(wp.int64(1) << wp.int64(k)) / FIXED_POINT_SCALE
+
+
 @functools.cache
 def row_accumulation(chunk: int, stretches: int):
     """The GPU's `accumulate_echoes`: one block per (ping, microphone, `chunk` samples of its row);
@@ -209,16 +215,19 @@ def row_accumulation(chunk: int, stretches: int):
                 lowest, i, v, scale = echo_taps(
                     length, a, mic_gain[m], mic_delay[m], samples_per_m, absorption_per_m, taps
                 )
+                # The echo's taps lie in one stretch or two (b and b + 1): their scales in the
+                # stretches' units (scale holds FIXED_POINT_SCALE; powers of two, exact)
+                b = wp.min(wp.max(lowest, 0) // STRETCH, stretches - 1)
+                next_start = (b + 1) * STRETCH
+                before = scale * in_units(exponent[0, b])
+                after = scale * in_units(exponent[0, wp.min(b + 1, stretches - 1)])
                 for j in range(taps.shape[1]):
                     n = lowest + j
                     # Taps before sample 0 fall before chunk 0; those after the record, in the
                     # last chunk's tail, which the sums below leave out.
                     if n >= start and n < start + chunk:
-                        # scale holds FIXED_POINT_SCALE: powers of two, exact in and out
-                        k = exponent[0, wp.min(n // STRETCH, stretches - 1)]
-                        ratio = float(wp.int64(1) << wp.int64(k)) / FIXED_POINT_SCALE
                         tap = (1.0 - v) * taps[i, j] + v * taps[i + 1, j]
-                        shared_add(row, n - start, wp.int32(tap * (scale * ratio)))
+                        shared_add(row, n - start, wp.int32(tap * wp.where(n < next_start, before, after)))
         block_sync()
         out = p * (impulses_inout.shape[0] // count.shape[0]) + m
         for k in range(lane, wp.min(chunk, samples - start), threads):
