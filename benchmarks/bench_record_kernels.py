@@ -7,7 +7,10 @@ with 64-bit integer atomics in 128 KB of shared memory) is 68 % of the recording
 90 % at 100k (`results/sonar_profile_cuda.md`). This times it beside variants that keep its
 layout and change one thing each, on the echoes of one batch of 256 office pings (3 bounces):
 
-- `int64` the kernel of `acoustic_sim` (the same function);
+- `int64` the kernel before issue 42 (its sums, 2^32 units, 128 KB rows);
+- `package` what `acoustic_sim` runs now (`Recorder.impulses(row_sums=True)`: the bounds of each
+  1,024-sample stretch, then 32-bit sums in the finest unit each stretch allows), allocation and
+  all;
 - `int32` 32-bit fixed point scaled per ping (2^30 over the ping's summed |amplitude| x gain x
   largest tap, so no sum can overflow): half the shared memory, so two blocks of 1,024 threads
   fit an SM where one fits now; integer sums, so still the same bits in any order;
@@ -41,7 +44,7 @@ from benchmarks.bench_lidar import load_office, random_poses  # noqa: E402
 from benchmarks.provenance import markdown as provenance_line  # noqa: E402
 from benchmarks.provenance import write_json  # noqa: E402
 
-VARIANTS = ("int64", "int32", "int32_half", "float32")
+VARIANTS = ("int64", "package", "int32", "int32_half", "float32")
 FIXED = 4294967296.0  # echo_taps' scale: 2^32 units per unit amplitude
 TO_PING_UNITS = wp.constant(1.0 / FIXED)
 
@@ -112,23 +115,33 @@ def ping_scales(echoes, recorder, bits: int) -> np.ndarray:
 
 
 def run_variant(name, echoes, recorder, pings, device, repeats):
+    """(median seconds, row chunk, the sums as amplitudes (pings, mics, samples)) of one variant."""
     cfg = recorder.config
     mics, samples = cfg.microphone_count, cfg.record_samples
+    shared = device.max_shared_memory_per_block if device.is_cuda else 64 * 1024
+    if name == "package":  # Recorder.impulses' GPU path: the bounds and the row sums, as simulate runs them
+        chunk = signals.row_chunk(samples, shared)
+        times = []
+        for _ in range(repeats + 1):
+            wp.synchronize_device(device)
+            t0 = time.perf_counter()
+            out = recorder.impulses([echoes], pings, row_sums=True)
+            wp.synchronize_device(device)
+            times.append(time.perf_counter() - t0)
+        pairs = (mics + 1) // 2  # rows p * 2 * pairs + m, samples after `block` leading zeros
+        sums = out.numpy().astype(np.float64).reshape(pings, 2 * pairs, -1)
+        return float(np.median(times[1:])), chunk, sums[:, :mics, recorder.block : recorder.block + samples] / FIXED
     common = [echoes.source, echoes.extra_length, echoes.amplitude, echoes.count, recorder._mics, recorder._mic_gain]
     common += [recorder._mic_delay, cfg.chirp.sample_rate_hz / cfg.atmosphere.speed_of_sound]
     common += [recorder._absorption_per_m, recorder._taps, samples]
-    shared = device.max_shared_memory_per_block
-    if name == "int64":
-        chunk = signals.row_chunk(samples, shared)
-        rows = pings * 2 * ((mics + 1) // 2)
-        out = wp.zeros((rows, (recorder.nodes - 1) * recorder.block + recorder._size), dtype=wp.int64, device=device)
-        kernel, inputs, units = kernels.row_accumulation(chunk), [*common, recorder.block], None
+    dtype = {"float32": wp.float32, "int64": wp.int64}.get(name, wp.int32)
+    if name == "int64":  # the kernel before issue 42: 2^32 units, 128 KB rows
+        chunk, units = signals.row_chunk(samples, shared, sample_bytes=8), np.full(pings, FIXED, np.float32)
     else:
-        dtype = wp.float32 if name == "float32" else wp.int32
-        chunk = 8192 if name == "int32_half" else signals.row_chunk(samples, 2 * shared)
+        chunk = 8192 if name == "int32_half" else signals.row_chunk(samples, shared)
         units = ping_scales(echoes, recorder, 30) if dtype is wp.int32 else np.ones(pings, np.float32)
-        out = wp.zeros((pings * mics, samples), dtype=dtype, device=device)
-        kernel, inputs = scaled_rows(chunk, dtype), [*common, wp.array(units, dtype=float, device=device)]
+    out = wp.zeros((pings * mics, samples), dtype=dtype, device=device)
+    kernel, inputs = scaled_rows(chunk, dtype), [*common, wp.array(units, dtype=float, device=device)]
     dim = [pings, mics, -(-samples // chunk)]
     times = []
     for _ in range(repeats + 1):
@@ -138,14 +151,11 @@ def run_variant(name, echoes, recorder, pings, device, repeats):
         wp.launch_tiled(kernel, dim=dim, inputs=inputs, outputs=[out], block_dim=signals.ROW_BLOCK_DIM, device=device)
         wp.synchronize_device(device)
         times.append(time.perf_counter() - t0)
-    sums = out.numpy().astype(np.float64)
-    if name == "int64":  # rows p * 2 * pairs + m, samples after `block` leading zeros
-        pairs = (mics + 1) // 2
-        sums = sums.reshape(pings, 2 * pairs, -1)[:, :mics, recorder.block : recorder.block + samples]
-        amplitude = sums / FIXED
-    else:
-        amplitude = sums.reshape(pings, mics, samples) / units[:, None, None]
-    return float(np.median(times[1:])), chunk, amplitude
+    return (
+        float(np.median(times[1:])),
+        chunk,
+        out.numpy().astype(np.float64).reshape(pings, mics, samples) / units[:, None, None],
+    )
 
 
 def main(argv=None) -> dict:
@@ -162,6 +172,7 @@ def main(argv=None) -> dict:
     device = wp.get_device(args.device)
     if not device.is_cuda:
         print("note: the shared-memory kernels are the GPU's; on the CPU this checks their sums only")
+        wp.config.enable_cpu_blocks = True  # their blocks' threads as cooperative fibers
     variants = args.variants.split(",")
     res = {"device": str(device), "device_name": device.name if device.is_cuda else "CPU", "warp": wp.__version__}
     res |= {"date": time.strftime("%Y-%m-%d"), "pings": args.pings, "repeats": args.repeats, "runs": {}}
