@@ -26,8 +26,8 @@ FRACTION_STEPS = 32
 # for calls longer than half of it).
 NODE_FFT_MIN_SIZE = 4096
 # GPU recording (`kernels.row_accumulation`): threads of a block, and the most samples of a
-# microphone row it sums in shared memory (int32: 64 KB, two blocks per SM of an H100; its int64
-# sums took twice as long: benchmarks/results/record_kernels/).
+# microphone row it sums in shared memory (int32: 64 KB, two blocks per SM of an H100; int64 sums
+# took 1.5-2x as long: benchmarks/results/record_kernels/, sonar_cuda_same_job/run6_row_sums_32bit/).
 ROW_BLOCK_DIM = 1024
 ROW_CHUNK_MAX = 16384
 ROW_SHARED_SPARE = 8192  # [bytes] of a block's shared memory left to Warp's own use

@@ -85,7 +85,8 @@ def block_sync(): ...
 
 
 # The GPU sums a row's taps in 32-bit integers (half the shared memory of 64-bit, two blocks per
-# SM, twice as fast on an H100: benchmarks/results/record_kernels/). Each stretch of STRETCH samples
+# SM: 0.68x the time at 100k rays on an H100, benchmarks/results/sonar_cuda_same_job/
+# run6_row_sums_32bit/; the CPU keeps one 64-bit atomic per tap). Each stretch of STRETCH samples
 # of a ping's rows gets its own power-of-two unit, the finest (at most the 2^-32 of the CPU's int64
 # path) at which no sum there can reach 2^SUM_BITS: stretches that are quiet enough keep the int64
 # path's bits, loud ones lose the bits below 2^-29 of their summed |amplitude|.
