@@ -45,7 +45,7 @@ from benchmarks.provenance import markdown as provenance_line  # noqa: E402
 from benchmarks.provenance import write_json  # noqa: E402
 
 VARIANTS = ("int64", "package", "int32", "int32_half", "float32")
-FIXED = 4294967296.0  # echo_taps' scale: 2^32 units per unit amplitude
+FIXED = kernels.FIXED_POINT_SCALE  # echo_taps' scale: 2^32 units per unit amplitude
 TO_PING_UNITS = wp.constant(1.0 / FIXED)
 
 
@@ -89,7 +89,7 @@ def scaled_rows(chunk: int, dtype):
                 for j in range(taps.shape[1]):
                     n = lowest + j
                     if n >= start and n < start + chunk:
-                        value = ((1.0 - v) * taps[i, j] + v * taps[i + 1, j]) * scale * units
+                        value = kernels.tap_weight(taps, i, v, j) * scale * units
                         shared_add(row, n - start, dtype(value))
         block_sync()
         out = p * microphones.shape[0] + m

@@ -200,7 +200,7 @@ def test_row_blocks_sum_the_impulses_of_per_echo_atomics_in_their_units(device):
         ]
         stretches = -(-samples // kernels.STRETCH)
         bounds = wp.zeros((pings, stretches), dtype=wp.int64)
-        bound_inputs = [*inputs[:4], FS / C, float(reach), kernels.STRETCH]
+        bound_inputs = [*inputs[:4], FS / C, float(reach)]
         exponents = wp.empty((pings, stretches), dtype=wp.int32)
         largest = float(gain.max() * np.abs(rec._taps.numpy()).max())
         shape = (pings * rows, rec.block + CONFIG.record_samples + rec._size)

@@ -153,20 +153,21 @@ class Recorder:
         hat = np.zeros(size)
         hat[: 2 * self.block] = 1.0 - np.abs(np.arange(2 * self.block) - self.block) / self.block
         self._absorption_per_m = float(centre_db) * np.log(10.0) / 20.0
+        taps = fractional_delay_table(config)
         with wp.ScopedDevice(self.device):
             self._filters = wp.array(np.stack([filters.real, filters.imag], -1).astype(np.float32), dtype=wp.vec2f)
             self._hat = wp.array(hat[None].astype(np.float32), dtype=float)
-            self._taps = wp.array(fractional_delay_table(config), dtype=float)
+            self._taps = wp.array(taps, dtype=float)
             self._mics = wp.array(np.asarray(config.microphones_m, dtype=np.float32), dtype=wp.vec3)
             self._mic_gain = wp.array(config.channel_gain().astype(np.float32), dtype=float)
             self._mic_delay = wp.array((config.channel_delay_s() * fs).astype(np.float32), dtype=float)
         # The GPU's 32-bit sums (kernels.stretch_bounds): how far from its arrival at the array's
         # origin an echo's taps can land on any microphone [samples], and the largest tap per unit
         # amplitude.
-        taps = fractional_delay_table(config)
         spread_m = float(np.linalg.norm(np.asarray(config.microphones_m, dtype=np.float64), axis=1).max())
         self._reach = spread_m * fs / c + float(np.abs(config.channel_delay_s() * fs).max()) + taps.shape[1] + 2
         self._largest_gain_tap = float(np.abs(config.channel_gain()).max() * np.abs(taps).max())
+        self._stretches = -(-config.record_samples // kernels.STRETCH)
         self._convolve = kernels.node_convolution(size)
 
     def impulses(self, echoes, pings: int, *, row_sums: bool | None = None) -> wp.array:
@@ -207,7 +208,7 @@ class Recorder:
             ]
             if row_sums:  # a block per stretch of a row: 32-bit atomics in shared memory
                 launch_tiled(
-                    kernels.row_accumulation(chunk, -(-cfg.record_samples // kernels.STRETCH)),
+                    kernels.row_accumulation(chunk, self._stretches),
                     dim=[pings, mics, -(-cfg.record_samples // chunk)],
                     inputs=[*inputs, self.sum_exponents(e, pings)],
                     outputs=[impulses],
@@ -223,12 +224,13 @@ class Recorder:
         32 bits, from the |amplitude| of every echo that can reach it."""
         cfg = self.config
         _, empty, launch, launch_tiled = device_calls(self.device)
-        stretches = -(-cfg.record_samples // kernels.STRETCH)
-        bounds = empty((pings, stretches), dtype=wp.int64)
+        bounds = empty((pings, self._stretches), dtype=wp.int64)
         spm = cfg.chirp.sample_rate_hz / cfg.atmosphere.speed_of_sound
-        inputs = [echoes.source, echoes.extra_length, echoes.amplitude, echoes.count, spm, self._reach, kernels.STRETCH]
-        launch_tiled(kernels.stretch_bounds(stretches), dim=[pings], inputs=inputs, outputs=[bounds], block_dim=1024)
-        exponents = empty((pings, stretches), dtype=wp.int32)
+        inputs = [echoes.source, echoes.extra_length, echoes.amplitude, echoes.count, spm, self._reach]
+        launch_tiled(
+            kernels.stretch_bounds(self._stretches), dim=[pings], inputs=inputs, outputs=[bounds], block_dim=1024
+        )
+        exponents = empty((pings, self._stretches), dtype=wp.int32)
         launch(
             kernels.stretch_exponents, dim=exponents.shape, inputs=[bounds, self._largest_gain_tap], outputs=[exponents]
         )

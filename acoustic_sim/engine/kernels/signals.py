@@ -36,9 +36,15 @@ def echo_taps(
 
 
 @wp.func
+def tap_weight(taps: wp.array2d[float], i: int, v: float, j: int) -> float:
+    """Tap j of the filter between table rows i and i + 1 (weight v)."""
+    return (1.0 - v) * taps[i, j] + v * taps[i + 1, j]
+
+
+@wp.func
 def tap_value(taps: wp.array2d[float], i: int, v: float, j: int, scale: float) -> wp.int64:
     """Tap j of the filter between table rows i and i + 1 (weight v), fixed point."""
-    return wp.int64(((1.0 - v) * taps[i, j] + v * taps[i + 1, j]) * scale)
+    return wp.int64(tap_weight(taps, i, v, j) * scale)
 
 
 @wp.kernel(enable_backward=False)
@@ -117,7 +123,6 @@ def stretch_bounds(stretches: int):
         count: wp.array[wp.int32],
         samples_per_m: float,
         reach: float,
-        stretch: int,
         # out
         bounds_out: wp.array2d[wp.int64],
     ):
@@ -128,8 +133,8 @@ def stretch_bounds(stretches: int):
             a = wp.abs(amplitude[p, s])
             if a != 0.0:
                 centre = (extra_length[p, s] + wp.length(source[p, s])) * samples_per_m
-                first = wp.max(int(wp.floor((centre - reach) / float(stretch))), 0)
-                last = wp.min(int(wp.floor((centre + reach) / float(stretch))), stretches - 1)
+                first = wp.max(int(wp.floor((centre - reach) / float(STRETCH))), 0)
+                last = wp.min(int(wp.floor((centre + reach) / float(STRETCH))), stretches - 1)
                 units = wp.int64(a * FIXED_POINT_SCALE) + wp.int64(1)
                 for b in range(first, last + 1):
                     own[b] = own[b] + units
@@ -176,9 +181,9 @@ def row_accumulation(chunk: int, stretches: int):
     launch `wp.launch_tiled(dim=[pings, mics, ceil(samples / chunk)])`.
 
     The block owns its stretch of the row: its threads walk the ping's echo slots and add their
-    taps, in the units of `stretch_exponents` (2^-k, k = exponents[p, n // STRETCH]), with 32-bit atomics in shared
-    memory (chunk * 4 bytes), then add the sums to the impulses once, in FIXED_POINT_SCALE units
-    (an exact shift), without global atomics. Integer sums: the same bits in any order.
+    taps, in the units of `stretch_exponents` (2^-k, k = exponents[p, n // STRETCH]), with 32-bit
+    atomics in shared memory (chunk * 4 bytes), then add the sums to the impulses once, in
+    FIXED_POINT_SCALE units (an exact shift), without global atomics. Integer sums: the same bits in any order.
     """
 
     @wp.func_native("wp::tile_atomic_add_value(&row.data(wp::tile_coord(i)), value);")
@@ -227,7 +232,7 @@ def row_accumulation(chunk: int, stretches: int):
                     # Taps before sample 0 fall before chunk 0; those after the record, in the
                     # last chunk's tail, which the sums below leave out.
                     if n >= start and n < start + chunk:
-                        tap = (1.0 - v) * taps[i, j] + v * taps[i + 1, j]
+                        tap = tap_weight(taps, i, v, j)
                         shared_add(row, n - start, wp.int32(tap * wp.where(n < next_start, before, after)))
         block_sync()
         out = p * (impulses_inout.shape[0] // count.shape[0]) + m
