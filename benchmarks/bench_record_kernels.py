@@ -8,9 +8,11 @@ with 64-bit integer atomics in 128 KB of shared memory) is 68 % of the recording
 layout and change one thing each, on the echoes of one batch of 256 office pings (3 bounces):
 
 - `int64` the kernel before issue 42 (its sums, 2^32 units, 128 KB rows);
-- `package` what `acoustic_sim` runs now (`Recorder.impulses(row_sums=True)`: the bounds of each
-  1,024-sample stretch, then 32-bit sums in the finest unit each stretch allows), allocation and
-  all;
+- `package` what `acoustic_sim` runs now (`Recorder.impulses`' GPU path: the units of each
+  1,024-sample stretch, then 32-bit sums in the finest unit each stretch allows, the tracer's three
+  echo buffers in one launch, as `Sonar.simulate` hands them over); `package_2_blocks` the same
+  kernel compiled for two blocks of 1,024 threads per SM (CUDA launch bounds: at most 32 registers
+  a thread), `package_512` for three blocks of 512;
 - `int32` 32-bit fixed point scaled per ping (2^30 over the ping's summed |amplitude| x gain x
   largest tap, so no sum can overflow): half the shared memory, so two blocks of 1,024 threads
   fit an SM where one fits now; integer sums, so still the same bits in any order;
@@ -44,7 +46,9 @@ from benchmarks.bench_lidar import load_office, random_poses  # noqa: E402
 from benchmarks.provenance import markdown as provenance_line  # noqa: E402
 from benchmarks.provenance import write_json  # noqa: E402
 
-VARIANTS = ("int64", "package", "int32", "int32_half", "float32")
+VARIANTS = ("int64", "package", "package_2_blocks", "package_512", "int32", "int32_half", "float32")
+# The package's row kernel as compiled for each package variant: (CUDA launch bounds, threads a block).
+PACKAGE_LAUNCHES = {"package": (None, 1024), "package_2_blocks": ((1024, 2), 1024), "package_512": ((512, 3), 512)}
 FIXED = kernels.FIXED_POINT_SCALE  # echo_taps' scale: 2^32 units per unit amplitude
 TO_PING_UNITS = wp.constant(1.0 / FIXED)
 
@@ -100,11 +104,32 @@ def scaled_rows(chunk: int, dtype):
 
 
 def echoes_of(rays: int, device, pings: int, seed: int):
-    """One batch of office pings traced at `rays` rays and 3 bounces, as one EchoBuffer."""
+    """One batch of office pings traced at `rays` rays and 3 bounces: the sonar, the echoes as one
+    EchoBuffer, their count, the tracer's own buffers of the batch, and which pings they hold
+    whole (the rest are traced again by `simulate`)."""
     sonar = sim.Sonar(sim.SonarConfig.ertis(), max_bounces=3, ray_count=rays, device=device)
     poses = random_poses(pings, seed)
     arrivals = sonar.trace(load_office(), poses, batch=pings)
-    return sonar, signals.echo_buffer(arrivals, pings, device), len(arrivals)
+    _, keep, traced = next(iter(sonar.tracer.traced(load_office(), poses, pings)))
+    return sonar, signals.echo_buffer(arrivals, pings, device), len(arrivals), traced.buffers(), keep
+
+
+def registers(kernel, device, block_dim: int) -> dict:
+    """Registers and local (spilled) bytes per thread of a loaded CUDA kernel, from the driver."""
+    import ctypes
+
+    try:
+        execs = [e for (_, dim), e in kernel.module.execs.items() if dim == block_dim]
+        function = execs[0].get_kernel_hooks(kernel).forward
+        cuda = ctypes.CDLL("libcuda.so.1")
+        out = {}
+        for name, attribute in (("registers", 4), ("local_bytes", 3)):  # CU_FUNC_ATTRIBUTE_NUM_REGS, _LOCAL_SIZE_BYTES
+            value = ctypes.c_int()
+            cuda.cuFuncGetAttribute(ctypes.byref(value), attribute, ctypes.c_void_p(int(function)))
+            out[name] = value.value
+        return out
+    except (OSError, IndexError, AttributeError, TypeError) as error:  # a benchmark's side note, not its result
+        return {"error": repr(error)}
 
 
 def ping_scales(echoes, recorder, bits: int) -> np.ndarray:
@@ -114,23 +139,38 @@ def ping_scales(echoes, recorder, bits: int) -> np.ndarray:
     return (2.0**bits / np.maximum(bound, 1e-30)).astype(np.float32)
 
 
-def run_variant(name, echoes, recorder, pings, device, repeats):
-    """(median seconds, row chunk, the sums as amplitudes (pings, mics, samples)) of one variant."""
+def run_variant(name, echoes, traced, recorder, pings, device, repeats):
+    """(median seconds, row chunk, the sums as amplitudes (pings, mics, samples), the row kernel's
+    registers) of one variant."""
     cfg = recorder.config
     mics, samples = cfg.microphone_count, cfg.record_samples
     shared = device.max_shared_memory_per_block if device.is_cuda else 64 * 1024
-    if name == "package":  # Recorder.impulses' GPU path: the bounds and the row sums, as simulate runs them
+    if name in PACKAGE_LAUNCHES:  # Recorder.impulses' GPU path, on the tracer's buffers
+        bounds, block_dim = PACKAGE_LAUNCHES[name]
         chunk = signals.row_chunk(samples, shared)
+        kernel = kernels.row_accumulation(chunk, recorder._stretches, *([bounds] if bounds else []))
+        rows = recorder.echo_rows(traced, pings)
+        impulses = wp.zeros((pings * 2 * ((mics + 1) // 2), recorder.nodes * recorder.block + recorder._size), wp.int64)
+        inputs = [*rows, *recorder._tap_inputs()]
         times = []
         for _ in range(repeats + 1):
+            impulses.zero_()
             wp.synchronize_device(device)
             t0 = time.perf_counter()
-            out = recorder.impulses([echoes], pings, row_sums=True)
+            exponents = recorder.sum_exponents(rows, pings)
+            wp.launch_tiled(
+                kernel,
+                dim=[pings, mics, -(-samples // chunk)],
+                inputs=[*inputs, exponents],
+                outputs=[impulses],
+                block_dim=block_dim,
+                device=device,
+            )
             wp.synchronize_device(device)
             times.append(time.perf_counter() - t0)
-        pairs = (mics + 1) // 2  # rows p * 2 * pairs + m, samples after `block` leading zeros
-        sums = out.numpy().astype(np.float64).reshape(pings, 2 * pairs, -1)
-        return float(np.median(times[1:])), chunk, sums[:, :mics, recorder.block : recorder.block + samples] / FIXED
+        sums = impulses.numpy().astype(np.float64).reshape(pings, 2 * ((mics + 1) // 2), -1)
+        sums = sums[:, :mics, recorder.block : recorder.block + samples] / FIXED
+        return float(np.median(times[1:])), chunk, sums, registers(kernel, device, block_dim)
     common = [echoes.source, echoes.extra_length, echoes.amplitude, echoes.count, recorder._mics, recorder._mic_gain]
     common += [recorder._mic_delay, cfg.chirp.sample_rate_hz / cfg.atmosphere.speed_of_sound]
     common += [recorder._absorption_per_m, recorder._taps, samples]
@@ -151,11 +191,8 @@ def run_variant(name, echoes, recorder, pings, device, repeats):
         wp.launch_tiled(kernel, dim=dim, inputs=inputs, outputs=[out], block_dim=signals.ROW_BLOCK_DIM, device=device)
         wp.synchronize_device(device)
         times.append(time.perf_counter() - t0)
-    return (
-        float(np.median(times[1:])),
-        chunk,
-        out.numpy().astype(np.float64).reshape(pings, mics, samples) / units[:, None, None],
-    )
+    sums = out.numpy().astype(np.float64).reshape(pings, mics, samples) / units[:, None, None]
+    return float(np.median(times[1:])), chunk, sums, registers(kernel, device, signals.ROW_BLOCK_DIM)
 
 
 def main(argv=None) -> dict:
@@ -177,17 +214,20 @@ def main(argv=None) -> dict:
     res = {"device": str(device), "device_name": device.name if device.is_cuda else "CPU", "warp": wp.__version__}
     res |= {"date": time.strftime("%Y-%m-%d"), "pings": args.pings, "repeats": args.repeats, "runs": {}}
     for rays in map(int, args.rays.split(",")):
-        sonar, echoes, arrivals = echoes_of(rays, device, args.pings, seed=3)
+        sonar, echoes, arrivals, traced, whole = echoes_of(rays, device, args.pings, seed=3)
         recorder = signals.recorder(sonar.config, True, str(device))
         reference, rows = None, {}
         for name in variants:
-            seconds, chunk, amplitude = run_variant(name, echoes, recorder, args.pings, device, args.repeats)
+            seconds, chunk, amplitude, regs = run_variant(
+                name, echoes, traced, recorder, args.pings, device, args.repeats
+            )
             if reference is None:
                 reference = amplitude
             peak = np.abs(reference).max(axis=(1, 2))[:, None, None]
-            error = float((np.abs(amplitude - reference) / np.maximum(peak, 1e-30)).max())
-            rows[name] = {"ms": 1e3 * seconds, "chunk": chunk, "max_error_over_peak": error}
-            print(f"{rays:,} rays, {name}: {1e3 * seconds:.2f} ms (chunk {chunk}), error/peak {error:.1e}", flush=True)
+            error = np.abs(amplitude - reference) / np.maximum(peak, 1e-30)
+            error = float(error[whole].max())  # pings the tracer held whole (the rest it traces again)
+            rows[name] = {"ms": 1e3 * seconds, "chunk": chunk, "max_error_over_peak": error, "kernel": regs}
+            print(f"{rays:,} rays, {name}: {1e3 * seconds:.2f} ms (chunk {chunk}), error/peak {error:.1e}, {regs}")
         res["runs"][str(rays)] = {"echoes_per_ping": arrivals / args.pings, "variants": rows}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -197,13 +237,16 @@ def main(argv=None) -> dict:
         f"# Echo accumulation variants on {res['device_name']} ({res['device']})",
         "",
         f"One batch of {args.pings} office pings, 3 bounces; milliseconds per launch, median of {args.repeats}; "
-        "error = largest |difference from int64| over the ping's peak sample.",
+        "error = largest |difference from int64| over the ping's peak sample; the row kernel's registers a thread.",
         "",
         "| rays | echoes per ping | " + " | ".join(variants) + " |",
         "|---|---|" + "---|" * len(variants),
     ]
     for rays, run in res["runs"].items():
-        cells = [f"{v['ms']:.2f} ms ({v['max_error_over_peak']:.0e})" for v in run["variants"].values()]
+        cells = [
+            f"{v['ms']:.2f} ms ({v['max_error_over_peak']:.0e}, {v['kernel'].get('registers', '?')} registers)"
+            for v in run["variants"].values()
+        ]
         lines.append(f"| {int(rays):,} | {run['echoes_per_ping']:,.0f} | " + " | ".join(cells) + " |")
     lines += ["", provenance_line(res["provenance"])]
     (out / f"{stem}.md").write_text("\n".join(lines) + "\n")

@@ -51,3 +51,48 @@ def test_gpu_envelope_kernel_gives_the_cpu_kernels_bits():
     )
     assert np.all(want.numpy() > 0)
     assert np.array_equal(got.numpy(), want.numpy())
+
+
+@pytest.mark.skipif(not wp.is_cpu_available(), reason="this Warp build compiles no CPU kernels (a GPU-only bundle)")
+def test_gpu_delay_and_sum_kernel_gives_the_cpu_kernels_beams():
+    """`delay_and_sum_tiles` (GPUs: a block per tile of band bins and 8 looks, the pings' spectra
+    staged in shared memory 4 at a time) and `delay_and_sum` (the CPU's: a thread per look and
+    bin) give the same beams for 6 pings (a last stage of 2) of random spectra, every band bin and
+    look of 3 elevations (543 looks: a last block of 7), run on the CPU in one thread; the bins
+    off the band stay untouched. Fails if a tile drops its last bin, a stage its last ping or
+    the block its last look."""
+    former = beamform.beamformer(
+        CONFIG, samples=CONFIG.record_samples, device="cpu", processing=sim.ProcessingConfig(elevation_deg=(-20, 0, 20))
+    )
+    pings, mics, looks = 6, CONFIG.microphone_count, former._looks
+    assert looks % beamform.LOOKS_PER_BLOCK and pings % kernels.STAGE_PINGS
+    column, _, width = (t.numpy() for t in former._band_tiles)
+    assert len(set(width)) > 1 and np.diff(column).max() > kernels.TILE_BINS  # partial tiles, two runs
+    rng = np.random.default_rng(4)
+    spectra = wp.array(rng.standard_normal((pings * mics, former.size, 2), dtype=np.float32), dtype=wp.vec2f)
+    steering = [former._band_hz, former._matched, former._delays, pings]
+    want = wp.zeros((pings * looks, former.size), dtype=wp.vec2f, device="cpu")
+    wp.launch(
+        former._beamform,
+        dim=(looks, former._band_bin.shape[0]),
+        inputs=[spectra, former._band_bin, *steering],
+        outputs=[want],
+        device="cpu",
+    )
+    got = wp.zeros_like(want)
+    blocks, wp.config.enable_cpu_blocks = wp.config.enable_cpu_blocks, True
+    try:
+        wp.launch_tiled(
+            kernels.delay_and_sum_tiles(mics, beamform.LOOKS_PER_BLOCK),
+            dim=[len(column), -(-looks // beamform.LOOKS_PER_BLOCK)],
+            inputs=[spectra, *former._band_tiles, *steering],
+            outputs=[got],
+            block_dim=kernels.TILE_BINS * beamform.LOOKS_PER_BLOCK,
+            device="cpu",
+        )
+    finally:
+        wp.config.enable_cpu_blocks = blocks
+    want, got = want.numpy(), got.numpy()
+    band = former._band_bin.numpy()
+    assert np.abs(want[:, band]).min() > 0 and not np.delete(got, band, axis=1).any()
+    np.testing.assert_allclose(got, want, rtol=0, atol=1e-6 * np.abs(want).max())

@@ -184,11 +184,7 @@ def test_row_blocks_sum_the_impulses_of_per_echo_atomics_in_their_units(device):
             count=wp.array(count.astype(np.int32), dtype=wp.int32),
             order=wp.zeros((pings, slots), dtype=wp.int32),
         )
-        inputs = [
-            echoes.source,
-            echoes.extra_length,
-            echoes.amplitude,
-            echoes.count,
+        taps_inputs = [
             wp.array(mic_position.astype(np.float32), dtype=wp.vec3),
             wp.array(gain.astype(np.float32), dtype=float),
             wp.array(delay.astype(np.float32), dtype=float),
@@ -198,23 +194,31 @@ def test_row_blocks_sum_the_impulses_of_per_echo_atomics_in_their_units(device):
             samples,
             rec.block,
         ]
+        # The slots in three buffers, as the tracer hands them over; each counts the slots after
+        # its first, so the first two count beyond their slots (only their slots count)
+        buffers = []
+        for first, last in ((0, 1000), (1000, 2800), (2800, slots)):
+            part = kernels.EchoRows()
+            part.source, part.extra_length = echoes.source[:, first:last], echoes.extra_length[:, first:last]
+            part.amplitude = echoes.amplitude[:, first:last]
+            part.count = wp.array(np.maximum(count - first, 0).astype(np.int32), dtype=wp.int32)
+            buffers.append(part)
         stretches = -(-samples // kernels.STRETCH)
-        bounds = wp.zeros((pings, stretches), dtype=wp.int64)
-        bound_inputs = [*inputs[:4], FS / C, float(reach)]
         exponents = wp.empty((pings, stretches), dtype=wp.int32)
         largest = float(gain.max() * np.abs(rec._taps.numpy()).max())
         shape = (pings * rows, rec.block + CONFIG.record_samples + rec._size)
         per_echo, per_row = wp.zeros(shape, dtype=wp.int64), wp.zeros(shape, dtype=wp.int64)
-        wp.launch(kernels.accumulate_echoes, dim=(pings, slots, mics), inputs=inputs, outputs=[per_echo])
+        per_echo_inputs = [echoes.source, echoes.extra_length, echoes.amplitude, echoes.count, *taps_inputs]
+        wp.launch(kernels.accumulate_echoes, dim=(pings, slots, mics), inputs=per_echo_inputs, outputs=[per_echo])
         blocks, wp.config.enable_cpu_blocks = wp.config.enable_cpu_blocks, True
         try:
-            bound = kernels.stretch_bounds(stretches)
-            wp.launch_tiled(bound, dim=[pings], inputs=bound_inputs, outputs=[bounds], block_dim=ROW_BLOCK_DIM)
-            wp.launch(kernels.stretch_exponents, dim=exponents.shape, inputs=[bounds, largest], outputs=[exponents])
+            units = kernels.stretch_units(stretches)
+            unit_inputs = [*buffers, FS / C, float(reach), largest]
+            wp.launch_tiled(units, dim=[pings], inputs=unit_inputs, outputs=[exponents], block_dim=ROW_BLOCK_DIM)
             wp.launch_tiled(
                 kernels.row_accumulation(chunk, stretches),
                 dim=[pings, mics, -(-samples // chunk)],
-                inputs=[*inputs, exponents],
+                inputs=[*buffers, *taps_inputs, exponents],
                 outputs=[per_row],
                 block_dim=ROW_BLOCK_DIM,
             )
@@ -275,7 +279,7 @@ def test_stretch_units_leave_no_32_bit_sum_room_to_overflow(device):
         )
         blocks, wp.config.enable_cpu_blocks = wp.config.enable_cpu_blocks, True
         try:
-            k = rec.sum_exponents(echoes, 2).numpy()
+            k = rec.sum_exponents(rec.echo_rows([echoes], 2), 2).numpy()
         finally:
             wp.config.enable_cpu_blocks = blocks
     samples = CONFIG.record_samples

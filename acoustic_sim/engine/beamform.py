@@ -27,6 +27,7 @@ from .signals import tile_block_dim
 
 FLOOR_DB = -60.0  # lowest value of a "db" energyscape
 ENVELOPE_BLOCK_DIM = 256  # threads per beam row in the envelope kernel: one per range bin of the default grid (240)
+LOOKS_PER_BLOCK = 8  # look directions of a block of the GPU's delay-and-sum (`kernels.delay_and_sum_tiles`)
 
 
 class Beamformer:
@@ -116,6 +117,7 @@ class Beamformer:
         self._fft = kernels.forward_fft(self.size)
         self._ifft = kernels.inverse_fft_magnitude(self.size)
         self._beamform = kernels.delay_and_sum(config.microphone_count)
+        self._band_tiles = band_tiles(band, self.device)
 
     @property
     def output_shape(self) -> tuple[int, ...]:
@@ -140,12 +142,22 @@ class Beamformer:
         )
         launch_tiled(self._fft, dim=[pings * mics], outputs=[spectra], block_dim=block)  # in place
         beams = zeros((pings * self._looks, self.size), dtype=wp.vec2f)
-        launch(
-            self._beamform,
-            dim=(self._looks, self._band_bin.shape[0]),
-            inputs=[spectra, self._band_bin, self._band_hz, self._matched, self._delays, pings],
-            outputs=[beams],
-        )
+        steering = [self._band_hz, self._matched, self._delays, pings]
+        if self.device.is_cuda:  # a block per (tile of bins, looks), the pings' spectra staged in shared memory
+            launch_tiled(
+                kernels.delay_and_sum_tiles(mics, LOOKS_PER_BLOCK),
+                dim=[self._band_tiles[0].shape[0], -(-self._looks // LOOKS_PER_BLOCK)],
+                inputs=[spectra, *self._band_tiles, *steering],
+                outputs=[beams],
+                block_dim=kernels.TILE_BINS * LOOKS_PER_BLOCK,
+            )
+        else:
+            launch(
+                self._beamform,
+                dim=(self._looks, self._band_bin.shape[0]),
+                inputs=[spectra, self._band_bin, *steering],
+                outputs=[beams],
+            )
         del spectra
         envelope = empty((pings * self._looks, self.size), dtype=float)
         launch_tiled(self._ifft, dim=[pings * self._looks], inputs=[beams], outputs=[envelope], block_dim=block)
@@ -177,6 +189,17 @@ class Beamformer:
                 outputs=[images],
             )
         return images
+
+
+def band_tiles(band: np.ndarray, device) -> list[wp.array]:
+    """`kernels.delay_and_sum_tiles`' tiles of the band's bins (ascending FFT columns, in one or
+    two runs): each tile's first column, first band index and width, int32 device arrays."""
+    runs = np.split(np.arange(len(band)), np.flatnonzero(np.diff(band) != 1) + 1)
+    tiles = [run[i : i + kernels.TILE_BINS] for run in runs for i in range(0, len(run), kernels.TILE_BINS)]
+    column = [band[t[0]] for t in tiles]
+    index = [t[0] for t in tiles]
+    width = [len(t) for t in tiles]
+    return [wp.array(np.asarray(v, dtype=np.int32), dtype=wp.int32, device=device) for v in (column, index, width)]
 
 
 # Beamformers of recent settings (all arguments hashable: no custom call waveform).

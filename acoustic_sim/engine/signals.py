@@ -169,6 +169,7 @@ class Recorder:
         self._largest_gain_tap = float(np.abs(config.channel_gain()).max() * np.abs(taps).max())
         self._stretches = -(-config.record_samples // kernels.STRETCH)
         self._convolve = kernels.node_convolution(size)
+        self._no_echoes = {}  # pings -> an empty EchoRows (echo_rows)
 
     def impulses(self, echoes, pings: int, *, row_sums: bool | None = None) -> wp.array:
         """The echoes' fractional-delay impulses, fixed point (2^32 per unit amplitude), int64.
@@ -184,55 +185,66 @@ class Recorder:
         cfg = self.config
         mics = cfg.microphone_count
         zeros, _, launch, launch_tiled = device_calls(self.device)
-        rows = pings * 2 * ((mics + 1) // 2)
-        impulses = zeros((rows, (self.nodes - 1) * self.block + self._size), dtype=wp.int64)
+        impulses = zeros((pings * 2 * ((mics + 1) // 2), (self.nodes - 1) * self.block + self._size), dtype=wp.int64)
         row_sums = self.device.is_cuda if row_sums is None else row_sums
-        shared = self.device.max_shared_memory_per_block if self.device.is_cuda else 64 * 1024
-        chunk = row_chunk(cfg.record_samples, shared)
-        for e in echoes:
-            if e.slots == 0:
-                continue
-            inputs = [
-                e.source,
-                e.extra_length,
-                e.amplitude,
-                e.count,
-                self._mics,
-                self._mic_gain,
-                self._mic_delay,
-                cfg.chirp.sample_rate_hz / cfg.atmosphere.speed_of_sound,
-                self._absorption_per_m,
-                self._taps,
-                cfg.record_samples,
-                self.block,
-            ]
-            if row_sums:  # a block per stretch of a row: 32-bit atomics in shared memory
+        echoes = [e for e in echoes if e.slots > 0]
+        if row_sums:  # a block per stretch of a row, up to three buffers a launch: 32-bit atomics in shared memory
+            shared = self.device.max_shared_memory_per_block if self.device.is_cuda else 64 * 1024
+            chunk = row_chunk(cfg.record_samples, shared)
+            for first in range(0, len(echoes), kernels.BUFFERS_PER_LAUNCH):
+                rows = self.echo_rows(echoes[first : first + kernels.BUFFERS_PER_LAUNCH], pings)
                 launch_tiled(
                     kernels.row_accumulation(chunk, self._stretches),
                     dim=[pings, mics, -(-cfg.record_samples // chunk)],
-                    inputs=[*inputs, self.sum_exponents(e, pings)],
+                    inputs=[*rows, *self._tap_inputs(), self.sum_exponents(rows, pings)],
                     outputs=[impulses],
                     block_dim=ROW_BLOCK_DIM,
                 )
-            else:
-                launch(kernels.accumulate_echoes, dim=(pings, e.slots, mics), inputs=inputs, outputs=[impulses])
+            return impulses
+        for e in echoes:
+            inputs = [e.source, e.extra_length, e.amplitude, e.count, *self._tap_inputs()]
+            launch(kernels.accumulate_echoes, dim=(pings, e.slots, mics), inputs=inputs, outputs=[impulses])
         return impulses
 
-    def sum_exponents(self, echoes, pings: int) -> wp.array:
+    def _tap_inputs(self) -> list:
+        """The arguments of the accumulation kernels after the echoes: microphones and taps."""
+        cfg = self.config
+        spm = cfg.chirp.sample_rate_hz / cfg.atmosphere.speed_of_sound
+        inputs = [self._mics, self._mic_gain, self._mic_delay, spm, self._absorption_per_m, self._taps]
+        return [*inputs, cfg.record_samples, self.block]
+
+    def echo_rows(self, echoes, pings: int) -> list:
+        """`kernels.BUFFERS_PER_LAUNCH` EchoRows of these buffers (at most that many), an empty
+        buffer in the places of missing ones."""
+        rows = []
+        for e in echoes:
+            r = kernels.EchoRows()
+            r.source, r.extra_length, r.amplitude, r.count = e.source, e.extra_length, e.amplitude, e.count
+            rows.append(r)
+        if len(rows) < kernels.BUFFERS_PER_LAUNCH:
+            if self._no_echoes.get(pings) is None:
+                with wp.ScopedDevice(self.device):
+                    r = kernels.EchoRows()
+                    r.source, r.extra_length = wp.zeros((pings, 1), dtype=wp.vec3), wp.zeros((pings, 1), dtype=float)
+                    r.amplitude, r.count = wp.zeros((pings, 1), dtype=float), wp.zeros(pings, dtype=wp.int32)
+                self._no_echoes[pings] = r
+            rows += [self._no_echoes[pings]] * (kernels.BUFFERS_PER_LAUNCH - len(rows))
+        return rows
+
+    def sum_exponents(self, rows, pings: int) -> wp.array:
         """k per (ping, stretch of kernels.STRETCH samples): the GPU sums that stretch's taps in
         units of 2^-k of unit amplitude, the finest (k <= 32) at which no sum there can overflow
-        32 bits, from the |amplitude| of every echo that can reach it."""
+        32 bits, from the |amplitude| of every echo of `rows` (`echo_rows`) that can reach it."""
         cfg = self.config
-        _, empty, launch, launch_tiled = device_calls(self.device)
-        bounds = empty((pings, self._stretches), dtype=wp.int64)
-        spm = cfg.chirp.sample_rate_hz / cfg.atmosphere.speed_of_sound
-        inputs = [echoes.source, echoes.extra_length, echoes.amplitude, echoes.count, spm, self._reach]
-        launch_tiled(
-            kernels.stretch_bounds(self._stretches), dim=[pings], inputs=inputs, outputs=[bounds], block_dim=1024
-        )
+        _, empty, _, launch_tiled = device_calls(self.device)
         exponents = empty((pings, self._stretches), dtype=wp.int32)
-        launch(
-            kernels.stretch_exponents, dim=exponents.shape, inputs=[bounds, self._largest_gain_tap], outputs=[exponents]
+        spm = cfg.chirp.sample_rate_hz / cfg.atmosphere.speed_of_sound
+        launch_tiled(
+            kernels.stretch_units(self._stretches),
+            dim=[pings],
+            inputs=[*rows, spm, self._reach, self._largest_gain_tap],
+            outputs=[exponents],
+            block_dim=ROW_BLOCK_DIM,
         )
         return exponents
 

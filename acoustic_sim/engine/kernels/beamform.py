@@ -132,6 +132,79 @@ def delay_and_sum(mics: int):
     return beamform
 
 
+# The GPU's delay-and-sum (`delay_and_sum_tiles`): band bins a block takes (a warp's lanes), and the
+# microphone rows of the pings it stages in shared memory at once.
+TILE_BINS = 32
+STAGE_PINGS = 4
+
+
+@wp.func_native("WP_TILE_SYNC();")
+def block_sync(): ...
+
+
+@functools.cache
+def delay_and_sum_tiles(mics: int, looks_per_block: int):
+    """GPU kernel: `delay_and_sum` with a block per (tile of up to TILE_BINS band bins,
+    `looks_per_block` look directions); launch_tiled(dim=[bin tiles, ceil(looks /
+    looks_per_block)], block_dim=TILE_BINS * looks_per_block).
+
+    Each thread keeps one (look, bin)'s steering weights in registers, as `delay_and_sum`'s do;
+    the block stages STAGE_PINGS pings' spectra of its bins in shared memory at a time, so each
+    is read from global memory once per block, not once per look (the one-thread-per-(look, bin)
+    kernel read the batch's spectra 181 times over, ~30 GB per 256 pings). Tile t covers band
+    bins tile_band[t] .. + tile_width[t] - 1, FFT columns tile_column[t] on (the band is one or
+    two runs of columns). The same sums in the same order as `delay_and_sum`.
+    """
+    Weights = wp.types.vector(length=mics, dtype=float)
+    rows = STAGE_PINGS * mics
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def beamform_tiles(
+        # in
+        spectra: wp.array2d[wp.vec2f],
+        tile_column: wp.array[wp.int32],
+        tile_band: wp.array[wp.int32],
+        tile_width: wp.array[wp.int32],
+        band_hz: wp.array[float],
+        matched: wp.array[wp.vec2f],
+        delays: wp.array2d[float],
+        pings: int,
+        # out
+        beams_out: wp.array2d[wp.vec2f],
+    ):
+        t, look_tile, lane = wp.tid()
+        looks = delays.shape[0]
+        k = lane % TILE_BINS
+        look = look_tile * looks_per_block + lane // TILE_BINS
+        live = k < tile_width[t] and look < looks
+        f = tile_band[t] + wp.min(k, tile_width[t] - 1)
+        frequency = band_hz[f]
+        re = Weights()
+        im = Weights()
+        for m in range(wp.static(mics)):
+            # Phase in turns reduced before the trigonometry: f tau reaches a few turns.
+            turns = frequency * delays[wp.min(look, looks - 1), m]
+            phase = -2.0 * wp.pi * (turns - wp.floor(turns))
+            re[m] = wp.cos(phase)
+            im[m] = wp.sin(phase)
+        weight = matched[f]
+        column = tile_column[t] + k
+        for first in range(0, pings, STAGE_PINGS):
+            x = wp.tile_load(spectra, shape=(rows, TILE_BINS), offset=(first * mics, tile_column[t]), storage="shared")
+            for q in range(wp.min(STAGE_PINGS, pings - first)):
+                sum_re = float(0.0)
+                sum_im = float(0.0)
+                for m in range(wp.static(mics)):
+                    z = x[q * mics + m, k]
+                    sum_re += z[0] * re[m] - z[1] * im[m]
+                    sum_im += z[0] * im[m] + z[1] * re[m]
+                if live:
+                    beams_out[(first + q) * looks + look, column] = complex_mul(wp.vec2f(sum_re, sum_im), weight)
+            block_sync()  # every thread is done with this stage before the next overwrites it
+
+    return beamform_tiles
+
+
 @wp.kernel(enable_backward=False)
 def envelope_on_grid(
     # in

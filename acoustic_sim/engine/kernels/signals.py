@@ -99,74 +99,93 @@ def block_sync(): ...
 STRETCH = 1024
 SUM_BITS = wp.constant(30)
 FINEST_EXPONENT = wp.constant(32)  # 2^32 units per unit amplitude, FIXED_POINT_SCALE
+# One launch of the GPU's kernels sums this many echo buffers (the tracer's specular, scattered
+# and curved echoes): each launch zeroes and writes back whole rows, so one per buffer cost more
+# than the echoes of the small ones.
+BUFFERS_PER_LAUNCH = 3
+
+
+@wp.struct
+class EchoRows:
+    """An `EchoBuffer` as a kernel argument: (pings, slots) echoes, `count` slots used per ping."""
+
+    source: wp.array2d[wp.vec3]
+    extra_length: wp.array2d[float]
+    amplitude: wp.array2d[float]
+    count: wp.array[wp.int32]
+
+
+@wp.func
+def used_slots(echoes: EchoRows, p: int) -> int:
+    return wp.min(echoes.count[p], echoes.amplitude.shape[1])
 
 
 @functools.cache
-def stretch_bounds(stretches: int):
-    """Tiled kernel, one block per ping (`wp.launch_tiled(dim=[pings])`): |amplitude| (fixed point,
-    rounded up) of every echo added to each of the `stretches` stretches of the ping's rows its taps
-    can reach on any microphone, i.e. within `reach` samples of its arrival at the array's origin.
+def stretch_units(stretches: int):
+    """Tiled kernel, one block per ping (`wp.launch_tiled(dim=[pings])`): the unit of each of the
+    `stretches` stretches of the ping's rows, as k (2^-k of unit amplitude, k in
+    [0, FINEST_EXPONENT]): the finest at which no 32-bit sum there can overflow, bounded from the
+    |amplitude| (fixed point, rounded up) of every echo of the three buffers whose taps can reach the
+    stretch on any microphone, i.e. within `reach` samples of its arrival at the array's origin.
     Each thread sums its echoes in registers, then the block adds the threads' sums in shared
-    memory: one global write per stretch (a global atomic per echo, all on a ping's 16 stretches,
-    took longer than the recording it served). Integer sums: the same bounds in any order."""
+    memory (a global atomic per echo took longer than the recording it served). Integer sums: the
+    same units in any order."""
     Bins = wp.types.vector(length=stretches, dtype=wp.int64)
 
     @wp.func_native("wp::tile_atomic_add_value(&sums.data(wp::tile_coord(i)), value);")
     def shared_add(sums: wp.tile(dtype=wp.int64, shape=(stretches,)), i: int, value: wp.int64): ...
 
-    @wp.kernel(enable_backward=False, module="unique")
-    def bound_stretches(
-        # in
-        source: wp.array2d[wp.vec3],
-        extra_length: wp.array2d[float],
-        amplitude: wp.array2d[float],
-        count: wp.array[wp.int32],
-        samples_per_m: float,
-        reach: float,
-        # out
-        bounds_out: wp.array2d[wp.int64],
-    ):
-        p, lane = wp.tid()
-        threads = wp.block_dim()
-        own = Bins()
-        for s in range(lane, wp.min(count[p], amplitude.shape[1]), threads):
-            a = wp.abs(amplitude[p, s])
+    @wp.func
+    def add_bounds(own: Bins, echoes: EchoRows, p: int, lane: int, samples_per_m: float, reach: float) -> Bins:
+        for s in range(lane, used_slots(echoes, p), wp.block_dim()):
+            a = wp.abs(echoes.amplitude[p, s])
             if a != 0.0:
-                centre = (extra_length[p, s] + wp.length(source[p, s])) * samples_per_m
+                centre = (echoes.extra_length[p, s] + wp.length(echoes.source[p, s])) * samples_per_m
                 first = wp.max(int(wp.floor((centre - reach) / float(STRETCH))), 0)
                 last = wp.min(int(wp.floor((centre + reach) / float(STRETCH))), stretches - 1)
                 units = wp.int64(a * FIXED_POINT_SCALE) + wp.int64(1)
                 for b in range(first, last + 1):
                     own[b] = own[b] + units
+        return own
+
+    @wp.kernel(enable_backward=False, module="unique")
+    def sum_units(
+        # in
+        first: EchoRows,
+        second: EchoRows,
+        third: EchoRows,
+        samples_per_m: float,
+        reach: float,
+        largest_gain_tap: float,
+        # out
+        exponents_out: wp.array2d[wp.int32],
+    ):
+        p, lane = wp.tid()
+        own = Bins()
+        own = add_bounds(own, first, p, lane, samples_per_m, reach)
+        own = add_bounds(own, second, p, lane, samples_per_m, reach)
+        own = add_bounds(own, third, p, lane, samples_per_m, reach)
         sums = wp.tile_zeros(shape=stretches, dtype=wp.int64, storage="shared")
         for b in range(stretches):
             if own[b] != wp.int64(0):
                 shared_add(sums, b, own[b])
         block_sync()
-        for b in range(lane, stretches, threads):
-            bounds_out[p, b] = sums[b]
+        for b in range(lane, stretches, wp.block_dim()):
+            exponents_out[p, b] = finest_exponent(sums[b], largest_gain_tap)
 
-    return bound_stretches
+    return sum_units
 
 
-@wp.kernel(enable_backward=False)
-def stretch_exponents(
-    # in
-    bounds: wp.array2d[wp.int64],
-    largest_gain_tap: float,
-    # out
-    exponents_out: wp.array2d[wp.int32],
-):
-    """One thread per (ping, stretch): k in [0, FINEST_EXPONENT], the unit of its sums being
-    2^-k of unit amplitude, the largest with bound * largest_gain_tap * 2^k below 2^(SUM_BITS - 1)
-    (a tap is at most the largest |gain| times the largest |filter tap|; air absorption only
-    lowers it): no sum of the stretch can overflow 32 bits."""
-    p, b = wp.tid()
-    bound = float(bounds[p, b]) / FIXED_POINT_SCALE * largest_gain_tap
+@wp.func
+def finest_exponent(bound: wp.int64, largest_gain_tap: float) -> wp.int32:
+    """k in [0, FINEST_EXPONENT] of a stretch whose echoes sum to `bound` |amplitude| (fixed
+    point): the largest with bound * largest_gain_tap * 2^k below 2^(SUM_BITS - 1) (a tap is at
+    most the largest |gain| times the largest |filter tap|; air absorption only lowers it)."""
+    worst = float(bound) / FIXED_POINT_SCALE * largest_gain_tap
     k = FINEST_EXPONENT
-    if bound > 0.0:
-        k = wp.min(k, int(wp.floor(float(SUM_BITS) - wp.log2(bound))) - 1)
-    exponents_out[p, b] = wp.int32(wp.max(k, 0))
+    if worst > 0.0:
+        k = wp.min(k, int(wp.floor(float(SUM_BITS) - wp.log2(worst))) - 1)
+    return wp.int32(wp.max(k, 0))
 
 
 @wp.func
@@ -176,12 +195,13 @@ def in_units(k: wp.int32) -> float:
 
 
 @functools.cache
-def row_accumulation(chunk: int, stretches: int):
-    """The GPU's `accumulate_echoes`: one block per (ping, microphone, `chunk` samples of its row);
-    launch `wp.launch_tiled(dim=[pings, mics, ceil(samples / chunk)])`.
+def row_accumulation(chunk: int, stretches: int, launch_bounds=None):
+    """The GPU's `accumulate_echoes`, over three echo buffers at once: one block per (ping,
+    microphone, `chunk` samples of its row); launch `wp.launch_tiled(dim=[pings, mics,
+    ceil(samples / chunk)])`. `launch_bounds`: CUDA's (threads, blocks per SM), for benchmarks.
 
     The block owns its stretch of the row: its threads walk the ping's echo slots and add their
-    taps, in the units of `stretch_exponents` (2^-k, k = exponents[p, n // STRETCH]), with 32-bit
+    taps, in the units of `stretch_units` (2^-k, k = exponents[p, n // STRETCH]), with 32-bit
     atomics in shared memory (chunk * 4 bytes), then add the sums to the impulses once, in
     FIXED_POINT_SCALE units (an exact shift), without global atomics. Integer sums: the same bits in any order.
     """
@@ -189,38 +209,26 @@ def row_accumulation(chunk: int, stretches: int):
     @wp.func_native("wp::tile_atomic_add_value(&row.data(wp::tile_coord(i)), value);")
     def shared_add(row: wp.tile(dtype=wp.int32, shape=(chunk,)), i: int, value: wp.int32): ...
 
-    @wp.kernel(enable_backward=False, module="unique")
-    def accumulate_rows(
-        # in
-        source: wp.array2d[wp.vec3],
-        extra_length: wp.array2d[float],
-        amplitude: wp.array2d[float],
-        count: wp.array[wp.int32],
-        microphones: wp.array[wp.vec3],
-        mic_gain: wp.array[float],
-        mic_delay: wp.array[float],
+    @wp.func
+    def add_taps(
+        row: wp.tile(dtype=wp.int32, shape=(chunk,)),
+        exponent: wp.tile(dtype=wp.int32, shape=(1, stretches)),
+        echoes: EchoRows,
+        p: int,
+        lane: int,
+        start: int,
+        mic: wp.vec3,
+        gain: float,
+        delay: float,
         samples_per_m: float,
         absorption_per_m: float,
         taps: wp.array2d[float],
-        samples: int,
-        lead: int,
-        exponents: wp.array2d[wp.int32],
-        # in-out: the impulses the echoes are added to
-        impulses_inout: wp.array2d[wp.int64],
     ):
-        p, m, c, lane = wp.tid()
-        threads = wp.block_dim()
-        row = wp.tile_zeros(shape=chunk, dtype=wp.int32, storage="shared")
-        exponent = wp.tile_load(exponents, shape=(1, stretches), offset=(p, 0), storage="shared")
-        start = c * chunk
-        mic = microphones[m]
-        for s in range(lane, wp.min(count[p], amplitude.shape[1]), threads):
-            a = amplitude[p, s]
+        for s in range(lane, used_slots(echoes, p), wp.block_dim()):
+            a = echoes.amplitude[p, s]
             if a != 0.0:
-                length = extra_length[p, s] + wp.length(source[p, s] - mic)
-                lowest, i, v, scale = echo_taps(
-                    length, a, mic_gain[m], mic_delay[m], samples_per_m, absorption_per_m, taps
-                )
+                length = echoes.extra_length[p, s] + wp.length(echoes.source[p, s] - mic)
+                lowest, i, v, scale = echo_taps(length, a, gain, delay, samples_per_m, absorption_per_m, taps)
                 # The echo's taps lie in one stretch or two (b and b + 1): their scales in the
                 # stretches' units (scale holds FIXED_POINT_SCALE; powers of two, exact)
                 b = wp.min(wp.max(lowest, 0) // STRETCH, stretches - 1)
@@ -234,9 +242,36 @@ def row_accumulation(chunk: int, stretches: int):
                     if n >= start and n < start + chunk:
                         tap = tap_weight(taps, i, v, j)
                         shared_add(row, n - start, wp.int32(tap * wp.where(n < next_start, before, after)))
+
+    @wp.kernel(enable_backward=False, module="unique", launch_bounds=launch_bounds)
+    def accumulate_rows(
+        # in
+        first: EchoRows,
+        second: EchoRows,
+        third: EchoRows,
+        microphones: wp.array[wp.vec3],
+        mic_gain: wp.array[float],
+        mic_delay: wp.array[float],
+        samples_per_m: float,
+        absorption_per_m: float,
+        taps: wp.array2d[float],
+        samples: int,
+        lead: int,
+        exponents: wp.array2d[wp.int32],
+        # in-out: the impulses the echoes are added to
+        impulses_inout: wp.array2d[wp.int64],
+    ):
+        p, m, c, lane = wp.tid()
+        row = wp.tile_zeros(shape=chunk, dtype=wp.int32, storage="shared")
+        exponent = wp.tile_load(exponents, shape=(1, stretches), offset=(p, 0), storage="shared")
+        start = c * chunk
+        mic, gain, delay = microphones[m], mic_gain[m], mic_delay[m]
+        add_taps(row, exponent, first, p, lane, start, mic, gain, delay, samples_per_m, absorption_per_m, taps)
+        add_taps(row, exponent, second, p, lane, start, mic, gain, delay, samples_per_m, absorption_per_m, taps)
+        add_taps(row, exponent, third, p, lane, start, mic, gain, delay, samples_per_m, absorption_per_m, taps)
         block_sync()
-        out = p * (impulses_inout.shape[0] // count.shape[0]) + m
-        for k in range(lane, wp.min(chunk, samples - start), threads):
+        out = p * (impulses_inout.shape[0] // exponents.shape[0]) + m
+        for k in range(lane, wp.min(chunk, samples - start), wp.block_dim()):
             total = row[k]
             if total != 0:
                 n = start + k
