@@ -117,6 +117,11 @@ def face_edges(scene: Scene, *, sharp_deg: float = 20.0) -> tuple[np.ndarray, np
     return mask, double_area[:, None] / opposite
 
 
+# The scenes' BVH (benchmarks/bench_bvh.py): SAH is built on the CPU in ~60 ms for 85k triangles,
+# but its tree casts ~35 % more rays/s on an H100 than the LBVH Warp builds on GPUs by default.
+BVH_CONSTRUCTOR = "sah"
+BVH_LEAF_SIZE = 4  # triangles a leaf holds at most
+
 _CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
 # Beyond this distance from the origin [m], float32 resolves 61 um or worse: comparable to the
@@ -160,9 +165,7 @@ def warp_scene(scene: Scene, device=None) -> WarpScene:
         points = wp.array(vertices, dtype=wp.vec3)
         indices = wp.array(faces, dtype=wp.int32)
         built = WarpScene(
-            # SAH: built on the CPU in ~60 ms for 85k triangles, but its tree casts ~35 % more
-            # rays/s on an H100 than the LBVH Warp builds on GPUs by default.
-            mesh=wp.Mesh(points=points, indices=indices, bvh_constructor="sah"),
+            mesh=wp.Mesh(points=points, indices=indices, bvh_constructor=BVH_CONSTRUCTOR, bvh_leaf_size=BVH_LEAF_SIZE),
             face_lidar_transparent=wp.array(scene.material_table("lidar_transparent").astype(np.uint8), dtype=wp.uint8),
             face_plane=wp.array(face_plane, dtype=wp.int32),
             plane_normal=wp.array(plane_normal.astype(np.float32), dtype=wp.vec3),
