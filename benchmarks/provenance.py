@@ -72,8 +72,9 @@ def blob_id(data: bytes) -> str:
     return hashlib.sha1(b"blob %d\0" % len(data) + data).hexdigest()
 
 
-def changed_files(blobs: dict[str, str], root: Path = ROOT) -> list[str]:
-    """Tracked paths (of `blobs`: path -> blob id at the commit) whose file under `root` differs or is gone."""
+def changed_files(blobs: dict[str, str], root: Path = ROOT, left_behind: tuple[str, ...] = ()) -> list[str]:
+    """Tracked paths (of `blobs`: path -> blob id at the commit) whose file under `root` differs or
+    is gone; gone from a folder of `left_behind` (not shipped with the copy) does not count."""
     changed = []
     for path, blob in sorted(blobs.items()):
         file = root / path
@@ -82,7 +83,8 @@ def changed_files(blobs: dict[str, str], root: Path = ROOT) -> list[str]:
         elif file.is_file():
             data = file.read_bytes()
         else:
-            changed.append(path)
+            if not any(path.startswith(folder.rstrip("/") + "/") for folder in left_behind):
+                changed.append(path)
             continue
         if blob_id(data) != blob:
             changed.append(path)
@@ -115,12 +117,14 @@ def tracked_blobs(root: Path = ROOT) -> dict[str, str]:
     return blobs
 
 
-def write_source(path: Path = SOURCE_FILE, root: Path = ROOT) -> dict:
-    """Writes the commit and its files' blob ids for a copy of this tree that has no `.git`."""
+def write_source(path: Path = SOURCE_FILE, root: Path = ROOT, left_behind: tuple[str, ...] = ()) -> dict:
+    """Writes the commit and its files' blob ids for a copy of this tree that has no `.git`, and the
+    tracked folders the copy goes without (e.g. committed results, where a copy's size is limited)."""
     source = git_source(root)
     if source is None:
         raise SystemExit(f"{root} is not a git checkout: nothing to record")
     record = {"commit": source["commit"], "written": _now(), "blobs": tracked_blobs(root)}
+    record["left_behind"] = list(left_behind)
     path.write_text(json.dumps(record, indent=0))
     return record
 
@@ -130,7 +134,7 @@ def file_source(path: Path = SOURCE_FILE, root: Path = ROOT) -> dict | None:
     if not path.is_file():
         return None
     record = json.loads(path.read_text())
-    changed = changed_files(record["blobs"], root)
+    changed = changed_files(record["blobs"], root, tuple(record.get("left_behind", ())))
     written = record.get("written", "?")
     return {
         "commit": record["commit"],
@@ -355,7 +359,16 @@ def _now() -> str:
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    sub.add_parser("source", help=f"write {SOURCE_FILE.name} (commit, blob ids) for a copy of this tree without .git")
+    src = sub.add_parser(
+        "source", help=f"write {SOURCE_FILE.name} (commit, blob ids) for a copy of this tree without .git"
+    )
+    src.add_argument(
+        "--left-behind",
+        action="append",
+        default=[],
+        metavar="FOLDER",
+        help="a tracked folder the copy goes without (its files' absence does not make the copy dirty)",
+    )
     show = sub.add_parser("show", help="print the provenance of this tree and machine as JSON")
     show.add_argument("--device", default=None, help="the device a result was measured on, e.g. cuda:0")
     write = sub.add_parser("write", help="write the provenance as JSON beside results a shell script made")
@@ -365,7 +378,7 @@ def main(argv: list[str] | None = None) -> None:
     paths.add_argument("--fix", action="store_true", help="rewrite each such path in its relative form")
     args = parser.parse_args(argv)
     if args.command == "source":
-        record = write_source()
+        record = write_source(left_behind=tuple(args.left_behind))
         print(f"{SOURCE_FILE.name}: commit {record['commit']}, {len(record['blobs'])} tracked files")
     elif args.command == "show":
         print(json.dumps(provenance(args.device or None), indent=1))

@@ -93,6 +93,22 @@ def test_source_of_a_copy_without_git(repo: Path, tmp_path: Path):
     assert provenance.source(copy, environ={})["commit"] == provenance.NOT_RECORDED
 
 
+def test_a_copy_may_go_without_the_folders_it_names(repo: Path, tmp_path: Path):
+    """Folders named left behind (results too large to ship) may be absent from the copy without
+    making it dirty; a file there that is present but edited still does, and so does a file gone
+    from any other folder."""
+    provenance.write_source(repo / ".provenance.json", repo, left_behind=("sub",))
+    copy = tmp_path / "copy"
+    shutil.copytree(repo, copy, ignore=shutil.ignore_patterns(".git", "sub"))
+    assert provenance.source(copy, environ={})["dirty"] is False
+    (copy / "sub").mkdir()
+    (copy / "sub" / "b.py").write_text("x = 3\n")
+    assert provenance.source(copy, environ={})["changed_files"] == ["sub/b.py"]
+    (copy / "sub" / "b.py").unlink()
+    (copy / "a.txt").unlink()
+    assert provenance.source(copy, environ={})["changed_files"] == ["a.txt"]
+
+
 def test_source_prefers_what_matches_the_tree(repo: Path, tmp_path: Path):
     """A copy whose .git still names the first commit while its files are the second's: the source
     file (no changed files) wins over git (one changed file); the environment wins over both."""
