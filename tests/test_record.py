@@ -157,7 +157,7 @@ def test_row_blocks_sum_the_impulses_of_per_echo_atomics_in_their_units(device):
     as cooperative fibers, so its barrier and thread stride are exercised too."""
     from acoustic_sim.engine.echoes import PointEchoes
     from acoustic_sim.engine.kernels import signals as kernels
-    from acoustic_sim.engine.signals import ROW_BLOCK_DIM, Recorder
+    from acoustic_sim.engine.signals import ROW_BLOCK_DIM, ROW_LAUNCH_BOUNDS, Recorder
 
     rng = np.random.default_rng(5)
     rec = Recorder(CONFIG, device=device)
@@ -216,7 +216,7 @@ def test_row_blocks_sum_the_impulses_of_per_echo_atomics_in_their_units(device):
             unit_inputs = [*buffers, FS / C, float(reach), largest]
             wp.launch_tiled(units, dim=[pings], inputs=unit_inputs, outputs=[exponents], block_dim=ROW_BLOCK_DIM)
             wp.launch_tiled(
-                kernels.row_accumulation(chunk, stretches),
+                kernels.row_accumulation(chunk, stretches, ROW_LAUNCH_BOUNDS),
                 dim=[pings, mics, -(-samples // chunk)],
                 inputs=[*buffers, *taps_inputs, exponents],
                 outputs=[per_row],

@@ -117,10 +117,12 @@ def face_edges(scene: Scene, *, sharp_deg: float = 20.0) -> tuple[np.ndarray, np
     return mask, double_area[:, None] / opposite
 
 
-# The scenes' BVH (benchmarks/bench_bvh.py): SAH is built on the CPU in ~60 ms for 85k triangles,
-# but its tree casts ~35 % more rays/s on an H100 than the LBVH Warp builds on GPUs by default.
+# The scenes' BVH: SAH is built on the CPU in ~60 ms for 85k triangles, but its tree casts ~35 %
+# more rays/s on an H100 than the LBVH Warp builds on GPUs by default; leaves of one triangle (Warp
+# keeps up to four) cast 1.15x the LiDAR rays/s and make 1.05-1.17x the sonar's energyscapes/s
+# on the office (benchmarks/results/bvh/).
 BVH_CONSTRUCTOR = "sah"
-BVH_LEAF_SIZE = 4  # triangles a leaf holds at most
+BVH_LEAF_SIZE = 1  # triangles a leaf holds at most
 
 _CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 

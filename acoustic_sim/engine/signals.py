@@ -29,6 +29,10 @@ NODE_FFT_MIN_SIZE = 4096
 # microphone row it sums in shared memory (int32: 64 KB, two blocks per SM of an H100; int64 sums
 # took 1.5-2x as long: benchmarks/results/record_kernels/, sonar_cuda_same_job/run6_row_sums_32bit/).
 ROW_BLOCK_DIM = 1024
+# CUDA launch bounds of the row kernel: two blocks per SM, so at most 32 registers a thread (it
+# would take 55 and run one block per SM: 0.89x the time at 100k rays on an H100, 0.83x at 20k, with
+# 80 bytes spilled; benchmarks/results/record_kernels/).
+ROW_LAUNCH_BOUNDS = (ROW_BLOCK_DIM, 2)
 ROW_CHUNK_MAX = 16384
 ROW_SHARED_SPARE = 8192  # [bytes] of a block's shared memory left to Warp's own use
 ROW_SAMPLE_BYTES = 4
@@ -194,7 +198,7 @@ class Recorder:
             for first in range(0, len(echoes), kernels.BUFFERS_PER_LAUNCH):
                 rows = self.echo_rows(echoes[first : first + kernels.BUFFERS_PER_LAUNCH], pings)
                 launch_tiled(
-                    kernels.row_accumulation(chunk, self._stretches),
+                    kernels.row_accumulation(chunk, self._stretches, ROW_LAUNCH_BOUNDS),
                     dim=[pings, mics, -(-cfg.record_samples // chunk)],
                     inputs=[*rows, *self._tap_inputs(), self.sum_exponents(rows, pings)],
                     outputs=[impulses],
