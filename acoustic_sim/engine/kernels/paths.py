@@ -207,13 +207,34 @@ def discover_sequences(
 
 
 @wp.func
-def on_plane_face(mesh: wp.uint64, point: wp.vec3, front: wp.vec3) -> bool:
-    """Whether `point` lies on a face of the plane with unit normal `front` (towards the path):
-    a probe from EDGE_PROBE in front of it, back along the normal, must hit at that distance."""
+def probe_face(mesh: wp.uint64, point: wp.vec3, front: wp.vec3) -> int:
+    """The face a probe from EDGE_PROBE in front of `point`, back along the normal, hits at that
+    distance, or -1."""
     q = wp.mesh_query_ray(mesh, point + front * EDGE_PROBE, -front, 2.0 * EDGE_PROBE)
-    if not q.result:
-        return False
-    return wp.abs(q.t - EDGE_PROBE) < 0.5 * EDGE_PROBE
+    if not q.result or wp.abs(q.t - EDGE_PROBE) >= 0.5 * EDGE_PROBE:
+        return -1
+    return q.face
+
+
+@wp.func
+def plane_face_at(mesh: wp.uint64, point: wp.vec3, front: wp.vec3):
+    """The face of the plane with unit normal `front` (towards the path) that `point` lies on (-1:
+    none), and the BVH queries that took: a probe at the point, then, where that misses, at
+    EDGE_PROBE / 2 from it along each of four directions in the plane. On the edge where two
+    planes meet (a corner reflector's), the first probe runs in the other plane, where round-off
+    decides whether it grazes that plane's faces or slips past this plane's face boundary."""
+    face = probe_face(mesh, point, front)
+    if face >= 0:
+        return face, 1
+    axis = wp.where(wp.abs(front[0]) < 0.9, wp.vec3(1.0, 0.0, 0.0), wp.vec3(0.0, 1.0, 0.0))
+    across = wp.normalize(wp.cross(front, axis))
+    along = wp.cross(front, across)
+    for k in range(4):
+        step = wp.where(k % 2 == 0, 0.5, -0.5) * EDGE_PROBE * wp.where(k < 2, across, along)
+        face = probe_face(mesh, point + step, front)
+        if face >= 0:
+            return face, 2 + k
+    return -1, 5
 
 
 @wp.func
@@ -310,8 +331,9 @@ def validate_sequences(
         if distance < PLANE_MATCH:
             # Reflects where the previous reflection did: on the edge where two planes meet (the
             # corner reflector case), if that edge point also lies on a face of this plane.
-            queries += 1
-            if not on_plane_face(mesh, point, normal * side):
+            face, probes = plane_face_at(mesh, point, normal * side)
+            queries += probes
+            if face < 0:
                 valid = 0
                 break
             gain = gain * face_gain
@@ -319,20 +341,22 @@ def validate_sequences(
             direction = (point - x) / distance
             q = wp.mesh_query_ray(mesh, x + direction * SURFACE_STEP, direction, distance + PLANE_MATCH)
             queries += 1
+            face = q.face
             # The first thing the leg meets must be at the reflection point, on a face of this
-            # plane; where two planes meet, the face hit may belong to the other one.
-            if not q.result:
+            # plane; where two planes meet, the face hit may belong to the other one, and a leg
+            # aimed exactly at their edge may slip between the two (a one-triangle BVH leaf of an
+            # axis-aligned face is a flat box, whose test may miss a ray through its edge): then
+            # nothing stood in its way, and the point must still lie on a face of this plane.
+            if q.result and wp.abs(q.t + SURFACE_STEP - distance) > PLANE_MATCH:
                 valid = 0
                 break
-            if wp.abs(q.t + SURFACE_STEP - distance) > PLANE_MATCH:
-                valid = 0
-                break
-            if face_plane[q.face] != plane:
-                queries += 1
-                if not on_plane_face(mesh, point, normal * side):
+            if not q.result or face_plane[q.face] != plane:
+                face, probes = plane_face_at(mesh, point, normal * side)
+                queries += probes
+                if face < 0:
                     valid = 0
                     break
-            face_gain = wp.sqrt(face_reflection[q.face] * (1.0 - face_scattering[q.face]))
+            face_gain = wp.sqrt(face_reflection[face] * (1.0 - face_scattering[face]))
             gain = gain * face_gain
             if back == 0:
                 arrival = direction
