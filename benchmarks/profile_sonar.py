@@ -44,7 +44,7 @@ def stage_kernels() -> dict[str, str]:
                 if isinstance(obj, wp.Kernel):
                     names[obj.func.__name__] = stage
     # Kernels made by factories (sizes fixed at build time): their inner function names.
-    names |= {"convolve": "record", "accumulate_rows": "record", "bound_stretches": "record", "sum_units": "record"}
+    names |= {"convolve": "record", "accumulate_rows": "record", "bound_stretches": "record"}
     names |= {"fft_rows": "energyscape", "ifft_rows": "energyscape", "beamform": "energyscape"}
     names["beamform_tiles"] = "energyscape"
     names["envelope_on_grid"] = "energyscape"

@@ -204,7 +204,7 @@ def test_row_blocks_sum_the_impulses_of_per_echo_atomics_in_their_units(device):
             part.count = wp.array(np.maximum(count - first, 0).astype(np.int32), dtype=wp.int32)
             buffers.append(part)
         stretches = -(-samples // kernels.STRETCH)
-        exponents = wp.empty((pings, stretches), dtype=wp.int32)
+        bounds, exponents = wp.zeros((pings, stretches), dtype=wp.int64), wp.empty((pings, stretches), dtype=wp.int32)
         largest = float(gain.max() * np.abs(rec._taps.numpy()).max())
         shape = (pings * rows, rec.block + CONFIG.record_samples + rec._size)
         per_echo, per_row = wp.zeros(shape, dtype=wp.int64), wp.zeros(shape, dtype=wp.int64)
@@ -212,9 +212,14 @@ def test_row_blocks_sum_the_impulses_of_per_echo_atomics_in_their_units(device):
         wp.launch(kernels.accumulate_echoes, dim=(pings, slots, mics), inputs=per_echo_inputs, outputs=[per_echo])
         blocks, wp.config.enable_cpu_blocks = wp.config.enable_cpu_blocks, True
         try:
-            units = kernels.stretch_units(stretches)
-            unit_inputs = [*buffers, FS / C, float(reach), largest]
-            wp.launch_tiled(units, dim=[pings], inputs=unit_inputs, outputs=[exponents], block_dim=ROW_BLOCK_DIM)
+            wp.launch_tiled(
+                kernels.stretch_bounds(stretches),
+                dim=[pings, kernels.BOUND_SPLITS],
+                inputs=[*buffers, FS / C, float(reach)],
+                outputs=[bounds],
+                block_dim=kernels.BOUND_BLOCK_DIM,
+            )
+            wp.launch(kernels.stretch_exponents, dim=exponents.shape, inputs=[bounds, largest], outputs=[exponents])
             wp.launch_tiled(
                 kernels.row_accumulation(chunk, stretches, ROW_LAUNCH_BOUNDS),
                 dim=[pings, mics, -(-samples // chunk)],

@@ -240,15 +240,19 @@ class Recorder:
         units of 2^-k of unit amplitude, the finest (k <= 32) at which no sum there can overflow
         32 bits, from the |amplitude| of every echo of `rows` (`echo_rows`) that can reach it."""
         cfg = self.config
-        _, empty, _, launch_tiled = device_calls(self.device)
-        exponents = empty((pings, self._stretches), dtype=wp.int32)
+        zeros, empty, launch, launch_tiled = device_calls(self.device)
+        bounds = zeros((pings, self._stretches), dtype=wp.int64)
         spm = cfg.chirp.sample_rate_hz / cfg.atmosphere.speed_of_sound
         launch_tiled(
-            kernels.stretch_units(self._stretches),
-            dim=[pings],
-            inputs=[*rows, spm, self._reach, self._largest_gain_tap],
-            outputs=[exponents],
-            block_dim=ROW_BLOCK_DIM,
+            kernels.stretch_bounds(self._stretches),
+            dim=[pings, kernels.BOUND_SPLITS],
+            inputs=[*rows, spm, self._reach],
+            outputs=[bounds],
+            block_dim=kernels.BOUND_BLOCK_DIM,
+        )
+        exponents = empty((pings, self._stretches), dtype=wp.int32)
+        launch(
+            kernels.stretch_exponents, dim=exponents.shape, inputs=[bounds, self._largest_gain_tap], outputs=[exponents]
         )
         return exponents
 

@@ -120,72 +120,88 @@ def used_slots(echoes: EchoRows, p: int) -> int:
     return wp.min(echoes.count[p], echoes.amplitude.shape[1])
 
 
+# Blocks that share the bounds of a ping's stretches (`stretch_bounds`): one block per ping walked
+# 300k echoes at 100k rays in ~1,000 dependent steps a thread (15 ms per 1,000 pings on an H100).
+BOUND_SPLITS = 16
+BOUND_BLOCK_DIM = 256
+
+
 @functools.cache
-def stretch_units(stretches: int):
-    """Tiled kernel, one block per ping (`wp.launch_tiled(dim=[pings])`): the unit of each of the
-    `stretches` stretches of the ping's rows, as k (2^-k of unit amplitude, k in
-    [0, FINEST_EXPONENT]): the finest at which no 32-bit sum there can overflow, bounded from the
-    |amplitude| (fixed point, rounded up) of every echo of the three buffers whose taps can reach the
-    stretch on any microphone, i.e. within `reach` samples of its arrival at the array's origin.
-    Each thread sums its echoes in registers, then the block adds the threads' sums in shared
-    memory (a global atomic per echo took longer than the recording it served). Integer sums: the
-    same units in any order."""
+def stretch_bounds(stretches: int):
+    """Tiled kernel, `BOUND_SPLITS` blocks per ping (`wp.launch_tiled(dim=[pings, BOUND_SPLITS],
+    block_dim=BOUND_BLOCK_DIM)`): adds to `bounds_inout` (zeroed first) the |amplitude| (fixed
+    point, rounded up) of every echo of the three buffers to each of the `stretches` stretches of
+    the ping's rows its taps can reach on any microphone, i.e. within `reach` samples of its
+    arrival at the array's origin. Block k takes every BOUND_SPLITS-th run of block_dim slots;
+    each thread sums its echoes in registers, the block adds the threads' sums in shared memory,
+    then adds them to the bounds with one global atomic per stretch. Integer sums: the same
+    bounds in any order."""
     Bins = wp.types.vector(length=stretches, dtype=wp.int64)
 
     @wp.func_native("wp::tile_atomic_add_value(&sums.data(wp::tile_coord(i)), value);")
     def shared_add(sums: wp.tile(dtype=wp.int64, shape=(stretches,)), i: int, value: wp.int64): ...
 
     @wp.func
-    def add_bounds(own: Bins, echoes: EchoRows, p: int, lane: int, samples_per_m: float, reach: float) -> Bins:
-        for s in range(lane, used_slots(echoes, p), wp.block_dim()):
+    def add_bounds(own: Bins, echoes: EchoRows, p: int, first: int, step: int, samples_per_m: float, reach: float):
+        for s in range(first, used_slots(echoes, p), step):
             a = wp.abs(echoes.amplitude[p, s])
             if a != 0.0:
                 centre = (echoes.extra_length[p, s] + wp.length(echoes.source[p, s])) * samples_per_m
-                first = wp.max(int(wp.floor((centre - reach) / float(STRETCH))), 0)
-                last = wp.min(int(wp.floor((centre + reach) / float(STRETCH))), stretches - 1)
+                low = wp.max(int(wp.floor((centre - reach) / float(STRETCH))), 0)
+                high = wp.min(int(wp.floor((centre + reach) / float(STRETCH))), stretches - 1)
                 units = wp.int64(a * FIXED_POINT_SCALE) + wp.int64(1)
-                for b in range(first, last + 1):
+                for b in range(low, high + 1):
                     own[b] = own[b] + units
         return own
 
     @wp.kernel(enable_backward=False, module="unique")
-    def sum_units(
+    def bound_stretches(
         # in
         first: EchoRows,
         second: EchoRows,
         third: EchoRows,
         samples_per_m: float,
         reach: float,
-        largest_gain_tap: float,
-        # out
-        exponents_out: wp.array2d[wp.int32],
+        # in-out: the bounds, zeroed before the launch
+        bounds_inout: wp.array2d[wp.int64],
     ):
-        p, lane = wp.tid()
+        p, part, lane = wp.tid()
+        start = part * wp.block_dim() + lane
+        step = BOUND_SPLITS * wp.block_dim()
         own = Bins()
-        own = add_bounds(own, first, p, lane, samples_per_m, reach)
-        own = add_bounds(own, second, p, lane, samples_per_m, reach)
-        own = add_bounds(own, third, p, lane, samples_per_m, reach)
+        own = add_bounds(own, first, p, start, step, samples_per_m, reach)
+        own = add_bounds(own, second, p, start, step, samples_per_m, reach)
+        own = add_bounds(own, third, p, start, step, samples_per_m, reach)
         sums = wp.tile_zeros(shape=stretches, dtype=wp.int64, storage="shared")
         for b in range(stretches):
             if own[b] != wp.int64(0):
                 shared_add(sums, b, own[b])
         block_sync()
         for b in range(lane, stretches, wp.block_dim()):
-            exponents_out[p, b] = finest_exponent(sums[b], largest_gain_tap)
+            if sums[b] != wp.int64(0):
+                wp.atomic_add(bounds_inout, p, b, sums[b])
 
-    return sum_units
+    return bound_stretches
 
 
-@wp.func
-def finest_exponent(bound: wp.int64, largest_gain_tap: float) -> wp.int32:
-    """k in [0, FINEST_EXPONENT] of a stretch whose echoes sum to `bound` |amplitude| (fixed
-    point): the largest with bound * largest_gain_tap * 2^k below 2^(SUM_BITS - 1) (a tap is at
-    most the largest |gain| times the largest |filter tap|; air absorption only lowers it)."""
-    worst = float(bound) / FIXED_POINT_SCALE * largest_gain_tap
+@wp.kernel(enable_backward=False)
+def stretch_exponents(
+    # in
+    bounds: wp.array2d[wp.int64],
+    largest_gain_tap: float,
+    # out
+    exponents_out: wp.array2d[wp.int32],
+):
+    """One thread per (ping, stretch): k in [0, FINEST_EXPONENT], the unit of its sums being
+    2^-k of unit amplitude, the largest with bound * largest_gain_tap * 2^k below 2^(SUM_BITS - 1)
+    (a tap is at most the largest |gain| times the largest |filter tap|; air absorption only
+    lowers it): no sum of the stretch can overflow 32 bits."""
+    p, b = wp.tid()
+    worst = float(bounds[p, b]) / FIXED_POINT_SCALE * largest_gain_tap
     k = FINEST_EXPONENT
     if worst > 0.0:
         k = wp.min(k, int(wp.floor(float(SUM_BITS) - wp.log2(worst))) - 1)
-    return wp.int32(wp.max(k, 0))
+    exponents_out[p, b] = wp.int32(wp.max(k, 0))
 
 
 @wp.func
@@ -201,7 +217,7 @@ def row_accumulation(chunk: int, stretches: int, launch_bounds=None):
     ceil(samples / chunk)])`. `launch_bounds`: CUDA's (threads, blocks per SM), for benchmarks.
 
     The block owns its stretch of the row: its threads walk the ping's echo slots and add their
-    taps, in the units of `stretch_units` (2^-k, k = exponents[p, n // STRETCH]), with 32-bit
+    taps, in the units of `stretch_exponents` (2^-k, k = exponents[p, n // STRETCH]), with 32-bit
     atomics in shared memory (chunk * 4 bytes), then add the sums to the impulses once, in
     FIXED_POINT_SCALE units (an exact shift), without global atomics. Integer sums: the same bits in any order.
     """
