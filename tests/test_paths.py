@@ -9,6 +9,7 @@ import warp as wp
 
 import acoustic_sim as sim
 import scenes
+from acoustic_sim.engine.kernels.common import add_count, claim_slot
 from acoustic_sim.engine.lidar import check_poses
 from acoustic_sim.engine.paths import KIND_SCATTERED, KIND_SPECULAR, PosesOnDevice
 from acoustic_sim.engine.sonar import Sonar
@@ -392,3 +393,37 @@ def test_specular_paths_in_an_l_shaped_room_equal_image_sources(device, x, y, ya
     np.testing.assert_array_equal(got.order[order], [r[1] for r in reference])
     if (x, y) == (1.0, 3.5):  # in the upper arm the notch hides the far wall x = 6 m (echo at 10 m)
         assert np.min(np.abs(got.length_m[got.order == 1] - 10.0)) > 0.1
+
+
+@wp.kernel(enable_backward=False)
+def _claim_and_count(
+    rows: wp.array[wp.int32], counts: wp.array[wp.int32], owner: wp.array2d[wp.int32], sums: wp.array[wp.int32]
+):
+    tid = wp.tid()
+    i = rows[tid]
+    if tid % 3 != 0:  # a diverged warp: only some lanes claim
+        owner[i, claim_slot(counts, i)] = tid
+    add_count(sums, i, tid % 7)
+
+
+def test_per_ping_counters_give_every_thread_its_own_slot(device):
+    """`claim_slot` and `add_count` (on GPUs one atomic per warp for the lanes of one row) against
+    per-thread arithmetic: 5,000 threads over 5 rows in runs of 37 and some scattered threads (so
+    warps mix rows), two in three of them claiming: every claimant gets a slot of its row, none
+    twice, no slot left empty, and the counts and sums are numpy's. Fails if the leader's
+    atomic adds one per warp or lanes take the leader's slot."""
+    n = 5000
+    rows = (np.arange(n) // 37) % 5
+    rows[::11] = np.random.default_rng(1).integers(0, 5, len(rows[::11]))
+    with wp.ScopedDevice(device):
+        counts, sums = wp.zeros(5, dtype=wp.int32), wp.zeros(5, dtype=wp.int32)
+        owner = wp.full((5, n), -1, dtype=wp.int32)
+        wp.launch(_claim_and_count, dim=n, inputs=[wp.array(rows.astype(np.int32)), counts, owner, sums])
+    claim = np.arange(n) % 3 != 0
+    np.testing.assert_array_equal(counts.numpy(), np.bincount(rows[claim], minlength=5))
+    np.testing.assert_array_equal(sums.numpy(), np.bincount(rows, weights=np.arange(n) % 7, minlength=5))
+    got = owner.numpy()
+    for i in range(5):
+        filled = got[i][got[i] >= 0]
+        assert len(filled) == counts.numpy()[i] and (got[i][: len(filled)] >= 0).all()
+        np.testing.assert_array_equal(np.sort(filled), np.flatnonzero(claim & (rows == i)))

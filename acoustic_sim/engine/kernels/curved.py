@@ -2,6 +2,7 @@
 
 import warp as wp
 
+from .common import add_count
 from .paths import BAFFLE_SLACK, SURFACE_STEP, lookup
 
 CURVED_SPHERE = wp.constant(0)  # curved surface kinds, as acoustic_sim.engine.scene.CURVED_KINDS
@@ -111,7 +112,7 @@ def curved_echoes(
     if not blocked:
         queries += 1
         blocked = wp.mesh_query_ray_anyhit(mesh, start, wp.normalize(r - start), wp.length(r - start), -1)
-    wp.atomic_add(ray_queries_out, p, queries)
+    add_count(ray_queries_out, p, queries)
     emit = wp.normalize(wp.transform_vector(inverse, point - e))
     if blocked or emit[0] < -BAFFLE_SLACK:  # the emitter is baffled: nothing leaves it backwards
         return

@@ -2,7 +2,7 @@
 
 import warp as wp
 
-from .common import FAR_RAY_M
+from .common import FAR_RAY_M, add_count, claim_slot
 
 MAX_ORDER = wp.constant(11)  # reflections per path: max_bounces <= 10 secondary bounces after the first
 SequenceVec = wp.types.vector(length=MAX_ORDER, dtype=wp.int32)
@@ -60,7 +60,7 @@ def scattered_hit(
     # Only whether anything is in the way matters: any hit ends the search (no closest hit needed).
     if wp.mesh_query_ray_anyhit(mesh, start, wp.normalize(receiver - start), wp.length(receiver - start), -1):
         return 1
-    slot = wp.atomic_add(count_inout, p, 1)
+    slot = claim_slot(count_inout, p)
     if slot < capacity:
         source_out[p, slot] = wp.transform_point(inverse, hit)
         extra_out[p, slot] = travelled
@@ -203,7 +203,7 @@ def discover_sequences(
         # Step off along the normal, to the side the ray came from (along the new direction, rays
         # near an edge can slip behind the next face and escape a closed room).
         origin = hit - normal * (side * SURFACE_STEP)
-    wp.atomic_add(ray_queries_out, p, queries)
+    add_count(ray_queries_out, p, queries)
 
 
 @wp.func
@@ -345,12 +345,27 @@ def validate_sequences(
             # The first thing the leg meets must be at the reflection point, on a face of this
             # plane; where two planes meet, the face hit may belong to the other one, and a leg
             # aimed exactly at their edge may slip between the two (a one-triangle BVH leaf of an
-            # axis-aligned face is a flat box, whose test may miss a ray through its edge): then
-            # nothing stood in its way, and the point must still lie on a face of this plane.
-            if q.result and wp.abs(q.t + SURFACE_STEP - distance) > PLANE_MATCH:
+            # axis-aligned face is a flat box, whose test may miss a ray through its edge). A
+            # miss is such a slip only where the path's next reflection lies on that edge too (a
+            # corner reflector's); then nothing stood in its way, and the point must still lie on
+            # a face of this plane. Elsewhere it means no face is there.
+            slipped = False
+            if not q.result:
+                if j == 0:
+                    valid = 0
+                    break
+                next_plane = table_planes[p, s, j - 1]
+                if wp.abs(wp.dot(plane_normal[next_plane], point) - plane_offset[next_plane]) >= PLANE_MATCH:
+                    valid = 0
+                    break
+                slipped = True
+            elif wp.abs(q.t + SURFACE_STEP - distance) > PLANE_MATCH:
                 valid = 0
                 break
-            if not q.result or face_plane[q.face] != plane:
+            probe = slipped  # (not `slipped or face_plane[q.face]`: both sides of an `or` are evaluated)
+            if not slipped:
+                probe = face_plane[q.face] != plane
+            if probe:
                 face, probes = plane_face_at(mesh, point, normal * side)
                 queries += probes
                 if face < 0:
@@ -377,7 +392,7 @@ def validate_sequences(
             image_out[p, s] = wp.transform_point(inverse, image)
             arrival_dir_out[p, s] = wp.normalize(wp.transform_vector(inverse, arrival))
             last_point_out[p, s] = wp.transform_point(inverse, last_point)
-    wp.atomic_add(ray_queries_out, p, queries)
+    add_count(ray_queries_out, p, queries)
 
 
 IMAGE_GRID = wp.constant(1.0e-4)  # [m] image sources closer than this are one echo
