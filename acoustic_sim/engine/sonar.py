@@ -209,7 +209,9 @@ class BatchCopies:
         event, _, buffer, rows, keep = pending
         wp.synchronize_event(event)
         batch = buffer.numpy()[: len(rows)]
-        if keep.all():  # the usual case: no masked temporary of the whole batch
+        if keep.all() and len(rows) and (np.diff(rows) == 1).all():  # the usual case: a plain copy, without the GIL
+            images[rows[0] : rows[0] + len(rows)] = batch
+        elif keep.all():  # no masked temporary of the whole batch
             images[rows] = batch
         else:
             images[rows[keep]] = batch[keep]
