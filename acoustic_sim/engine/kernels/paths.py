@@ -207,9 +207,9 @@ def discover_sequences(
 
 
 @wp.func
-def probe_face(mesh: wp.uint64, point: wp.vec3, front: wp.vec3) -> int:
-    """The face a probe from EDGE_PROBE in front of `point`, back along the normal, hits at that
-    distance, or -1."""
+def plane_face_at(mesh: wp.uint64, point: wp.vec3, front: wp.vec3) -> int:
+    """The face of the plane with unit normal `front` (towards the path) that `point` lies on, or
+    -1: a probe from EDGE_PROBE in front of it, back along the normal, must hit at that distance."""
     q = wp.mesh_query_ray(mesh, point + front * EDGE_PROBE, -front, 2.0 * EDGE_PROBE)
     if not q.result or wp.abs(q.t - EDGE_PROBE) >= 0.5 * EDGE_PROBE:
         return -1
@@ -217,24 +217,9 @@ def probe_face(mesh: wp.uint64, point: wp.vec3, front: wp.vec3) -> int:
 
 
 @wp.func
-def plane_face_at(mesh: wp.uint64, point: wp.vec3, front: wp.vec3):
-    """The face of the plane with unit normal `front` (towards the path) that `point` lies on (-1:
-    none), and the BVH queries that took: a probe at the point, then, where that misses, at
-    EDGE_PROBE / 2 from it along each of four directions in the plane. On the edge where two
-    planes meet (a corner reflector's), the first probe runs in the other plane, where round-off
-    decides whether it grazes that plane's faces or slips past this plane's face boundary."""
-    face = probe_face(mesh, point, front)
-    if face >= 0:
-        return face, 1
-    axis = wp.where(wp.abs(front[0]) < 0.9, wp.vec3(1.0, 0.0, 0.0), wp.vec3(0.0, 1.0, 0.0))
-    across = wp.normalize(wp.cross(front, axis))
-    along = wp.cross(front, across)
-    for k in range(4):
-        step = wp.where(k % 2 == 0, 0.5, -0.5) * EDGE_PROBE * wp.where(k < 2, across, along)
-        face = probe_face(mesh, point + step, front)
-        if face >= 0:
-            return face, 2 + k
-    return -1, 5
+def on_plane(point: wp.vec3, normal: wp.vec3, offset: float) -> bool:
+    """Whether `point` lies within PLANE_MATCH of the plane."""
+    return wp.abs(wp.dot(normal, point) - offset) < PLANE_MATCH
 
 
 @wp.func
@@ -331,8 +316,8 @@ def validate_sequences(
         if distance < PLANE_MATCH:
             # Reflects where the previous reflection did: on the edge where two planes meet (the
             # corner reflector case), if that edge point also lies on a face of this plane.
-            face, probes = plane_face_at(mesh, point, normal * side)
-            queries += probes
+            face = plane_face_at(mesh, point, normal * side)
+            queries += 1
             if face < 0:
                 valid = 0
                 break
@@ -355,19 +340,19 @@ def validate_sequences(
                     valid = 0
                     break
                 next_plane = table_planes[p, s, j - 1]
-                if wp.abs(wp.dot(plane_normal[next_plane], point) - plane_offset[next_plane]) >= PLANE_MATCH:
+                if not on_plane(point, plane_normal[next_plane], plane_offset[next_plane]):
                     valid = 0
                     break
                 slipped = True
             elif wp.abs(q.t + SURFACE_STEP - distance) > PLANE_MATCH:
                 valid = 0
                 break
-            probe = slipped  # (not `slipped or face_plane[q.face]`: both sides of an `or` are evaluated)
+            probe = slipped  # (not `slipped or face_plane[q.face] != plane`: Warp evaluates both sides)
             if not slipped:
                 probe = face_plane[q.face] != plane
             if probe:
-                face, probes = plane_face_at(mesh, point, normal * side)
-                queries += probes
+                face = plane_face_at(mesh, point, normal * side)
+                queries += 1
                 if face < 0:
                     valid = 0
                     break
