@@ -205,6 +205,37 @@ def delay_and_sum_tiles(mics: int, looks_per_block: int):
     return beamform_tiles
 
 
+@wp.func
+def lowpass_at(x: float, valid: int, lowpass: wp.array[float]):
+    """Where the low-passed envelope at sample position x comes from: the first sample k0 - half of
+    the FIR's window at sample k0 = floor(x), the taps j_lo..j_hi - 1 of the window that fall on
+    samples 0..valid - 1, and the interpolation weight w of sample k0 + 1. The value is
+    sum_j e[k0 + j - half] ((1 - w) h[j] + w h[j - 1]) over those taps (h zero outside 0..L - 1): the
+    FIR at k0 and at k0 + 1, interpolated linearly, in one pass without a bounds check a tap."""
+    k0 = int(wp.floor(x))
+    half = lowpass.shape[0] // 2
+    first = k0 - half
+    return first, wp.max(0, -first), wp.min(lowpass.shape[0] + 1, valid - first), x - float(k0)
+
+
+@wp.func
+def tap_before(lowpass: wp.array[float], j: int) -> float:
+    """h[j - 1], zero for j = 0."""
+    before = float(0.0)
+    if j > 0:
+        before = lowpass[j - 1]
+    return before
+
+
+@wp.func
+def tap_at(lowpass: wp.array[float], j: int) -> float:
+    """h[j], zero for j = L."""
+    now = float(0.0)
+    if j < lowpass.shape[0]:
+        now = lowpass[j]
+    return now
+
+
 @wp.kernel(enable_backward=False)
 def envelope_on_grid(
     # in
@@ -228,21 +259,14 @@ def envelope_on_grid(
     """
     pe, a, r = wp.tid()
     row = pe * image_out.shape[2] + a
-    x = range_m[r] * samples_per_m
-    k0 = int(wp.floor(x))
-    w = x - float(k0)
-    half = lowpass.shape[0] // 2
-    low = float(0.0)
-    high = float(0.0)
-    for j in range(lowpass.shape[0] + 1):
-        n = k0 + j - half
-        if n >= 0 and n < valid:
-            e = envelope[row, n]
-            if j < lowpass.shape[0]:
-                low += lowpass[j] * e
-            if j > 0:
-                high += lowpass[j - 1] * e
-    image_out[pe, r, a] = (1.0 - w) * low + w * high
+    first, low, high, w = lowpass_at(range_m[r] * samples_per_m, valid, lowpass)
+    total = float(0.0)
+    before = tap_before(lowpass, low)
+    for j in range(low, high):
+        now = tap_at(lowpass, j)
+        total += envelope[row, first + j] * ((1.0 - w) * now + w * before)
+        before = now
+    image_out[pe, r, a] = total
 
 
 @functools.cache
@@ -277,22 +301,15 @@ def envelope_rows(span: int):
         pe = beam // azimuths
         a = beam - pe * azimuths
         row = wp.tile_load(envelope, shape=(1, span), offset=(beam, 0), storage="shared")
-        half = lowpass.shape[0] // 2
         for r in range(lane, image_out.shape[1], wp.block_dim()):
-            x = range_m[r] * samples_per_m
-            k0 = int(wp.floor(x))
-            w = x - float(k0)
-            low = float(0.0)
-            high = float(0.0)
-            for j in range(lowpass.shape[0] + 1):
-                n = k0 + j - half
-                if n >= 0 and n < valid:
-                    e = row[0, n]
-                    if j < lowpass.shape[0]:
-                        low += lowpass[j] * e
-                    if j > 0:
-                        high += lowpass[j - 1] * e
-            image_out[pe, r, a] = (1.0 - w) * low + w * high
+            first, low, high, w = lowpass_at(range_m[r] * samples_per_m, valid, lowpass)
+            total = float(0.0)
+            before = tap_before(lowpass, low)
+            for j in range(low, high):
+                now = tap_at(lowpass, j)
+                total += row[0, first + j] * ((1.0 - w) * now + w * before)
+                before = now
+            image_out[pe, r, a] = total
 
     return envelope_on_grid
 
