@@ -108,10 +108,12 @@ class Lidar:
 
         def scan_poses(first: int, last: int) -> None:
             rays = slice(first * beams, last * beams)
-            scene_in = [ws.mesh.id, ws.face_lidar_transparent]
             beams_in = [pose_buf[first:last], self._beam_dirs, cfg.range_min_m, cfg.range_max_m]
+            kernel, scene_in = kernels.lidar_scan_opaque, [ws.mesh.id]
+            if ws.lidar_sees_through:
+                kernel, scene_in = kernels.lidar_scan, [ws.mesh.id, ws.face_lidar_transparent]
             launch(
-                kernels.lidar_scan,
+                kernel,
                 dim=(last - first) * beams,
                 inputs=[*scene_in, *beams_in],
                 outputs=[range_out[rays], face_out[rays]],

@@ -20,6 +20,7 @@ class WarpScene:
 
     mesh: wp.Mesh
     face_lidar_transparent: wp.array  # uint8 (face_count,)
+    lidar_sees_through: bool  # any face transparent to the LiDAR
     face_plane: wp.array  # int32 (face_count,): coplanar faces of one orientation share a plane
     plane_normal: wp.array  # vec3 (plane_count,), unit, as the faces' winding gives
     plane_offset: wp.array  # float (plane_count,): n . x = offset on the plane [m]
@@ -163,12 +164,14 @@ def warp_scene(scene: Scene, device=None) -> WarpScene:
     plane_curved = np.zeros(len(plane_offset), dtype=np.uint8)
     plane_curved[face_plane[scene.face_curved >= 0]] = 1
     curved = curved_arrays(scene)
+    transparent = scene.material_table("lidar_transparent")
     with wp.ScopedDevice(device):
         points = wp.array(vertices, dtype=wp.vec3)
         indices = wp.array(faces, dtype=wp.int32)
         built = WarpScene(
             mesh=wp.Mesh(points=points, indices=indices, bvh_constructor=BVH_CONSTRUCTOR, bvh_leaf_size=BVH_LEAF_SIZE),
-            face_lidar_transparent=wp.array(scene.material_table("lidar_transparent").astype(np.uint8), dtype=wp.uint8),
+            face_lidar_transparent=wp.array(transparent.astype(np.uint8), dtype=wp.uint8),
+            lidar_sees_through=bool(transparent.any()),
             face_plane=wp.array(face_plane, dtype=wp.int32),
             plane_normal=wp.array(plane_normal.astype(np.float32), dtype=wp.vec3),
             plane_offset=wp.array(plane_offset.astype(np.float32), dtype=float),

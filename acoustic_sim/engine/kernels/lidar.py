@@ -66,6 +66,29 @@ def pose_error(
     error_out[p] = err
 
 
+@wp.func
+def beam_ray(poses: wp.array[wp.mat44], beam_dirs: wp.array[wp.vec3], tid: int):
+    """Origin and unit direction (world frame) of flat ray index pose * beam_count + beam."""
+    beam_count = beam_dirs.shape[0]
+    p = tid // beam_count
+    pose = poses[p]
+    direction = wp.normalize(wp.transform_vector(pose, beam_dirs[tid - p * beam_count]))
+    return wp.transform_point(pose, wp.vec3(0.0)), direction
+
+
+@wp.func
+def write_return(
+    tid: int, t: float, face: int, range_min: float, range_out: wp.array[float], face_out: wp.array[wp.int32]
+):
+    """A return at range t off `face` (-1: none); one before range_min is none too."""
+    if face < 0 or t < range_min:
+        range_out[tid] = wp.inf
+        face_out[tid] = -1
+    else:
+        range_out[tid] = t
+        face_out[tid] = face
+
+
 @wp.kernel(enable_backward=False)
 def lidar_scan(
     # in
@@ -83,16 +106,10 @@ def lidar_scan(
     index pose * beam_count + beam: 2D launches and 2D output arrays each cost ~12 % on an H100.
 
     Beams pass see-through faces; a miss, or a return outside [range_min, range_max], gives
-    range inf and face -1.
+    range inf and face -1. Scenes without see-through faces take `lidar_scan_opaque`.
     """
     tid = wp.tid()
-    beam_count = beam_dirs.shape[0]
-    p = tid // beam_count
-    b = tid - p * beam_count
-    pose = poses[p]
-    origin = wp.transform_point(pose, wp.vec3(0.0))
-    direction = wp.normalize(wp.transform_vector(pose, beam_dirs[b]))
-
+    origin, direction = beam_ray(poses, beam_dirs, tid)
     t = float(0.0)
     face = int(-1)
     for _layer in range(MAX_TRANSPARENT_FACES):
@@ -104,13 +121,30 @@ def lidar_scan(
             face = q.face
             break
         t = t + TRANSPARENT_STEP
+    write_return(tid, t, face, range_min, range_out, face_out)
 
-    if face < 0 or t < range_min:
-        range_out[tid] = wp.inf
-        face_out[tid] = -1
-    else:
-        range_out[tid] = t
-        face_out[tid] = face
+
+@wp.kernel(enable_backward=False)
+def lidar_scan_opaque(
+    # in
+    mesh: wp.uint64,
+    poses: wp.array[wp.mat44],
+    beam_dirs: wp.array[wp.vec3],
+    range_min: float,
+    range_max: float,
+    # out
+    range_out: wp.array[float],
+    face_out: wp.array[wp.int32],
+):
+    """`lidar_scan` for scenes without see-through faces: one BVH query a beam, no layer loop
+    and no material lookup after it."""
+    tid = wp.tid()
+    origin, direction = beam_ray(poses, beam_dirs, tid)
+    q = wp.mesh_query_ray(mesh, origin, direction, range_max)
+    face = int(-1)
+    if q.result:
+        face = q.face
+    write_return(tid, q.t, face, range_min, range_out, face_out)
 
 
 @wp.kernel(enable_backward=False)
