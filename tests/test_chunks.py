@@ -16,8 +16,10 @@ from acoustic_sim.datasets.shards import COMPRESSION
         np.random.default_rng(0).integers(0, 256, 720).astype(np.uint8).tobytes(),  # exactly one block of words
         np.random.default_rng(1).integers(0, 256, 5001).astype(np.uint8).tobytes(),  # blocks and a rest, odd
         b"\xff" * 4000,  # the largest words: the sums wrap and fold
+        b"\x00" * 999,  # zero sums
+        b"\xff\xff" + b"\x00" * 1000,  # sums that are multiples of 65535
     ],
-    ids=["odd", "one-block", "many-blocks", "all-ones"],
+    ids=["odd", "one-block", "many-blocks", "all-ones", "zeros", "65535"],
 )
 def test_fletcher32_is_the_checksum_hdf5_stores(tmp_path, raw):
     """HDF5 appends its Fletcher-32 (little-endian) to each chunk it stores; ours of the chunk's
@@ -29,6 +31,24 @@ def test_fletcher32_is_the_checksum_hdf5_stores(tmp_path, raw):
     assert stored[:-4] == raw
     assert fletcher32(raw) == int.from_bytes(stored[-4:], "little")
     assert fletcher32(raw) != fletcher32(raw[:-1] + bytes([raw[-1] ^ 1]))  # one flipped bit shows
+
+
+def test_fletcher32_from_plain_sums_equals_the_loop_over_blocks():
+    """The checksum from the plain sums equals HDF5's block loop (`_fletcher32_by_blocks`) on 300
+    random chunks of every length parity, from uniform bytes to bytes near 0xFF (where a block's
+    32-bit sums carry and the loop takes over); fails if a sum's fold to 1..65535 is off."""
+    from acoustic_sim.datasets.chunks import NO_CARRY, _fletcher32_by_blocks
+
+    rng = np.random.default_rng(7)
+    carried = 0
+    for i in range(300):
+        low = [0, 128, 240, 254, 255][i % 5]
+        raw = rng.integers(low, 256, int(rng.integers(1, 9000))).astype(np.uint8).tobytes()
+        words = np.frombuffer(raw, ">u2", count=len(raw) // 2).astype(np.int64)
+        full = len(words) // 360 * 360
+        carried += bool((words[:full].reshape(-1, 360) @ np.arange(360, 0, -1) >= NO_CARRY).any())
+        assert fletcher32(raw) == _fletcher32_by_blocks(raw), (i, len(raw), low)
+    assert 0 < carried < 300  # both ways were taken
 
 
 @pytest.mark.parametrize("dtype", [np.float16, np.uint8])

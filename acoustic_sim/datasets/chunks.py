@@ -26,10 +26,35 @@ BLOCK = 360  # words per Fletcher block (HDF5's: the most sums that cannot overf
 DEFLATE_STRATEGY = zlib.Z_RLE
 
 
+# A block's sum of running sums below this cannot carry the 32-bit sums of HDF5's loop past 2^32
+# (with both sums folded below 2^17 before it): only blocks of words near 0xFFFF come close.
+NO_CARRY = (1 << 32) - (BLOCK + 1) * 0x1FFFE
+
+
 def fletcher32(data: bytes) -> int:
     """HDF5's Fletcher-32 checksum of `data` (H5_checksum_fletcher32): big-endian 16-bit words
     summed in blocks of 360, the sums folded to 16 bits after each block; an odd last byte counts
-    as the high byte of a word."""
+    as the high byte of a word.
+
+    Folding keeps each sum's value modulo 65535 (2^16 = 1 there) and a positive sum positive, so
+    where no block carries its 32-bit sums past 2^32 the checksum follows from the plain sums:
+    sum1 = sum of the words, sum2 = sum of (n - i) word_i, each taken to 1..65535 (0 if zero).
+    Writing a shard checks thousands of chunks: this costs one pass of numpy, where HDF5's loop
+    over blocks in Python cost ~0.4 ms a chunk (benchmarks/results/generate_cuda.md)."""
+    words = np.frombuffer(data, dtype=">u2", count=len(data) // 2).astype(np.int64)
+    if len(data) % 2:
+        words = np.append(words, data[-1] << 8)
+    full = len(words) // BLOCK * BLOCK
+    blocks = words[:full].reshape(-1, BLOCK) @ np.arange(BLOCK, 0, -1, dtype=np.int64)
+    if (blocks >= NO_CARRY).any():
+        return _fletcher32_by_blocks(data)
+    sums = (int(words.sum()), int(words @ np.arange(len(words), 0, -1, dtype=np.int64)))
+    sum1, sum2 = (0 if s == 0 else (s - 1) % 0xFFFF + 1 for s in sums)
+    return (sum2 << 16) | sum1
+
+
+def _fletcher32_by_blocks(data: bytes) -> int:
+    """`fletcher32` as HDF5's loop computes it, block by block (32-bit sums, folded after each)."""
     words = np.frombuffer(data, dtype=">u2", count=len(data) // 2).astype(np.int64)
     full = len(words) // BLOCK * BLOCK
     blocks = [words[:full].reshape(-1, BLOCK)] if full else []
