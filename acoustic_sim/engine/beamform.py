@@ -181,7 +181,12 @@ class Beamformer:
             )
         if self.normalise is not None:
             peak = zeros(pings, dtype=float)
-            launch(kernels.image_peak, dim=images.shape, inputs=[images, elevations], outputs=[peak])
+            launch(
+                kernels.image_peak,
+                dim=(images.shape[0], kernels.PEAK_LANES),
+                inputs=[images, elevations],
+                outputs=[peak],
+            )
             launch(
                 kernels.scale_images,
                 dim=images.shape,

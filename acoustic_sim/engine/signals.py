@@ -285,7 +285,7 @@ class Recorder:
                 raise ValueError("noise needs one seed per ping")
             peak = zeros(pings, dtype=float)
             seed_array = wp.array(seeds, dtype=wp.int32, device=self.device)
-            launch(kernels.peak_magnitude, dim=signals.shape, inputs=[signals], outputs=[peak])
+            launch(kernels.peak_magnitude, dim=(pings, mics, kernels.PEAK_LANES), inputs=[signals], outputs=[peak])
             launch(
                 kernels.add_noise,
                 dim=signals.shape,

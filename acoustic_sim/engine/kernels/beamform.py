@@ -314,6 +314,9 @@ def envelope_rows(span: int):
     return envelope_on_grid
 
 
+PEAK_LANES = 256  # threads that share an image's maximum (`image_peak`): one atomic each, not one per cell
+
+
 @wp.kernel(enable_backward=False)
 def image_peak(
     # in
@@ -322,9 +325,15 @@ def image_peak(
     # out
     peak_out: wp.array[float],
 ):
-    """peak_out[p] = max of images[p * per_ping .. (p + 1) * per_ping) (peak_out zeroed first)."""
-    i, r, a = wp.tid()
-    wp.atomic_max(peak_out, i // per_ping, images[i, r, a])
+    """peak_out[p] = max of images[p * per_ping .. (p + 1) * per_ping) (peak_out zeroed first);
+    dim = (images.shape[0], PEAK_LANES), lane k taking cells k, k + PEAK_LANES, ... of an image in
+    row-major order."""
+    i, lane = wp.tid()
+    azimuths = images.shape[2]
+    largest = float(-wp.inf)
+    for k in range(lane, images.shape[1] * azimuths, PEAK_LANES):
+        largest = wp.max(largest, images[i, k // azimuths, k % azimuths])
+    wp.atomic_max(peak_out, i // per_ping, largest)
 
 
 @wp.kernel(enable_backward=False)
