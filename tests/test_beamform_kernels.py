@@ -96,3 +96,37 @@ def test_gpu_delay_and_sum_kernel_gives_the_cpu_kernels_beams():
     band = former._band_bin.numpy()
     assert np.abs(want[:, band]).min() > 0 and not np.delete(got, band, axis=1).any()
     np.testing.assert_allclose(got, want, rtol=0, atol=1e-6 * np.abs(want).max())
+
+
+def test_float16_conversion_is_numpys(device):
+    """`to_float16` rounds like numpy's float32 -> float16 cast, bit for bit: ties to even,
+    subnormals, the largest half, overflow to inf, signed zeros, on 200,000 random values over
+    the half range and the edge cases."""
+    rng = np.random.default_rng(9)
+    values = np.concatenate(
+        [
+            rng.standard_normal(100_000) * 10.0 ** rng.uniform(-9, 5, 100_000),
+            np.float16(rng.standard_normal(100_000)).astype(np.float32) * (1 + 2.0**-11),  # halfway cases
+            [65504.0, 65520.0, 1e6, -1e6, 6e-8, 3e-8, 2.9e-8, 0.0, -0.0, 1.0 + 2.0**-11, 1.0 + 3 * 2.0**-11],
+        ]
+    ).astype(np.float32)
+    with wp.ScopedDevice(device):
+        halves = wp.empty(len(values), dtype=wp.float16)
+        wp.launch(kernels.to_float16, dim=len(values), inputs=[wp.array(values, dtype=float)], outputs=[halves])
+    np.testing.assert_array_equal(halves.numpy().view(np.uint16), values.astype(np.float16).view(np.uint16))
+
+
+def test_float16_energyscapes_are_the_float32_ones_rounded(device):
+    """`Sonar.simulate(dtype=float16)` (on a GPU converted there before the copy) gives the float32
+    energyscapes as numpy rounds them, for 3 pings in a box room with noise."""
+    import scenes
+
+    sonar = sim.Sonar(CONFIG, max_bounces=1, ray_count=2000, device=device)
+    poses = np.stack([scenes.pose(1.5 + 0.5 * i, 1.5, 0.3, 0.4 * i) for i in range(3)])
+    room = scenes.box_room(size=(4.0, 3.0, 2.5))
+    full = sonar.simulate(room, poses, noise="gaussian", seed=2).energyscape
+    half = sonar.simulate(room, poses, noise="gaussian", seed=2, dtype=np.float16).energyscape
+    assert half.dtype == np.float16 and full.dtype == np.float32
+    np.testing.assert_array_equal(half.view(np.uint16), full.astype(np.float16).view(np.uint16))
+    with pytest.raises(ValueError, match="float32 or float16"):
+        sonar.simulate(room, poses, dtype=np.float64)

@@ -91,7 +91,7 @@ def write_shard(
 
 def _write(tmp: Path | KeptErrorFile, frames: ShardFrames, *, attrs: dict, axes: tuple[np.ndarray, ...]) -> None:
     cat = np.concatenate
-    energyscape = cat(frames.energyscape).astype(np.float16)
+    energyscape = cat(frames.energyscape).astype(np.float16, copy=False)  # float16 from the sonar already
     if energyscape.ndim == 3:
         energyscape = energyscape[:, None]
     if energyscape.shape[1:] != tuple(map(len, axes)):

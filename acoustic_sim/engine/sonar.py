@@ -23,6 +23,7 @@ from scenes import Scene
 
 from ..config import ProcessingConfig, SonarConfig, TracerConfig
 from .beamform import beamformer, energyscape
+from .kernels import beamform as beam_kernels
 from .paths import Arrivals, PathTracer
 from .poses import check_poses
 from .signals import ping_seeds, record
@@ -90,6 +91,7 @@ class Sonar:
         on_pings: Callable[[int], None] | None = None,
         processing: ProcessingConfig | None = None,
         assumed_array: SonarConfig | None = None,
+        dtype=np.float32,
     ) -> SonarFrames:
         """Trace, record and beamform every pose on the device, batch by batch (the fast path).
 
@@ -107,15 +109,21 @@ class Sonar:
             processing: The beamformer's settings (`ProcessingConfig`); default the eRTIS's.
             assumed_array: The array geometry and call the beamformer assumes, if not the
                 simulated one (e.g. the nominal array while simulating a mismatched one).
+            dtype: Of the energyscapes, float32 or float16 (what datasets store: on a GPU
+                converted there, so half the bytes cross to the host; the same values as
+                numpy's conversion).
         """
         poses = check_poses(poses)
+        dtype = np.dtype(dtype)
+        if dtype not in (np.float32, np.float16):
+            raise ValueError(f"dtype must be float32 or float16, got {dtype}")
         batch = batch or (256 if self.device.is_cuda else 8)
         recorder = signals_recorder(self.config, absorption, str(self.device))
         former = beamformer(
             assumed_array or self.config, samples=self.config.record_samples, processing=processing, device=self.device
         )
-        images = np.empty((len(poses), *former.output_shape), dtype=np.float32)
-        copies = batch_copies(self.device, (batch, *former.output_shape)) if self.device.is_cuda else None
+        images = np.empty((len(poses), *former.output_shape), dtype=dtype)
+        copies = batch_copies(self.device, (batch, *former.output_shape), dtype) if self.device.is_cuda else None
         if copies is not None:
             copies.drop()  # a batch left by a call that failed midway
         kept = None
@@ -161,9 +169,10 @@ class BatchCopies:
     fresh pages of the output: tens of ms at E = 3 that used to leave the GPU idle).
     """
 
-    def __init__(self, device, shape: tuple[int, ...]):
+    def __init__(self, device, shape: tuple[int, ...], dtype=np.float32):
         self.stream = wp.Stream(device)
-        self.buffers = [wp.empty(shape, dtype=float, device="cpu", pinned=True) for _ in range(2)]
+        self.dtype = wp.float16 if np.dtype(dtype) == np.float16 else float
+        self.buffers = [wp.empty(shape, dtype=self.dtype, device="cpu", pinned=True) for _ in range(2)]
         self.pending = None  # (event, device array kept alive until copied, buffer, destination rows, rows kept)
         self.landing = None  # the helper thread's move of the batch before `pending` (a Future)
         self.mover = ThreadPoolExecutor(1, thread_name_prefix="batch-copies")
@@ -177,6 +186,10 @@ class BatchCopies:
         self._wait_landing()  # the buffer about to be refilled was the one that move read
         buffer = self.buffers[self.turn]
         self.turn ^= 1
+        if out.dtype != self.dtype:  # float16 on the device: half the bytes to copy and to land
+            half = wp.empty(out.shape, dtype=self.dtype, device=out.device)
+            wp.launch(beam_kernels.to_float16, dim=out.size, inputs=[out.flatten()], outputs=[half.flatten()])
+            out = half
         self.stream.wait_stream(wp.get_stream(out.device))
         wp.copy(buffer[: out.shape[0]], out, stream=self.stream)
         previous, self.pending = self.pending, (self.stream.record_event(), out, buffer, rows, keep)
@@ -218,14 +231,14 @@ class BatchCopies:
 
 
 @functools.lru_cache(maxsize=4)
-def _batch_copies(device: str, shape: tuple[int, ...], thread: int) -> BatchCopies:
-    return BatchCopies(device, shape)
+def _batch_copies(device: str, shape: tuple[int, ...], dtype, thread: int) -> BatchCopies:
+    return BatchCopies(device, shape, dtype)
 
 
-def batch_copies(device, shape: tuple[int, ...]) -> BatchCopies:
+def batch_copies(device, shape: tuple[int, ...], dtype=np.float32) -> BatchCopies:
     """Reused BatchCopies for a device and batch shape (page-locked memory is slow to allocate);
     one per thread, so that two threads simulating on one GPU never share buffers."""
-    return _batch_copies(str(device), tuple(shape), threading.get_ident())
+    return _batch_copies(str(device), tuple(shape), np.dtype(dtype), threading.get_ident())
 
 
 @dataclass

@@ -352,3 +352,15 @@ def scale_images(
     if decibels != 0:
         value = wp.max(20.0 * wp.log10(wp.max(value, NONZERO_FLOOR)), floor_db)
     images_inout[i, r, a] = value
+
+
+@wp.kernel(enable_backward=False)
+def to_float16(
+    # in
+    values: wp.array[float],
+    # out
+    halves_out: wp.array[wp.float16],
+):
+    """halves_out[i] = values[i] rounded to the nearest float16 (ties to even, as numpy's cast)."""
+    i = wp.tid()
+    halves_out[i] = wp.float16(values[i])
