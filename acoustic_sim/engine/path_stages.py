@@ -19,6 +19,8 @@ from .kernels import curved as curved_kernels
 from .kernels import paths as kernels
 from .scene import WarpScene
 
+RAY_BLOCK_DIM = 256  # threads per block of the ray-walking kernel (see benchmarks/results/)
+
 
 def reset_tables(buffers: TraceBuffers) -> None:
     """Tables and counters to zero (image ranks to RANK_NONE), as the kernels expect; every other
@@ -125,6 +127,7 @@ class BatchStages:
                 rows(scattered.order),
                 rows(b.ray_queries),
             ],
+            block_dim=RAY_BLOCK_DIM,
         )
 
     def validate_sequences(self, rows: Rows, poses: wp.array) -> None:
