@@ -171,7 +171,7 @@ class BatchCopies:
 
     def __init__(self, device, shape: tuple[int, ...], dtype=np.float32):
         self.stream = wp.Stream(device)
-        self.dtype = wp.float16 if np.dtype(dtype) == np.float16 else float
+        self.dtype = wp.float16 if np.dtype(dtype) == np.float16 else wp.float32
         self.buffers = [wp.empty(shape, dtype=self.dtype, device="cpu", pinned=True) for _ in range(2)]
         self.pending = None  # (event, device array kept alive until copied, buffer, destination rows, rows kept)
         self.landing = None  # the helper thread's move of the batch before `pending` (a Future)
