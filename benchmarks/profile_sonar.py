@@ -35,10 +35,14 @@ BATCH = 256
 
 def stage_kernels() -> dict[str, str]:
     """Kernel function name -> stage, from the modules that define each stage's kernels."""
-    from acoustic_sim.engine.kernels import beamform, curved, lidar, paths, signals
+    from acoustic_sim.engine.kernels import beamform, curved, image_sources, lidar, paths, signals
 
     names = {}
-    for stage, modules in (("trace", (paths, curved, lidar)), ("record", (signals,)), ("energyscape", (beamform,))):
+    for stage, modules in (
+        ("trace", (paths, image_sources, curved, lidar)),
+        ("record", (signals,)),
+        ("energyscape", (beamform,)),
+    ):
         for module in modules:
             for obj in vars(module).values():
                 if isinstance(obj, wp.Kernel):

@@ -16,6 +16,7 @@ import warp as wp
 
 from .echoes import TraceBuffers
 from .kernels import curved as curved_kernels
+from .kernels import image_sources as image_kernels
 from .kernels import paths as kernels
 from .scene import WarpScene
 
@@ -30,7 +31,7 @@ def reset_tables(buffers: TraceBuffers) -> None:
     b = buffers
     for table in (b.key, b.specular.order, b.planes, b.image_table, b.overflow, b.ray_queries, b.scattered.count):
         table.zero_()
-    b.image_rank.fill_(kernels.RANK_NONE)
+    b.image_rank.fill_(image_kernels.RANK_NONE)
 
 
 @dataclass(frozen=True)
@@ -136,7 +137,7 @@ class BatchStages:
         """One thread per table slot: the slot's exact specular path, or amplitude 0."""
         ws, b, specular = self.scene, self.buffers, self.buffers.specular
         self.launch(
-            kernels.validate_sequences,
+            image_kernels.validate_sequences,
             dim=(rows.count, self.size),
             inputs=[
                 ws.mesh.id,
@@ -169,13 +170,13 @@ class BatchStages:
         slots = (rows.count, self.size)
         images = [rows(specular.order), rows(specular.source), rows(b.key)]
         self.launch(
-            kernels.claim_images,
+            image_kernels.claim_images,
             dim=slots,
             inputs=[rows(specular.amplitude), *images],
             outputs=[rows(b.image_table), rows(b.image_rank)],
         )
         self.launch(
-            kernels.drop_duplicate_images,
+            image_kernels.drop_duplicate_images,
             dim=slots,
             inputs=[*images, rows(b.image_table), rows(b.image_rank)],
             outputs=[rows(specular.amplitude)],

@@ -2,8 +2,8 @@
 
 import warp as wp
 
-from .common import add_count
-from .paths import BAFFLE_SLACK, SURFACE_STEP, lookup
+from .common import add_count, lookup
+from .paths import BAFFLE_SLACK, SURFACE_STEP
 
 CURVED_SPHERE = wp.constant(0)  # curved surface kinds, as acoustic_sim.engine.scene.CURVED_KINDS
 CURVED_STEPS = wp.constant(24)  # fixed-point steps towards a curved surface's reflection point
