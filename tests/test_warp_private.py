@@ -27,6 +27,9 @@ NATIVE = {
     "WP_TILE_SYNC": r"#define WP_TILE_SYNC\b",  # the block's barrier, on CUDA and on CPU blocks
     "wp::tile_atomic_add_value": r"\btile_atomic_add_value\(T\* ptr, T value\)",
     "wp::tile_coord": r"\binline auto tile_coord\(int i\)",
+    # an array element's address and the atomic add on it (the per-ping counters of kernels/common.py)
+    "wp::address": r"\bT\* address\(const A<T>& buf, int i\)",
+    "wp::atomic_add": r"\bT atomic_add\(T\* buf, T value\)",
     # a shared tile's storage, read and written at a coordinate: row.data(coord)
     ".data": r"struct Storage \{.*?T& operator\(\)\(typename Layout::Coord c\).*?Storage data;",
 }
