@@ -11,6 +11,7 @@ EDGE_PROBE = wp.constant(1.0e-3)  # [m] probe distance that checks an edge point
 PARALLEL_LEG = wp.constant(1.0e-12)  # [m] |normal . leg| below which a leg runs along its plane: no reflection
 LEG_SLACK = wp.constant(1.0e-6)  # [fraction of the leg] how far before a leg's start its reflection may lie
 RANK_SHIFT = wp.constant(wp.uint64(33))  # [bits] a sequence's rank is its hash >> 33: 31 bits, an int32 >= 0
+EDGE_COSINE = wp.constant(0.99)  # |cosine| between two planes above which they meet in no edge a leg can slip through
 RANK_NONE = 2**31 - 1  # image rank of an unclaimed slot, where the host starts them (int32 max: no rank is higher)
 
 
@@ -125,34 +126,40 @@ def validate_sequences(
             direction = (point - x) / distance
             q = wp.mesh_query_ray(mesh, x + direction * SURFACE_STEP, direction, distance + PLANE_MATCH)
             queries += 1
-            face = q.face
             # The first thing the leg meets must be at the reflection point, on a face of this
-            # plane; where two planes meet, the face hit may belong to the other one, and a leg
-            # aimed exactly at their edge may slip between the two (a one-triangle BVH leaf of an
-            # axis-aligned face is a flat box, whose test may miss a ray through its edge). A
-            # miss is such a slip only where the path's next reflection lies on that edge too (a
-            # corner reflector's); then nothing stood in its way, and the point must still lie on
-            # a face of this plane. Elsewhere it means no face is there.
-            slipped = False
-            if not q.result:
+            # plane; where two planes meet, the face hit may belong to the other one.
+            face = q.face
+            if q.result:
+                if wp.abs(q.t + SURFACE_STEP - distance) > PLANE_MATCH:
+                    valid = 0
+                    break
+                if face_plane[q.face] != plane:
+                    queries += 1
+                    if plane_face_at(mesh, point, normal * side) < 0:
+                        valid = 0
+                        break
+            else:
+                # Nothing met: a leg aimed exactly at the edge where this plane crosses the one of
+                # the path's next reflection may slip between their faces (a one-triangle BVH
+                # leaf of an axis-aligned face is a flat box, whose test may miss a ray through
+                # its edge: a corner reflector's path). Only there, and only onto a face of this
+                # plane, does the path go on; anywhere else no face is there.
                 if j == 0:
                     valid = 0
                     break
-                next_plane = table_planes[p, s, j - 1]
-                if not on_plane(point, plane_normal[next_plane], plane_offset[next_plane]):
+                crossing = table_planes[p, s, j - 1]
+                if not on_plane(point, plane_normal[crossing], plane_offset[crossing]):
                     valid = 0
                     break
-                slipped = True
-            elif wp.abs(q.t + SURFACE_STEP - distance) > PLANE_MATCH:
-                valid = 0
-                break
-            probe = slipped  # (not `slipped or face_plane[q.face] != plane`: Warp evaluates both sides)
-            if not slipped:
-                probe = face_plane[q.face] != plane
-            if probe:
+                if wp.abs(wp.dot(normal, plane_normal[crossing])) > EDGE_COSINE:
+                    valid = 0
+                    break
                 face = plane_face_at(mesh, point, normal * side)
                 queries += 1
                 if face < 0:
+                    valid = 0
+                    break
+                if face_plane[face] != plane:
                     valid = 0
                     break
             face_gain = wp.sqrt(face_reflection[face] * (1.0 - face_scattering[face]))
