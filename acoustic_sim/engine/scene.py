@@ -119,11 +119,14 @@ def face_edges(scene: Scene, *, sharp_deg: float = 20.0) -> tuple[np.ndarray, np
 
 
 # The scenes' BVH: SAH is built on the CPU in ~60 ms for 85k triangles, but its tree casts ~35 %
-# more rays/s on an H100 than the LBVH Warp builds on GPUs by default; leaves of one triangle (Warp
-# keeps up to four) cast 1.15x the LiDAR rays/s and make 1.05-1.17x the sonar's energyscapes/s
-# on the office (benchmarks/results/bvh/).
+# more rays/s on an H100 than the LBVH Warp builds on GPUs by default. Leaves of one triangle cast
+# 1.15x the LiDAR's rays/s and made 1.05-1.17x the sonar's energyscapes/s on the office
+# (benchmarks/results/sonar_cuda_same_job/run7_session25/), but a one-triangle leaf of an
+# axis-aligned face is a flat box, whose test can miss a ray aimed exactly at its edge: image-source
+# legs aimed at a corner are such rays, and a paper-suite dataset lost or changed echoes in a few
+# frames (up to 16 % of a frame's peak; benchmarks/dataset_before_after.py). Four it stays.
 BVH_CONSTRUCTOR = "sah"
-BVH_LEAF_SIZE = 1  # triangles a leaf holds at most
+BVH_LEAF_SIZE = 4  # triangles a leaf holds at most
 
 _CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 

@@ -11,7 +11,6 @@ EDGE_PROBE = wp.constant(1.0e-3)  # [m] probe distance that checks an edge point
 PARALLEL_LEG = wp.constant(1.0e-12)  # [m] |normal . leg| below which a leg runs along its plane: no reflection
 LEG_SLACK = wp.constant(1.0e-6)  # [fraction of the leg] how far before a leg's start its reflection may lie
 RANK_SHIFT = wp.constant(wp.uint64(33))  # [bits] a sequence's rank is its hash >> 33: 31 bits, an int32 >= 0
-EDGE_COSINE = wp.constant(0.99)  # |cosine| between two planes above which they meet in no edge a leg can slip through
 RANK_NONE = 2**31 - 1  # image rank of an unclaimed slot, where the host starts them (int32 max: no rank is higher)
 
 
@@ -23,12 +22,6 @@ def plane_face_at(mesh: wp.uint64, point: wp.vec3, front: wp.vec3) -> int:
     if not q.result or wp.abs(q.t - EDGE_PROBE) >= 0.5 * EDGE_PROBE:
         return -1
     return q.face
-
-
-@wp.func
-def on_plane(point: wp.vec3, normal: wp.vec3, offset: float) -> bool:
-    """Whether `point` lies within PLANE_MATCH of the plane."""
-    return wp.abs(wp.dot(normal, point) - offset) < PLANE_MATCH
 
 
 @wp.kernel(enable_backward=False)
@@ -128,38 +121,16 @@ def validate_sequences(
             queries += 1
             # The first thing the leg meets must be at the reflection point, on a face of this
             # plane; where two planes meet, the face hit may belong to the other one.
+            if not q.result:
+                valid = 0
+                break
+            if wp.abs(q.t + SURFACE_STEP - distance) > PLANE_MATCH:
+                valid = 0
+                break
             face = q.face
-            if q.result:
-                if wp.abs(q.t + SURFACE_STEP - distance) > PLANE_MATCH:
-                    valid = 0
-                    break
-                if face_plane[q.face] != plane:
-                    queries += 1
-                    if plane_face_at(mesh, point, normal * side) < 0:
-                        valid = 0
-                        break
-            else:
-                # Nothing met: a leg aimed exactly at the edge where this plane crosses the one of
-                # the path's next reflection may slip between their faces (a one-triangle BVH
-                # leaf of an axis-aligned face is a flat box, whose test may miss a ray through
-                # its edge: a corner reflector's path). Only there, and only onto a face of this
-                # plane, does the path go on; anywhere else no face is there.
-                if j == 0:
-                    valid = 0
-                    break
-                crossing = table_planes[p, s, j - 1]
-                if not on_plane(point, plane_normal[crossing], plane_offset[crossing]):
-                    valid = 0
-                    break
-                if wp.abs(wp.dot(normal, plane_normal[crossing])) > EDGE_COSINE:
-                    valid = 0
-                    break
-                face = plane_face_at(mesh, point, normal * side)
+            if face_plane[face] != plane:
                 queries += 1
-                if face < 0:
-                    valid = 0
-                    break
-                if face_plane[face] != plane:
+                if plane_face_at(mesh, point, normal * side) < 0:
                     valid = 0
                     break
             face_gain = wp.sqrt(face_reflection[face] * (1.0 - face_scattering[face]))
