@@ -84,6 +84,13 @@ def inverse_fft_magnitude(size: int):
     return ifft_rows
 
 
+@wp.func
+def steering_phase(frequency: float, delay: float) -> float:
+    """-2 pi f tau [rad], the turns reduced before the trigonometry: f tau reaches a few turns."""
+    turns = frequency * delay
+    return -2.0 * wp.pi * (turns - wp.floor(turns))
+
+
 @functools.cache
 def delay_and_sum(mics: int):
     """Kernel for arrays of `mics` microphones: matched filter and delay-and-sum per frequency.
@@ -114,9 +121,7 @@ def delay_and_sum(mics: int):
         re = Weights()
         im = Weights()
         for m in range(mics):
-            # Phase in turns reduced before the trigonometry: f tau reaches a few turns.
-            turns = frequency * delays[look, m]
-            phase = -2.0 * wp.pi * (turns - wp.floor(turns))
+            phase = steering_phase(frequency, delays[look, m])
             re[m] = wp.cos(phase)
             im[m] = wp.sin(phase)
         weight = matched[f]
@@ -182,9 +187,7 @@ def delay_and_sum_tiles(mics: int, looks_per_block: int):
         re = Weights()
         im = Weights()
         for m in range(wp.static(mics)):
-            # Phase in turns reduced before the trigonometry: f tau reaches a few turns.
-            turns = frequency * delays[wp.min(look, looks - 1), m]
-            phase = -2.0 * wp.pi * (turns - wp.floor(turns))
+            phase = steering_phase(frequency, delays[wp.min(look, looks - 1), m])
             re[m] = wp.cos(phase)
             im[m] = wp.sin(phase)
         weight = matched[f]
