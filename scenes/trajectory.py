@@ -114,8 +114,8 @@ def free_space(
         )
     except ValueError as err:
         raise SceneError(str(err)) from None
-    t = np.concatenate([np.linspace(0.0, 1.0, n) for n in steps])
     owner = np.repeat(np.arange(len(segments)), steps)
+    t = _unit_steps(steps, owner)
     pts = a[owner] + t[:, None] * (b[owner] - a[owner])
     ij = np.clip(np.rint((pts - lo) / cell).astype(int), 0, shape - 1)
     occupied = np.zeros(shape, dtype=bool)
@@ -143,6 +143,32 @@ def free_space(
     return FreeSpace(
         origin=lo, cell_m=cell, distance_m=distance, reachable=reachable, clearance_m=clearance, segments=segments
     )
+
+
+def _unit_steps(steps: np.ndarray, owner: np.ndarray) -> np.ndarray:
+    """`np.linspace(0, 1, n)` for each n of `steps`, concatenated (`owner`: each point's segment):
+    the same values bit for bit (i times 1 / (n - 1), the last exactly 1), in one pass instead of
+    a call per segment (a few thousand segments a scene: most of `free_space`'s time)."""
+    first = np.cumsum(steps) - steps
+    index = np.arange(len(owner)) - first[owner]
+    step = 1.0 / np.maximum(steps - 1, 1)
+    t = index * step[owner]
+    t[(first + steps - 1)[steps > 1]] = 1.0
+    return t
+
+
+def clears(points: np.ndarray, space: FreeSpace, clearance: float) -> bool:
+    """Whether every point (N, 2) lies at least `clearance` [m] from the exact cross-sections.
+
+    The distance field answers for points far from the walls: an occupied cell lies within 0.96
+    cell of every wall point (samples every half cell, rounded to a centre) and a bilinear read
+    averages centres within 1.42 cells, so the field overstates a distance by less than 2.4 cells.
+    Points nearer than that margin (and any off the grid) get the exact distance."""
+    margin = 3.0 * space.cell_m
+    cells = space.to_cell(points)
+    inside = ((cells >= 0) & (cells <= np.array(space.distance_m.shape) - 1)).all(axis=1)
+    near = ~inside | (space.distance_at(points) < clearance + margin)
+    return not near.any() or bool(distance_to_segments(points[near], space.segments).min() >= clearance)
 
 
 def distance_to_segments(points: np.ndarray, segments: np.ndarray, *, chunk: int = 512) -> np.ndarray:
@@ -287,7 +313,7 @@ def trajectory(
         if sigma_m > 0 and len(dense) > 3:
             dense = ndimage.gaussian_filter1d(dense, sigma_m / (space.cell_m / 2), axis=0, mode="nearest")
         # Checked against the exact cross-sections, not the rasterised distance field.
-        if distance_to_segments(dense, space.segments).min() >= clearance:
+        if clears(dense, space, clearance):
             break
     else:  # pragma: no cover - the unsmoothed route lies in cells that satisfy the clearance
         raise SceneError(f"{scene.name}: could not keep {clearance} m clearance along the route")

@@ -97,3 +97,35 @@ def test_free_space_refuses_grids_it_cannot_hold(cell):
     room = scenes.box_room(size=(4.0, 3.0, 2.5))
     with pytest.raises(scenes.SceneError, match=r"too large|finite"):
         scenes.free_space(room, cell=cell)
+
+
+def test_clearance_check_answers_as_the_exact_distance():
+    """`clears` trusts the raster field only far from walls: over points scattered near and far
+    from an office's walls, it answers as the exact point-to-segment distance does (points just
+    either side of each clearance, where a field read without its margin would be wrong)."""
+    from scenes.trajectory import clears, distance_to_segments
+
+    space = scenes.free_space(scenes.office(seed=3, clutter="high"))
+    rng = np.random.default_rng(0)
+    corner = space.to_world(np.array(space.distance_m.shape) - 1)
+    points = rng.uniform(space.origin - 0.2, corner + 0.2, (4000, 2))  # some off the grid, too
+    exact = distance_to_segments(points, space.segments)
+    for clearance in (0.3, 0.35, 0.45):
+        edge = np.abs(exact - clearance) < 0.02  # the cases the margin is for
+        assert edge.sum() > 20
+        for picked in (exact >= clearance, exact >= clearance - 0.01, slice(None)):
+            assert clears(points[picked], space, clearance) == bool(exact[picked].min() >= clearance)
+        for i in np.flatnonzero(edge):  # one by one: each point's own answer
+            assert clears(points[i : i + 1], space, clearance) == bool(exact[i] >= clearance)
+        # the field alone (no margin) would pass some point that is too close
+        field = space.distance_at(points)
+        assert ((field >= clearance) & (exact < clearance)).any()
+
+
+def test_raster_steps_are_linspace():
+    from scenes.trajectory import _unit_steps
+
+    steps = np.array([1, 2, 7, 1, 31, 3])
+    owner = np.repeat(np.arange(len(steps)), steps)
+    expected = np.concatenate([np.linspace(0.0, 1.0, n) for n in steps])
+    np.testing.assert_array_equal(_unit_steps(steps, owner), expected)
