@@ -55,6 +55,7 @@ def child(spec: dict) -> dict:
         workers=spec["workers"],
         progress=False,
         overlap=spec["overlap"],
+        helpers=spec.get("helpers"),
     )
     summary["bytes"] = sum(p.stat().st_size for p in out.rglob("*.h5"))
     device = wp.get_device(summary["devices"][0])  # Warp is up here once the run is over
@@ -78,7 +79,7 @@ def timed_runs(spec: dict, tmp: Path, repeats: int) -> dict:
     runs = []
     for r in range(repeats):
         mode = "overlap" if spec["overlap"] else "in_turn"
-        folder = tmp / f"{spec['device'].replace(':', '')}_w{spec['workers']}_{mode}_{spec['start']}_{r}"
+        folder = tmp / f"{spec['device'].replace(':', '')}_w{spec['workers']}_{mode}_h{spec.get('helpers')}_{r}"
         runs.append(run_child(spec | {"out": str(folder)}))
         shutil.rmtree(folder)
     median = sorted(runs, key=lambda s: s["seconds"])[len(runs) // 2]
@@ -88,6 +89,7 @@ def timed_runs(spec: dict, tmp: Path, repeats: int) -> dict:
         "devices": median["devices"],
         "workers": spec["workers"],
         "overlap": spec["overlap"],
+        "helpers": median.get("helpers"),
         "start": median["worker_start"],
         "seconds": [s["seconds"] for s in runs],
         "median_s": median["seconds"],
@@ -110,6 +112,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--repeats", type=int, default=3, help="runs per setting (the median is reported)")
     parser.add_argument("--modes", default="in_turn,overlapped", help="in_turn, overlapped or both")
     parser.add_argument("--start", default="auto", help="auto (generate's choice), fork, spawn, or a list")
+    parser.add_argument("--helpers", default="auto", help="host processes per worker when overlapped: auto or counts")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -119,6 +122,7 @@ def main(argv=None) -> dict:
     counts = [int(w) for w in args.workers.split(",")]
     modes = args.modes.split(",")
     starts = args.start.split(",")
+    helpers = [None if h == "auto" else int(h) for h in args.helpers.split(",")]
     if unknown := (set(modes) - set(MODES)) | (set(starts) - {"auto", "fork", "spawn"}):
         parser.error(f"unknown --modes or --start: {sorted(unknown)}")
     devices = args.device.split(",")
@@ -130,11 +134,12 @@ def main(argv=None) -> dict:
             | {"out": str(Path(tmp) / "warmup")}
         )
         specs = [
-            base | {"device": d, "workers": w, "overlap": MODES[m], "start": s}
+            base | {"device": d, "workers": w, "overlap": MODES[m], "start": s, "helpers": h}
             for d in devices
             for w in counts
             for m in modes
             for s in (starts if w > 1 else ["auto"])  # one worker runs in the parent: nothing to start
+            for h in (helpers if MODES[m] else [0])  # in turn: no helpers
         ]
         rows = [timed_runs(spec, Path(tmp), args.repeats) for spec in specs]
     is_cuda = warmup["devices"][0].startswith("cuda")
@@ -179,12 +184,14 @@ def markdown(res: dict, suite: str, args) -> str:
         f"start and kernel loading inside it); the kernel cache filled by a warm-up run first "
         f"({res['warmup_s']:.1f} s). *in turn*: each worker prepares an episode "
         "(scene, drive, draws), renders it (LiDAR, sonar) and writes each shard one after another; "
-        "*overlapped* (the default): the next episode is prepared and the last shard written beside the "
-        "rendering. *started*: worker processes forked from the parent (the default where it has not started "
-        "CUDA) or spawned (a fresh interpreter that imports the package again). Parts are seconds summed over "
-        "workers; *start-up* is a worker process from its launch to Warp and its device ready; *waiting* is "
-        "the rendering thread blocked on a preparation or a write. *simulator* is frames over the LiDAR + "
-        "sonar seconds of one worker: the rate the device work alone allows. *vs sonar* is the rate over "
+        "*overlapped* (the default): the next episodes are prepared and the last shards written beside the "
+        "rendering, by one thread each (*threads*) or by *h* helper processes each per worker (the default "
+        "where the cores allow). *started*: worker processes forked from the parent (the default where it has"
+        " not started CUDA) or spawned (a fresh interpreter that imports the package again). Parts are "
+        "seconds summed over workers; *start-up* is a worker process from its launch to Warp and its device "
+        "ready; *waiting* is the rendering thread blocked on a preparation or a write. *simulator* is frames "
+        "over the LiDAR + sonar seconds of one worker: the rate the device work alone allows. *vs sonar* is "
+        "the rate over "
         "`Sonar.simulate`'s alone: frames over the sonar seconds of one worker in turn"
         + (f" ({sonar_rate:,.0f} frames/s)." if sonar_rate else ".")
         + (
@@ -205,7 +212,7 @@ def markdown(res: dict, suite: str, args) -> str:
         p = r["seconds_by_part"]
         lines.append(
             f"| {', '.join(r['devices'])} | {r['workers']} | {r['start'] or '-'} | "
-            f"{'overlapped' if r['overlap'] else 'in turn'} | "
+            f"{_parts(r)} | "
             f"{r['median_s']:.1f} | **{r['frames_per_s']:,.1f}** | "
             + " | ".join(f"{p[k]:.1f}" for k in PARTS)
             + " | "
@@ -216,6 +223,13 @@ def markdown(res: dict, suite: str, args) -> str:
             + f" | {r['bytes'] / 1e6:,.0f} |"
         )
     return "\n".join(lines) + "\n"
+
+
+def _parts(row: dict) -> str:
+    if not row["overlap"]:
+        return "in turn"
+    helpers = row.get("helpers")
+    return "overlapped, threads" if not helpers else f"overlapped, h={helpers}"
 
 
 if __name__ == "__main__":

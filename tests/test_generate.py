@@ -3,6 +3,7 @@ clear errors for foreign or broken files; windows never cross episodes."""
 
 import dataclasses
 import json
+import os
 import sys
 import threading
 import typing
@@ -135,7 +136,7 @@ def test_overlapped_parts_change_nothing_but_the_time(reference, tmp_path, devic
 
     monkeypatch.setattr(gen, "prepare_episode", prepare)
     monkeypatch.setattr(runner, "write_shard", write)
-    overlapped = generate(tmp_path / "overlapped", device)
+    overlapped = generate(tmp_path / "overlapped", device, helpers=0)  # threads (helper processes: below)
     assert events and not any(on_main for *_, on_main in events)  # all of it beside the rendering thread
     events.clear()
     monkeypatch.setattr(gen, "prepare_episode", real_prepare)  # simulate_episode prepares by itself
@@ -153,6 +154,47 @@ def test_overlapped_parts_change_nothing_but_the_time(reference, tmp_path, devic
         assert all(parts[k] > 0 for k in ("prepare", "lidar", "sonar", "write"))
         assert parts["lidar"] + parts["sonar"] < summary["seconds"]
     assert in_turn["seconds_by_part"]["waiting"] == 0
+
+
+def test_helper_processes_prepare_and_write_the_same_shards(reference, tmp_path, device, monkeypatch):
+    """With helper processes (the default where cores allow), episodes are prepared and shards
+    written in other processes than the rendering one, two episodes ahead and two writes in
+    flight, and the arrays are the single-thread run's bit for bit."""
+    log = tmp_path / "who.txt"
+    real_prepare, real_write = gen.prepare_episode, runner.write_shard
+
+    def prepare(episode, *args):
+        with log.open("a") as f:
+            f.write(f"prepare {os.getpid()}\n")
+        return real_prepare(episode, *args)
+
+    def write(path, frames, **kwargs):
+        with log.open("a") as f:
+            f.write(f"write {os.getpid()}\n")
+        real_write(path, frames, **kwargs)
+
+    monkeypatch.setattr(gen, "prepare_episode", prepare)
+    monkeypatch.setattr(runner, "write_shard", write)
+    summary = generate(tmp_path / "out", device, helpers=2)
+    who = [line.split() for line in log.read_text().splitlines()]
+    assert sorted(part for part, _ in who) == ["prepare"] * 3 + ["write"] * 2
+    assert str(os.getpid()) not in {pid for _, pid in who}
+    got, want = shard_arrays(tmp_path / "out"), shard_arrays(reference[0])
+    assert got.keys() == want.keys()
+    for key in want:
+        np.testing.assert_array_equal(got[key], want[key], err_msg=key)
+    parts = summary["seconds_by_part"]
+    assert parts["prepare"] > 0 and parts["write"] > 0  # timed in the helpers, sent back
+
+
+def test_helper_counts(monkeypatch):
+    """Cores left per worker, at most MAX_HELPERS; a count given is kept, a negative one refused."""
+    assert runner.host_helpers(1, 0) == 0 and runner.host_helpers(8, 3) == 3
+    with pytest.raises(ValueError, match="helpers must be >= 0"):
+        runner.host_helpers(2, -1)
+    monkeypatch.setenv("SONAR2LIDAR_CPU_THREADS", "16")
+    expected = [runner.MAX_HELPERS, 3, 1, 0] if sys.platform.startswith("linux") else [0] * 4
+    assert [runner.host_helpers(w) for w in (1, 4, 8, 16)] == expected
 
 
 def test_foreign_corrupt_and_other_version_files(reference, tmp_path, device):

@@ -13,8 +13,10 @@ device gives identical arrays, and a rerun skips the shards that are already com
 from __future__ import annotations
 
 import functools
+import importlib
 import os
 import sys
+import threading
 import time
 import warnings
 from collections.abc import Iterable
@@ -39,7 +41,7 @@ from .manifest import About, FactTable, rig_facts, write_manifest
 from .mesh_scenarios import MeshFile, mesh_material_map
 from .physics import Physics, rig
 from .plan import Episode, ShardTask, check_shard_memory, plan
-from .runner import PARTS, Renderer, ShardHeader, run_task, run_tasks
+from .runner import PARTS, Renderer, ShardHeader, host_helpers, run_task, run_tasks
 from .suites import Suite, mesh_files
 from .workers import LocalWorkers
 
@@ -169,10 +171,11 @@ def generate(
     keep_arrivals: bool = False,
     progress: bool = True,
     overlap: bool = True,
+    helpers: int | None = None,
 ) -> dict:
     """Generate (or finish) a suite's dataset with our engine; returns `make_dataset`'s summary.
     `overlap=False` runs each worker's parts one after another (for measuring what the overlap
-    gains; the shards are the same)."""
+    gains; the shards are the same); `helpers`: host processes per worker (`runner.host_helpers`)."""
     tasks = plan(
         suite,
         out,
@@ -182,7 +185,8 @@ def generate(
         keep_signals=keep_signals,
         keep_arrivals=keep_arrivals,
     )
-    check_shard_memory(tasks, 1 if ray_address else min(workers, len(tasks)))
+    processes = 1 if ray_address else min(workers, len(tasks))
+    check_shard_memory(tasks, processes, 0 if ray_address or not overlap else host_helpers(processes, helpers))
     first: dict[int, Episode] = {}
     for episode in (e for t in tasks for e in t.episodes):
         first.setdefault(episode.scenario, episode)
@@ -203,6 +207,7 @@ def generate(
         ray_address=ray_address,
         progress=progress,
         overlap=overlap,
+        helpers=helpers,
     )
 
 
@@ -217,6 +222,7 @@ def make_dataset(
     ray_address: str | None = None,
     progress: bool = True,
     overlap: bool = True,
+    helpers: int | None = None,
 ) -> dict:
     """Write (or finish) the dataset of `tasks` into `out`, each shard rendered by `renderer`;
     returns a summary (frames, shards, seconds, frames/s, and `seconds_by_part`: the time spent
@@ -231,16 +237,17 @@ def make_dataset(
     out = Path(out)
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
+    processes = 1 if ray_address else min(workers, len(tasks))
+    helpers = host_helpers(processes, helpers)  # a negative count is refused before any process starts
     check_device_name(device, allow_auto=True)  # a typo fails here, before any process or Warp starts
     name = tasks[0].suite["name"]
-    processes = 1 if ray_address else min(workers, len(tasks))
     if ray_address:
         _ray()  # a missing extra is refused before any process starts or any file is written
     pool, fresh, planned = None, not (out / PLAN_FILE).exists(), False
     made_folder = not out.exists()
     try:
         if processes > 1:  # workers check the device themselves: this process must not start CUDA to fork them
-            work = functools.partial(_worker_share, renderer=renderer, overlap=overlap)
+            work = functools.partial(_worker_share, renderer=renderer, overlap=overlap, helpers=helpers)
             pool = LocalWorkers(device, processes, work)
             devices = pool.wait_ready()  # all up, each on a device it checked, before any file is written
         else:
@@ -258,9 +265,13 @@ def make_dataset(
                     _run_on_ray(todo, renderer, ray_address, devices[0].startswith("cuda"), bar)
                     parts = {}  # not reported back by Ray tasks
                 elif pool:
+                    # the card's plotting imports (~0.5 s) while the workers render, not after them
+                    threading.Thread(target=importlib.import_module, args=("acoustic_sim.render",), daemon=True).start()
                     parts = dict.fromkeys(PARTS, 0.0) | pool.run(todo, bar)
                 else:
-                    parts = run_tasks(todo, renderer, devices[0], on_frames=bar.update, overlap=overlap)[1]
+                    parts = run_tasks(
+                        todo, renderer, devices[0], on_frames=bar.update, overlap=overlap, helpers=helpers
+                    )[1]
             finally:
                 if pool:  # inside the lock: no worker is writing once it is released
                     failed = sys.exc_info()[0]
@@ -296,12 +307,15 @@ def make_dataset(
         "seconds_by_part": parts,
         "workers": processes,
         "worker_start": pool.start_method if pool else None,
+        "helpers": helpers if overlap and not ray_address else 0,
     }
 
 
-def _worker_share(tasks: Iterable[ShardTask], device: str, on_frames, *, renderer: Renderer, overlap: bool) -> dict:
+def _worker_share(
+    tasks: Iterable[ShardTask], device: str, on_frames, *, renderer: Renderer, overlap: bool, helpers: int = 0
+) -> dict:
     """A worker process's share of a run (shards from the queue all workers share); its seconds by part."""
-    return run_tasks(tasks, renderer, device, on_frames, overlap=overlap)[1]
+    return run_tasks(tasks, renderer, device, on_frames, overlap=overlap, helpers=helpers)[1]
 
 
 def _ray():

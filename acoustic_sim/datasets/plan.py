@@ -34,6 +34,13 @@ SHARDS_IN_MEMORY = 3
 arrays concatenated for writing, and the shard before it still being written."""
 
 
+def shards_in_memory(helpers: int) -> int:
+    """Copies of a shard a rendering process and its `helpers` writing processes hold at most:
+    SHARDS_IN_MEMORY with threads; with helpers, the shard being filled, and per write in flight
+    (one per helper) the rendering process's and the helper's, plus the helper's concatenation."""
+    return SHARDS_IN_MEMORY if helpers == 0 else 1 + 3 * helpers
+
+
 @dataclass(frozen=True)
 class Episode:
     """One robot drive: its scene, length and seed (the same in every variant)."""
@@ -170,14 +177,14 @@ def check_scan(frames: int, sim: SimConfig, what: str) -> None:
     )
 
 
-def check_shard_memory(tasks: list[ShardTask], processes: int) -> None:
-    """Refuse shards too large for this machine's memory: each of `processes` holds up to
-    SHARDS_IN_MEMORY copies of its largest shard's frames while it is filled and written."""
+def check_shard_memory(tasks: list[ShardTask], processes: int, helpers: int = 0) -> None:
+    """Refuse shards too large for this machine's memory: each of `processes` (with its `helpers`)
+    holds up to `shards_in_memory` copies of its largest shard's frames while it is filled and written."""
     largest = max(tasks, key=lambda t: t.frame_count)
     physics = Physics(**largest.physics)
     per_frame = frame_bytes(rig(physics, tuple(largest.suite.get("settings", ()))), keep_signals=largest.keep_signals)
     check_memory(
-        largest.frame_count * per_frame[1] * SHARDS_IN_MEMORY * processes,
+        largest.frame_count * per_frame[1] * shards_in_memory(helpers) * processes,
         what=f"{_count(processes, 'process', 'processes')} filling shards of up to {largest.frame_count:,} frames "
         f"({per_frame[1] / 1e6:,.2f} MB a frame in memory)",
         advice="give more --shards (smaller ones) or fewer --workers",

@@ -9,9 +9,15 @@ shard beside the rendering, collecting episodes into shards, and the shard's att
 
 from __future__ import annotations
 
+import ctypes
+import multiprocessing
+import os
+import signal
+import sys
 import time
+from collections import deque
 from collections.abc import Callable, Iterable
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -27,6 +33,25 @@ from .shards import ShardFrames, write_shard
 # Where a run's time goes: a worker process's start (launch to Warp and its device ready; a spawned
 # one also starts an interpreter and imports the package; 0 in this process), then run_tasks's parts.
 PARTS = ("start-up", "prepare", "lidar", "sonar", "write", "waiting")
+PR_SET_PDEATHSIG = 1  # Linux prctl: the signal a process gets when its parent dies
+MAX_HELPERS = 4  # host processes beside one rendering process: enough to keep an H100's share fed
+
+
+def host_helpers(workers: int, requested: int | None = None) -> int:
+    """Helper processes each of `workers` rendering processes gets for its host work (`run_tasks`):
+    `requested`, else the cores left per worker after its own (at most MAX_HELPERS); 0 (threads)
+    where fork is not available. A helper has its own interpreter lock: threads beside the
+    rendering share its lock, and on the H100 machine eight workers with threads made fewer
+    frames/s than with none."""
+    from ..devices import cpu_cores
+
+    if requested is not None:
+        if requested < 0:
+            raise ValueError(f"helpers must be >= 0, got {requested}")
+        return requested
+    if not sys.platform.startswith("linux"):
+        return 0
+    return min(MAX_HELPERS, max(0, cpu_cores() // workers - 1))
 
 
 @dataclass(frozen=True)
@@ -73,27 +98,43 @@ class Renderer(Protocol):
 
 
 def run_tasks(
-    tasks: Iterable[ShardTask], renderer: Renderer, device=None, on_frames=None, *, overlap: bool = True
+    tasks: Iterable[ShardTask],
+    renderer: Renderer,
+    device=None,
+    on_frames=None,
+    *,
+    overlap: bool = True,
+    helpers: int = 0,
 ) -> tuple[list[dict], dict]:
     """Render and write shards, in order; returns (their manifest entries, seconds per part).
 
     `tasks` is read lazily (a worker's may come from a shared queue): the next task is taken only
-    when its first episode is due to be prepared, during the last episode of the one before, so
-    a worker holds at most one task it has not started. With `overlap` (the default) the device
-    never waits for host work that can run beside it: one thread prepares the next episode (scene,
-    drive, drawn physics; across shard boundaries too) while the device renders this one, and
-    another compresses and writes each finished shard while the next is rendered (one write in
-    flight: at most two shards in memory). The arrays are the same either way. Seconds per part:
-    "prepare", "lidar", "sonar", "write" (time each took, wherever it ran) and "waiting" (the
-    rendering thread blocked on a preparation or a write). `on_frames(n)` reports progress."""
-    import warp as wp
+    when its first episode is due to be prepared, so a worker holds at most about one task it has
+    not started. With `overlap` (the default) the device never waits for host work that can run
+    beside it: the next episode is prepared (scene, drive, drawn physics; across shard boundaries
+    too) while the device renders this one, and each finished shard is compressed and written
+    while the next is rendered. By default one thread does each (one preparation ahead, one write
+    in flight); with `helpers` > 0 (Linux) that many forked processes prepare and as many write,
+    each with its own interpreter lock, `helpers` episodes ahead and up to `helpers` writes in
+    flight. The arrays are the same either way. Seconds per part: "prepare", "lidar", "sonar",
+    "write" (time each took, wherever it ran) and "waiting" (the rendering thread blocked on a
+    preparation or a write). `on_frames(n)` reports progress."""
+    if not overlap:
+        executors = [_AtOnce(), _AtOnce()]
+    elif helpers > 0:  # forked before Warp starts here where it has not yet (the helpers never use it)
+        executors = [_helper_pool(helpers, renderer) for _ in range(2)]
+    else:
+        executors = [ThreadPoolExecutor(1), ThreadPoolExecutor(1)]
+    try:
+        import warp as wp
 
-    quiet_warp()
-    device = str(wp.get_device(device))
-    with ThreadPoolExecutor(1) as preparer, ThreadPoolExecutor(1) as writer:
-        helpers = (preparer, writer) if overlap else (_AtOnce(), _AtOnce())
-        run = _Run(renderer, device, on_frames, *helpers)
+        quiet_warp()
+        device = str(wp.get_device(device))
+        run = _Run(renderer, device, on_frames, *executors, depth=max(1, helpers if overlap else 1))
         run.render(tasks)
+    finally:
+        for executor in executors:
+            executor.shutdown(wait=True, cancel_futures=True)
     return run.entries, run.seconds
 
 
@@ -103,57 +144,55 @@ def run_task(task: ShardTask, renderer: Renderer, device=None, on_frames=None) -
 
 
 class _Run:
-    """One process's pass over its tasks: it takes each episode (and queues its preparation) when
-    the one before starts rendering, renders it into the shard being filled, and hands each full
-    shard to the writer after the write in flight; it keeps the entries written and the seconds."""
+    """One process's pass over its tasks: it keeps `depth` episodes' preparations queued (taking
+    the next episode when one starts rendering), renders each into the shard being filled, and
+    hands each full shard to the writer once fewer than `depth` writes are in flight; it keeps the
+    entries written (in shard order) and the seconds."""
 
-    def __init__(self, renderer: Renderer, device: str, on_frames, preparer, writer):
+    def __init__(self, renderer: Renderer, device: str, on_frames, preparer, writer, *, depth: int = 1):
         self.renderer, self.device, self.on_frames = renderer, device, on_frames
-        self.preparer, self.writer = preparer, writer  # executors: threads, or _AtOnce without overlap
+        self.preparer, self.writer = preparer, writer  # executors: threads, processes, or _AtOnce
+        self.depth = depth
         self.seconds = dict.fromkeys(PARTS, 0.0)
         self.entries: list[dict] = []
-        self.writing: Future | None = None  # the one write in flight
+        self.writing: deque[Future] = deque()  # writes in flight, oldest first
 
     def render(self, tasks: Iterable[ShardTask]) -> None:
         jobs = ((task, episode) for task in tasks for episode in task.episodes)
-        upcoming, shard = self._take(jobs), None
-        while upcoming is not None:
-            task, episode, preparation = upcoming
+        upcoming: deque = deque()
+        self._take(jobs, upcoming)
+        shard = None
+        while upcoming:
+            task, episode, preparation = upcoming.popleft()
             if shard is None or shard.task is not task:
                 self._hand_to_writer(shard)
                 shard = _Shard(task)
             ready = self._collect(preparation, "prepare")
-            upcoming = self._take(jobs)  # the next preparation runs beside this rendering
+            self._take(jobs, upcoming)  # the next preparations run beside this rendering
             arrays, record = self.renderer.render(
                 task, ready, device=self.device, on_frames=self.on_frames, seconds=self.seconds
             )
             shard.add(episode, arrays, record)
         self._hand_to_writer(shard)
-        self._wait_for_write()
+        while self.writing:
+            self._wait_for_write()
 
-    def _take(self, jobs) -> tuple[ShardTask, Episode, Future] | None:
-        """The next task and episode, with its preparation queued; None at the end."""
-        job = next(jobs, None)
-        return None if job is None else (*job, self.preparer.submit(self._prepare, *job))
-
-    def _prepare(self, task: ShardTask, episode: Episode) -> tuple[Any, float]:
-        t0 = time.perf_counter()
-        return self.renderer.prepare(task, episode), time.perf_counter() - t0
+    def _take(self, jobs, upcoming: deque) -> None:
+        """Queue the preparation of the next episodes, up to `depth` of them."""
+        while len(upcoming) < self.depth:
+            job = next(jobs, None)
+            if job is None:
+                return
+            upcoming.append((*job, self.preparer.submit(_prepare, self.renderer, *job)))
 
     def _hand_to_writer(self, shard: _Shard | None) -> None:
         if shard is not None:
-            self._wait_for_write()  # one write in flight
-            self.writing = self.writer.submit(self._write, shard)
-
-    def _write(self, shard: _Shard) -> tuple[dict, float]:
-        t0 = time.perf_counter()
-        _write_shard(shard, self.renderer.shard_header(shard.task), self.device)
-        return shard_entry(shard.task), time.perf_counter() - t0
+            if len(self.writing) >= self.depth:
+                self._wait_for_write()
+            self.writing.append(self.writer.submit(_write, self.renderer, shard, self.device))
 
     def _wait_for_write(self) -> None:
-        if self.writing is not None:
-            self.entries.append(self._collect(self.writing, "write"))
-            self.writing = None
+        self.entries.append(self._collect(self.writing.popleft(), "write"))
 
     def _collect(self, future: Future, part: str):
         """A helper's result; the time its work took goes to `part`, the time blocked on it to "waiting"."""
@@ -166,6 +205,58 @@ class _Run:
         return value
 
 
+def _prepare(renderer: Renderer, task: ShardTask, episode: Episode) -> tuple[Any, float]:
+    t0 = time.perf_counter()
+    return _helper_renderer(renderer).prepare(task, episode), time.perf_counter() - t0
+
+
+def _write(renderer: Renderer, shard: _Shard, device: str) -> tuple[dict, float]:
+    t0 = time.perf_counter()
+    _write_shard(shard, _helper_renderer(renderer).shard_header(shard.task), device)
+    return shard_entry(shard.task), time.perf_counter() - t0
+
+
+# A helper process's renderer, inherited from the rendering process at the fork: what it is sent
+# with each call is None (a renderer may hold a user's meshes: pickled once per episode otherwise).
+_RENDERER: Renderer | None = None
+
+
+def _helper_renderer(sent: Renderer | None) -> Renderer:
+    return _RENDERER if sent is None else sent
+
+
+class _Helpers(ProcessPoolExecutor):
+    """Forked helper processes that hold the renderer from the fork: calls leave it out."""
+
+    def submit(self, fn, renderer, *args):
+        return super().submit(fn, None, *args)
+
+
+def _helper_pool(count: int, renderer: Renderer) -> _Helpers:
+    """`count` helper processes, forked now (all at once: fork starts them on the first call)."""
+    global _RENDERER
+    _RENDERER = renderer
+    fork = multiprocessing.get_context("fork")
+    pool = _Helpers(count, mp_context=fork, initializer=_init_helper, initargs=(os.getpid(),))
+    for started in [pool.submit(_started, None) for _ in range(count)]:
+        started.result()
+    return pool
+
+
+def _started(_renderer) -> int:
+    return os.getpid()
+
+
+def _init_helper(parent: int) -> None:
+    """A helper ignores Ctrl-C (its rendering process is stopped by the parent) and dies at once
+    with its rendering process (even one killed by SIGKILL), so that no helper goes on writing a
+    shard that the parent, having stopped the run, is about to remove."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
+    if os.getppid() != parent:  # it died before the line above
+        os._exit(1)
+
+
 class _AtOnce:
     """An executor that runs each call at once in the calling thread (no overlap): an error is
     raised by `submit` itself, as by a plain call."""
@@ -174,6 +265,9 @@ class _AtOnce:
         future = Future()
         future.set_result(fn(*args))
         return future
+
+    def shutdown(self, **kwargs) -> None:
+        pass
 
 
 @dataclass
