@@ -46,6 +46,7 @@ def child(spec: dict) -> dict:
     from acoustic_sim.datasets.suites import load_suite
 
     out = Path(spec["out"])
+    t0 = time.perf_counter()
     summary = generate(
         load_suite(spec["suite"]),
         out,
@@ -57,6 +58,7 @@ def child(spec: dict) -> dict:
         overlap=spec["overlap"],
         helpers=spec.get("helpers"),
     )
+    summary["call_s"] = time.perf_counter() - t0  # planning, the run, manifest and card, workers exited
     summary["bytes"] = sum(p.stat().st_size for p in out.rglob("*.h5"))
     device = wp.get_device(summary["devices"][0])  # Warp is up here once the run is over
     summary |= {"device_name": device.name if device.is_cuda else "CPU", "warp": wp.__version__}
@@ -93,6 +95,7 @@ def timed_runs(spec: dict, tmp: Path, repeats: int) -> dict:
         "start": median["worker_start"],
         "seconds": [s["seconds"] for s in runs],
         "median_s": median["seconds"],
+        "call_s": median.get("call_s"),
         "frames_per_s": median["frames"] / median["seconds"],
         "seconds_by_part": parts,
         # The device work alone: frames over the LiDAR and sonar time of one process (`Sonar.simulate`'s
@@ -189,7 +192,10 @@ def markdown(res: dict, suite: str, args) -> str:
         "where the cores allow). *started*: worker processes forked from the parent (the default where it has"
         " not started CUDA) or spawned (a fresh interpreter that imports the package again). Parts are "
         "seconds summed over workers; *start-up* is a worker process from its launch to Warp and its device "
-        "ready; *waiting* is the rendering thread blocked on a preparation or a write. *simulator* is frames "
+        "ready; *seconds* and *frames/s* are `generate`'s own (its run: workers up, every shard written "
+        "and closed); *whole call* adds planning before it, the manifest and card after it and the workers' "
+        "exit. "
+        "*waiting* is the rendering thread blocked on a preparation or a write. *simulator* is frames "
         "over the LiDAR + sonar seconds of one worker: the rate the device work alone allows. *vs sonar* is "
         "the rate over "
         "`Sonar.simulate`'s alone: frames over the sonar seconds of one worker in turn"
@@ -201,19 +207,19 @@ def markdown(res: dict, suite: str, args) -> str:
             else ""
         ),
         "",
-        "| on | workers | started | parts | seconds | frames/s | "
+        "| on | workers | started | parts | seconds | frames/s | whole call s | "
         + " | ".join(PARTS).replace("lidar", "LiDAR")
         + " | simulator frames/s | vs sonar | "
         + ("vs one GPU | " if one_gpu_rate else "")
         + "MB |",
-        "|---|---|---|---|---|---|" + "---|" * len(PARTS) + "---|---|" + ("---|" if one_gpu_rate else "") + "---|",
+        "|---|---|---|---|---|---|---|" + "---|" * len(PARTS) + "---|---|" + ("---|" if one_gpu_rate else "") + "---|",
     ]
     for r in res["runs"]:
         p = r["seconds_by_part"]
         lines.append(
             f"| {', '.join(r['devices'])} | {r['workers']} | {r['start'] or '-'} | "
             f"{_parts(r)} | "
-            f"{r['median_s']:.1f} | **{r['frames_per_s']:,.1f}** | "
+            f"{r['median_s']:.1f} | **{r['frames_per_s']:,.1f}** | {r.get('call_s') or float('nan'):.1f} | "
             + " | ".join(f"{p[k]:.1f}" for k in PARTS)
             + " | "
             + (f"{r['simulator_frames_per_s']:,.1f}" if r["workers"] == 1 else "-")

@@ -188,13 +188,14 @@ def test_helper_processes_prepare_and_write_the_same_shards(reference, tmp_path,
 
 
 def test_helper_counts(monkeypatch):
-    """Cores left per worker, at most MAX_HELPERS; a count given is kept, a negative one refused."""
+    """Cores left per worker (at least 2, else threads), at most MAX_HELPERS; a count given is
+    kept, a negative one refused."""
     assert runner.host_helpers(1, 0) == 0 and runner.host_helpers(8, 3) == 3
     with pytest.raises(ValueError, match="helpers must be >= 0"):
         runner.host_helpers(2, -1)
     monkeypatch.setenv("SONAR2LIDAR_CPU_THREADS", "16")
-    expected = [runner.MAX_HELPERS, 3, 1, 0] if sys.platform.startswith("linux") else [0] * 4
-    assert [runner.host_helpers(w) for w in (1, 4, 8, 16)] == expected
+    expected = [runner.MAX_HELPERS, 3, 2, 0, 0] if sys.platform.startswith("linux") else [0] * 5
+    assert [runner.host_helpers(w) for w in (1, 4, 5, 8, 16)] == expected
 
 
 def test_foreign_corrupt_and_other_version_files(reference, tmp_path, device):

@@ -276,7 +276,9 @@ def make_dataset(
                 if pool:  # inside the lock: no worker is writing once it is released
                     failed = sys.exc_info()[0]
                     interrupted = failed is not None and issubclass(failed, KeyboardInterrupt)
-                    pool.close(abort=failed is not None, now=interrupted)  # Ctrl-C stops them at once
+                    # Ctrl-C stops them at once; after a run that returned, all is written: they exit
+                    # while the manifest and card are written
+                    pool.close(abort=failed is not None, now=interrupted, wait=failed is not None)
                     if interrupted:
                         remove_temporaries(todo)  # the shards the stopped workers were writing
             bar.close()
@@ -292,7 +294,7 @@ def make_dataset(
         raise
     finally:
         if pool:
-            pool.close(abort=True)  # a failure before the run (foreign folder, lock refused); else closed already
+            pool.close(abort=True)  # a failure before the run (foreign folder, lock refused); else joins them
     made = sum(t.frame_count for t in todo)
     return {
         "suite": name,

@@ -39,10 +39,12 @@ MAX_HELPERS = 4  # host processes beside one rendering process: enough to keep a
 
 def host_helpers(workers: int, requested: int | None = None) -> int:
     """Helper processes each of `workers` rendering processes gets for its host work (`run_tasks`):
-    `requested`, else the cores left per worker after its own (at most MAX_HELPERS); 0 (threads)
-    where fork is not available. A helper has its own interpreter lock: threads beside the
-    rendering share its lock, and on the H100 machine eight workers with threads made fewer
-    frames/s than with none."""
+    `requested`, else the cores left per worker after its own (at most MAX_HELPERS), where that
+    is at least 2; else 0 (threads), as where fork is not available. A helper has its own
+    interpreter lock (threads share the rendering's), but one helper a kind keeps only one
+    preparation ahead and one write in flight, as threads do, and adds the copies between
+    processes: on the H100 machine 4 workers made 1,574 frames/s with one helper each, 2,007
+    with two, 2,122 with three (benchmarks/results/generate_cuda_same_job/run5_session26)."""
     from ..devices import cpu_cores
 
     if requested is not None:
@@ -51,7 +53,8 @@ def host_helpers(workers: int, requested: int | None = None) -> int:
         return requested
     if not sys.platform.startswith("linux"):
         return 0
-    return min(MAX_HELPERS, max(0, cpu_cores() // workers - 1))
+    spare = min(MAX_HELPERS, cpu_cores() // workers - 1)
+    return spare if spare >= 2 else 0
 
 
 @dataclass(frozen=True)

@@ -48,7 +48,9 @@ class LocalWorkers:
     part summed over them, with each worker's "start-up" (launch to device ready). `close()` ends
     them: after their queued tasks, with `abort=True` after the task each is on, or with `now=True`
     too at once, wherever each is (Ctrl-C: a shard being written stays a `.tmp` for the caller to
-    remove); call it before releasing what the tasks write under, such as the output lock. Workers
+    remove); call it before releasing what the tasks write under, such as the output lock. After a
+    `run` that returned, every task is written: `close(wait=False)` lets the workers exit (a CUDA
+    context's teardown, ~0.1 s each) while the caller goes on, and `join()` waits for them. Workers
     ignore Ctrl-C: the parent takes it and stops them."""
 
     def __init__(self, device: str, count: int, work: Work):
@@ -105,8 +107,10 @@ class LocalWorkers:
             reader.join(timeout=5)
         return parts
 
-    def close(self, *, abort: bool = False, now: bool = False) -> None:
+    def close(self, *, abort: bool = False, now: bool = False, wait: bool = True) -> None:
         if self._closed:
+            if wait:
+                self.join()
             return
         self._closed = True
         if abort:
@@ -117,7 +121,11 @@ class LocalWorkers:
             for process in list(running.values()):
                 process.terminate()
         self._end_tasks()
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        self._pool.shutdown(wait=wait, cancel_futures=True)
+
+    def join(self) -> None:
+        """Wait until the worker processes of a closed pool have exited."""
+        self._pool.shutdown(wait=True)
 
     def _end_tasks(self) -> None:
         if not self._fed:
