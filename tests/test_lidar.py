@@ -217,6 +217,9 @@ def test_lidar_image_hand_computed():
     image = sim.lidar_image(ranges, HOKUYO)
     assert image.shape == (1, 240, 181)
     assert set(zip(*np.nonzero(image[0]), strict=True)) == {(40, 90), (0, 91), (239, 45)}
+    assert image.dtype == np.float32 and image.max() == 1.0
+    labels = sim.lidar_image(ranges, HOKUYO, dtype=np.uint8)  # as datasets store it
+    assert labels.dtype == np.uint8 and np.array_equal(labels, image)
 
 
 def test_points_in_world_frame_lie_on_walls(device):

@@ -157,7 +157,7 @@ def simulate_episode(
     arrays = {
         "energyscape": result.energyscape,
         "lidar_ranges": ranges,
-        "lidar_image": lidar_image(ranges, nominal.lidar, nominal.processing.grid),
+        "lidar_image": lidar_image(ranges, nominal.lidar, nominal.processing.grid, np.uint8),  # as shards store it
         "pose": poses,
         "time": np.arange(episode.frames) * suite["dt_s"],
         "signals": result.signals,

@@ -176,6 +176,7 @@ def generate(
     """Generate (or finish) a suite's dataset with our engine; returns `make_dataset`'s summary.
     `overlap=False` runs each worker's parts one after another (for measuring what the overlap
     gains; the shards are the same); `helpers`: host processes per worker (`runner.host_helpers`)."""
+    engine = None if ray_address else _import_beside(ENGINE_MODULES)
     tasks = plan(
         suite,
         out,
@@ -197,6 +198,8 @@ def generate(
     frames = sum(t.frame_count for t in tasks) // len(suite.variants)
     meta = {"suite": suite.name, "frames": frames, "shards": len(tasks) // len(suite.variants), "seed": seed}
     meta |= {"variants": list(suite.variants), "suite_config": suite.to_json()}
+    if engine is not None:
+        engine.join()  # before any fork: a child forked amid an import could deadlock on its lock
     return make_dataset(
         tasks,
         SuiteRenderer(mesh_files(suite)),
@@ -209,6 +212,28 @@ def generate(
         overlap=overlap,
         helpers=helpers,
     )
+
+
+# Our engine's modules: Warp's Python side (imported, not started) and scipy.signal (the beamformer's
+# filters) took ~2 s to import in each worker process on the H100 machine, before its first frame.
+ENGINE_MODULES = ("acoustic_sim.engine.sonar", "acoustic_sim.engine.lidar")
+
+
+def _import_beside(modules: tuple[str, ...]) -> threading.Thread:
+    """Import `modules` on a thread while this one plans the run, so that worker processes forked
+    afterwards start with them (and this process, rendering alone, has them). Errors are left to
+    the import where the module is used."""
+
+    def load() -> None:
+        for name in modules:
+            try:
+                importlib.import_module(name)
+            except Exception:  # the renderer's own import reports it
+                return
+
+    thread = threading.Thread(target=load, daemon=True, name="engine-import")
+    thread.start()
+    return thread
 
 
 def make_dataset(

@@ -241,7 +241,7 @@ class CrossEngineRenderer:
         arrays = {
             "energyscape": image,
             "lidar_ranges": ranges,
-            "lidar_image": lidar_image(ranges, lidar, processing.grid),
+            "lidar_image": lidar_image(ranges, lidar, processing.grid, np.uint8),
             "pose": drive.poses,
             "time": np.arange(episode.frames) * DT_S,
         }
