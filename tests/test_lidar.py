@@ -308,3 +308,25 @@ def test_cpu_threads_split_the_poses_without_changing_a_range():
         sim.Lidar(config, device="cpu", cpu_threads=3).scan(scene, bad)
     with pytest.raises(ValueError, match="cpu_threads"):
         sim.Lidar(config, device="cpu", cpu_threads=0)
+
+
+def test_a_queued_scan_gives_the_scans_ranges_after_other_work(device):
+    """`scan_begin` then other device work (another scene's scan) then `ranges()`: the ranges
+    `scan` gives for the same poses and noise seed; a bad pose is refused at `ranges()`; the
+    ranges of a scan whose buffers a later call took are refused, not returned overwritten."""
+    lidar = sim.Lidar(dataclasses.replace(HOKUYO, noise="gaussian", noise_m=0.01), device=device)
+    room, corridor = scenes.box_room((6.0, 4.0, 3.0)), scenes.corridor(reflectors="few")
+    poses = np.stack([scenes.pose(2.0 + 0.1 * k, 1.5, 0.0, 1.0) for k in range(5)])
+    expected = lidar.scan(room, poses, seed=3)
+    pending = lidar.scan_begin(room, poses, seed=3)
+    other = sim.Lidar(HOKUYO, device=device).scan(corridor, poses[:2])
+    np.testing.assert_array_equal(pending.ranges(), expected)
+    assert not np.array_equal(other, expected[:2])
+    bad = poses.copy()
+    bad[2, 0, 0] = 2.0  # not a rotation
+    with pytest.raises(ValueError, match="pose 2 is not a rigid transform"):
+        lidar.scan_begin(room, bad).ranges()
+    first = lidar.scan_begin(room, poses, seed=3)
+    lidar.scan_begin(room, poses[:3], seed=4)
+    with pytest.raises(RuntimeError, match="reused this scan's buffers"):
+        first.ranges()

@@ -64,6 +64,9 @@ class Lidar:
         self._calls = 0
         self._beam_dirs = wp.array(config.beam_directions().astype(np.float32), dtype=wp.vec3, device=self.device)
         self._buffers: dict[int, tuple[wp.array, ...]] = {}
+        self._copies: tuple[wp.array, ...] | None = None  # page-locked results of `scan_begin`
+        self._pending = None  # the event after the last scan_begin's copies, until waited for
+        self._scans = 0  # scans queued so far: a PendingScan knows whether its buffers are still its own
 
     @property
     def beam_count(self) -> int:
@@ -98,6 +101,51 @@ class Lidar:
             ValueError: for a pose that is not a finite rigid transform.
         """
         poses = check_poses(poses)
+        _, _, error_buf, behind_buf, range_out, face_out = self._queue(scene, poses, seed)
+        check_pose_results(error_buf.numpy(), behind_buf.numpy())  # waits for the launches
+        shape = (len(poses), self.beam_count)
+        return LidarScan(range_m=range_out.reshape(shape), face=face_out.reshape(shape))
+
+    def scan(self, scene: Scene, poses: np.ndarray, *, seed: int | None = None) -> np.ndarray:
+        """Ranges [m] of every beam from every pose, float32 (N, beam_count); inf = no return."""
+        return self.scan_begin(scene, poses, seed=seed).ranges()
+
+    def scan_begin(self, scene: Scene, poses: np.ndarray, *, seed: int | None = None) -> PendingScan:
+        """Queue a scan (as `scan`) and the copy of its results to the host; `.ranges()` of what
+        this returns waits for them. Work queued on the device in between (a sonar's frames) runs
+        behind the scan, so the host waits for the device once instead of twice: on a GPU shared
+        by several processes each wait is a turn in its time slices. One scan of a Lidar is
+        pending at a time: the next call waits for it, and the ranges of a scan whose buffers a
+        later call took are refused."""
+        poses = check_poses(poses)
+        _, _, error_buf, behind_buf, range_out, _ = self._queue(scene, poses, seed)
+        results = (error_buf, behind_buf, range_out)
+        if self.device.is_cuda:  # copies behind the scan into page-locked memory: no wait here
+            copies = self._host_copies(len(poses))
+            for host, device in zip(copies, results, strict=True):
+                wp.copy(host, device)
+            results, self._pending = copies, wp.get_stream(self.device).record_event()
+        return PendingScan(self, self._scans, results, (len(poses), self.beam_count))
+
+    def _finish_pending(self) -> None:
+        if self._pending is not None:
+            wp.synchronize_event(self._pending)
+            self._pending = None
+
+    def _host_copies(self, pose_count: int) -> tuple[wp.array, ...]:
+        """Page-locked (pose errors, poses behind, ranges) for `scan_begin`, reused across calls."""
+        if self._copies is None or len(self._copies[0]) != pose_count:
+            self._copies = (
+                wp.empty(pose_count, dtype=float, device="cpu", pinned=True),
+                wp.empty(pose_count, dtype=wp.int32, device="cpu", pinned=True),
+                wp.empty(pose_count * self.beam_count, dtype=float, device="cpu", pinned=True),
+            )
+        return self._copies
+
+    def _queue(self, scene: Scene, poses: np.ndarray, seed: int | None) -> tuple[wp.array, ...]:
+        """Queue the pose checks, the scan and its noise for checked `poses`; their buffers."""
+        self._finish_pending()  # the staging buffer below may still feed a pending scan's upload
+        self._scans += 1  # a pending scan's buffers are this call's now
         if seed is None:
             seed = (self.seed * SEED_STRIDE + self._calls) % SEED_MODULUS
             self._calls += 1
@@ -140,14 +188,28 @@ class Lidar:
                 inputs=[cfg.range_min_m, NOISE_CODES[cfg.noise], cfg.noise_m, cfg.dropout_probability, int(seed)],
                 outputs=[range_out, face_out],
             )
-        check_pose_results(error_buf.numpy(), behind_buf.numpy())  # waits for the launches above
-        shape = (len(poses), self.beam_count)
-        return LidarScan(range_m=range_out.reshape(shape), face=face_out.reshape(shape))
+        return staging, pose_buf, error_buf, behind_buf, range_out, face_out
 
-    def scan(self, scene: Scene, poses: np.ndarray, *, seed: int | None = None) -> np.ndarray:
-        """Ranges [m] of every beam from every pose, float32 (N, beam_count); inf = no return."""
-        # On the CPU .numpy() is a view of the reused buffer: copy so results survive the next call.
-        return np.array(self.cast(scene, poses, seed=seed).range_m.numpy(), copy=True)
+
+@dataclass
+class PendingScan:
+    """A scan queued by `Lidar.scan_begin`; `ranges()` waits for it."""
+
+    lidar: Lidar
+    number: int
+    results: tuple  # (pose errors, poses behind, ranges): host arrays once the copies land
+    shape: tuple[int, int]
+
+    def ranges(self) -> np.ndarray:
+        """Ranges [m] of every beam from every pose, float32 (N, beam_count); inf = no return.
+        Raises ValueError for a pose that is not a finite rigid transform, as `Lidar.scan`."""
+        if self.number != self.lidar._scans:
+            raise RuntimeError("a later scan of this Lidar reused this scan's buffers: read ranges() before the next")
+        self.lidar._finish_pending()
+        error, behind, ranges = (r.numpy() for r in self.results)
+        check_pose_results(error, behind)
+        # Copied: the buffers are reused by the next scan (on the CPU .numpy() is a view of them).
+        return np.array(ranges.reshape(self.shape), copy=True)
 
 
 def ranges_to_points(ranges: np.ndarray, config: LidarConfig, poses: np.ndarray | None = None) -> np.ndarray:
