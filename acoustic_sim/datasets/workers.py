@@ -27,8 +27,6 @@ from ..devices import cpu_cores, cuda_started, quiet_warp, resolve_device, warp_
 # A worker's work: (its tasks, read lazily; its device; on_frames(n)) -> seconds by part.
 Work = Callable[[Iterable, str, Callable[[int], None]], dict]
 START_ENV = "SONAR2LIDAR_WORKER_START"
-WAIT_ENV = "SONAR2LIDAR_CUDA_WAIT"  # "spin": a worker's CUDA waits as CUDA's default does (see _wait_without_spinning)
-CU_CTX_SCHED_BLOCKING_SYNC = 0x04
 READY_TIMEOUT_S = 300.0  # a worker not up by then is stuck (a spawned one imports in ~4 s)
 
 
@@ -172,31 +170,10 @@ def _serve(work: Work, device: str) -> dict:
     if _START == "fork" and wp.get_cuda_device_count() == 0:
         _refuse_a_poisoned_cuda()  # else "auto" would fall back to the CPU and "cuda" blame the driver
     device = resolve_device(device, _INDEX)
-    if device.startswith("cuda"):
-        _wait_without_spinning(wp.get_device(device).ordinal)
     wp.get_device(device)
     started = time.time() - _LAUNCHED
     _READY.put(device)
     return work(_tasks_until_abort(), device, _PROGRESS.put) | {"start-up": started}
-
-
-def _wait_without_spinning(ordinal: int) -> None:
-    """Have this process's CUDA context put its host thread to sleep while it waits for the GPU
-    (CU_CTX_SCHED_BLOCKING_SYNC), before Warp makes the context: by default each worker spins a
-    core at every wait, and several workers share one GPU's time slices, so they wait often.
-    On the H100 machine five workers made 2,504 and 2,558 frames/s so against 2,258 and 2,264
-    spinning (benchmarks/results/generate_cuda_same_job/run5_session26). SONAR2LIDAR_CUDA_WAIT=spin
-    keeps CUDA's default. Best effort: a driver that refuses leaves the default."""
-    import ctypes
-
-    if os.environ.get(WAIT_ENV, "block") == "spin":
-        return
-    try:
-        cuda = ctypes.CDLL("libcuda.so.1")
-    except OSError:
-        return
-    if cuda.cuInit(0) == 0:
-        cuda.cuDevicePrimaryCtxSetFlags(ordinal, CU_CTX_SCHED_BLOCKING_SYNC)
 
 
 def _tasks_until_abort():
