@@ -39,6 +39,7 @@ def built(variant: str):
     """The office with a fresh Warp mesh built as `variant` ("constructor:leaf size"), and its build time."""
     constructor, leaf = variant.split(":")
     scene_module.BVH_CONSTRUCTOR, scene_module.BVH_LEAF_SIZE = constructor, int(leaf)
+    scene_module.LIDAR_BVH_LEAF_SIZE = int(leaf)  # the LiDAR casts through a tree of its own
     office = load_office()  # a new Scene object: nothing cached for it
     return office
 

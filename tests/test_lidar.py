@@ -330,3 +330,25 @@ def test_a_queued_scan_gives_the_scans_ranges_after_other_work(device):
     lidar.scan_begin(room, poses[:3], seed=4)
     with pytest.raises(RuntimeError, match="reused this scan's buffers"):
         first.ranges()
+
+
+@pytest.mark.parametrize("build", [lambda: scenes.office(seed=2, clutter="high"), lambda: scenes.random_world(seed=5)])
+def test_the_beams_tree_of_one_triangle_leaves_returns_what_four_triangle_leaves_do(build, device, monkeypatch):
+    """The LiDAR's own BVH (LIDAR_BVH_LEAF_SIZE) against one of the scene's leaf size: every beam
+    hits or misses alike, and ranges agree to float32 rounding (a few units in the last place:
+    another traversal order meets the same triangles). A tree that lost a face would fail."""
+    from acoustic_sim.engine import scene as scene_module
+
+    assert scene_module.LIDAR_BVH_LEAF_SIZE != scene_module.BVH_LEAF_SIZE
+    config = dataclasses.replace(HOKUYO, range_max_m=30.0)
+    got = []
+    for leaf in (scene_module.LIDAR_BVH_LEAF_SIZE, scene_module.BVH_LEAF_SIZE):
+        monkeypatch.setattr(scene_module, "LIDAR_BVH_LEAF_SIZE", leaf)
+        scene = build()  # a scene object of its own: its device copy is built with this leaf size
+        poses = scenes.trajectory(scene, frames=40, seed=3)
+        got.append(sim.Lidar(config, device=device).scan(scene, poses))
+    ones, fours = got
+    assert np.isfinite(fours).mean() > 0.9
+    np.testing.assert_array_equal(np.isinf(ones), np.isinf(fours))
+    hit = np.isfinite(fours)
+    np.testing.assert_allclose(ones[hit], fours[hit], rtol=5e-7, atol=0)

@@ -159,13 +159,14 @@ class Lidar:
         # 4-byte-per-pose read-back cost far less than numpy on large batches.
         launch(kernels.pose_error, dim=len(poses), inputs=[ws.mesh.id, pose_buf], outputs=[error_buf, behind_buf])
         beams = self.beam_count
+        beam_tree = ws.lidar_mesh.id  # built here, before the threads below, never by two at once
+        kernel, scene_in = kernels.lidar_scan_opaque, [beam_tree]
+        if ws.lidar_sees_through:
+            kernel, scene_in = kernels.lidar_scan, [beam_tree, ws.face_lidar_transparent]
 
         def scan_poses(first: int, last: int) -> None:
             rays = slice(first * beams, last * beams)
             beams_in = [pose_buf[first:last], self._beam_dirs, cfg.range_min_m, cfg.range_max_m]
-            kernel, scene_in = kernels.lidar_scan_opaque, [ws.mesh.id]
-            if ws.lidar_sees_through:
-                kernel, scene_in = kernels.lidar_scan, [ws.mesh.id, ws.face_lidar_transparent]
             launch(
                 kernel,
                 dim=(last - first) * beams,
