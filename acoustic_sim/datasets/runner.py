@@ -47,6 +47,8 @@ def host_helpers(workers: int, requested: int | None = None) -> int:
     with two, 2,122 with three (benchmarks/results/generate_cuda_same_job/run5_session26)."""
     from ..devices import cpu_cores
 
+    if workers < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
     if requested is not None:
         if requested < 0:
             raise ValueError(f"helpers must be >= 0, got {requested}")
