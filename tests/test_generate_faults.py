@@ -138,7 +138,7 @@ def test_workers_exit_when_the_parent_is_killed(tmp_path):
 _FAKE_OUT = None  # the folder fake_worker_share reports into (set before the fork, inherited)
 
 
-def fake_worker_share(tasks, device, on_frames, *, renderer, overlap):
+def fake_worker_share(tasks, device, on_frames, *, renderer, overlap, helpers=0):
     """Worker 0 fails on its first task; worker 1 works on for 2 s, then notes whether the lock is
     still held."""
     from acoustic_sim.datasets import workers
