@@ -114,23 +114,27 @@ def run_tasks(
     """Render and write shards, in order; returns (their manifest entries, seconds per part).
 
     `tasks` is read lazily (a worker's may come from a shared queue): the next task is taken only
-    when its first episode is due to be prepared, so a worker holds at most about one task it has
-    not started. With `overlap` (the default) the device never waits for host work that can run
-    beside it: the next episode is prepared (scene, drive, drawn physics; across shard boundaries
-    too) while the device renders this one, and each finished shard is compressed and written
-    while the next is rendered. By default one thread does each (one preparation ahead, one write
-    in flight); with `helpers` > 0 (Linux) that many forked processes prepare and as many write,
-    each with its own interpreter lock, `helpers` episodes ahead and up to `helpers` writes in
-    flight. The arrays are the same either way. Seconds per part: "prepare", "lidar", "sonar",
-    "write" (time each took, wherever it ran) and "waiting" (the rendering thread blocked on a
-    preparation or a write). `on_frames(n)` reports progress."""
-    if not overlap:
-        executors = [_AtOnce(), _AtOnce()]
-    elif helpers > 0:  # forked before Warp starts here where it has not yet (the helpers never use it)
-        executors = [_helper_pool(helpers, renderer) for _ in range(2)]
-    else:
-        executors = [ThreadPoolExecutor(1), ThreadPoolExecutor(1)]
+    when its first episode is due to be prepared, so a worker holds only the tasks of the episodes
+    it prepares ahead (one; `helpers` with helpers). With `overlap` (the default) the device never
+    waits for host work that can run beside it: the next episode is prepared (scene, drive, drawn
+    physics; across shard boundaries too) while the device renders this one, and each finished shard
+    is compressed and written while the next is rendered. By default one thread does each (one
+    preparation ahead, one write in flight); with `helpers` > 0 (Linux) that many forked processes
+    prepare and as many write, each with its own interpreter lock, `helpers` episodes ahead and up
+    to `helpers` writes in flight. The arrays are the same either way. Seconds per part: "prepare",
+    "lidar", "sonar", "write" (time each took, wherever it ran) and "waiting" (the rendering thread
+    blocked on a preparation or a write). `on_frames(n)` reports progress."""
+    if not sys.platform.startswith("linux"):
+        helpers = 0  # forked helpers and their death with the parent (prctl) are Linux's
+    executors = []
     try:
+        for _ in range(2):  # the preparer, the writer
+            if not overlap:
+                executors.append(_AtOnce())
+            elif helpers > 0:  # forked before Warp starts here where it has not yet (they never use it)
+                executors.append(_helper_pool(helpers, renderer))
+            else:
+                executors.append(ThreadPoolExecutor(1))
         import warp as wp
 
         quiet_warp()
