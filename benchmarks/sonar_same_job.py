@@ -3,7 +3,7 @@
     python benchmarks/sonar_same_job.py --device cuda:0 --revs base=8debdf9 --revs now=HEAD
 
 A speed change is only trusted beside the code it replaces measured on the same machine in the
-same run (lent GPUs of one kind differ by ~10 %). Each revision's `acoustic_sim` and `scenes` are
+same run (lent GPUs of one kind differ by ~10 %). Each revision's `acoustic_sim`, `scenes` and `clitools` are
 taken with `git archive` into a temporary folder and timed in a process of their own, through the
 public interface only (`Sonar(SonarConfig.ertis(), max_bounces, ray_count).simulate(scene, poses,
 batch)`), which every revision since the first benchmark keeps. A revision is a commit (`HEAD` is
@@ -86,8 +86,13 @@ def run_checked(cmd: list[str], what: str, **kwargs) -> subprocess.CompletedProc
     return done
 
 
+# What an export holds: the simulator, and the command-line helpers it imports (writing a shard
+# and `python -m acoustic_sim` need clitools, which older revisions lack).
+PACKAGES = ("acoustic_sim", "scenes", "clitools")
+
+
 def export(rev: str, into: Path, *, repo: Path = ROOT) -> str:
-    """The revision's simulator (acoustic_sim, scenes) of the git repository `repo` under `into`
+    """The revision's simulator (PACKAGES it holds) of the git repository `repo` under `into`
     (with its full commit id in `into/COMMIT`); returns that id. A `rev` that is a folder made so
     (on a machine without git) is copied, and its COMMIT read."""
     exported = Path(rev)
@@ -98,7 +103,8 @@ def export(rev: str, into: Path, *, repo: Path = ROOT) -> str:
         ["git", "rev-parse", "--verify", "--quiet", rev + "^{commit}"], f"revision {rev!r}", cwd=repo, text=True
     ).stdout.strip()
     into.mkdir(parents=True)
-    archive = run_checked(["git", "archive", commit, "acoustic_sim", "scenes"], f"git archive {rev}", cwd=repo).stdout
+    held = [p for p in PACKAGES if subprocess.run(["git", "cat-file", "-e", f"{commit}:{p}"], cwd=repo).returncode == 0]
+    archive = run_checked(["git", "archive", commit, *held], f"git archive {rev}", cwd=repo).stdout
     run_checked(["tar", "-x", "-C", str(into)], f"unpacking {rev}", input=archive)
     (into / "COMMIT").write_text(commit + "\n")
     return commit

@@ -23,7 +23,7 @@ def git(*args, cwd=ROOT):
 @pytest.fixture
 def history(tmp_path):
     """A repository of two commits: the second changes acoustic_sim/config.py and adds
-    acoustic_sim/engine/signals.py; learn/ (not the simulator) is in both. Returns its folder."""
+    acoustic_sim/engine/signals.py and clitools/; learn/ (not the simulator) is in both. Returns its folder."""
     repo = tmp_path / "repo"
     files = {
         "acoustic_sim/__init__.py": "from .config import TAPS\n",
@@ -32,7 +32,12 @@ def history(tmp_path):
         "learn/__init__.py": "",
     }
     git("init", "-q", str(repo), cwd=tmp_path)
-    for change in ({}, {"acoustic_sim/config.py": "TAPS = 4\n", "acoustic_sim/engine/signals.py": "# taps\n"}):
+    later = {
+        "acoustic_sim/config.py": "TAPS = 4\n",
+        "acoustic_sim/engine/signals.py": "# taps\n",
+        "clitools/__init__.py": "",
+    }
+    for change in ({}, later):
         for path, text in (files | change).items():
             (repo / path).parent.mkdir(parents=True, exist_ok=True)
             (repo / path).write_text(text)
@@ -66,6 +71,7 @@ def test_export_is_the_commits_simulator(tmp_path, history, rev):
     for path in SIMULATOR:
         assert (tmp_path / "tree" / path).read_bytes() == git("show", f"{rev}:{path}", cwd=history)
     assert (tmp_path / "tree" / "acoustic_sim/engine/signals.py").exists() == (rev == "HEAD")
+    assert (tmp_path / "tree" / "clitools/__init__.py").exists() == (rev == "HEAD")  # where the commit has it
     assert not (tmp_path / "tree" / "learn").exists()  # the simulator only
 
 
