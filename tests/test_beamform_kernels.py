@@ -130,3 +130,20 @@ def test_float16_energyscapes_are_the_float32_ones_rounded(device):
     np.testing.assert_array_equal(half.view(np.uint16), full.astype(np.float16).view(np.uint16))
     with pytest.raises(ValueError, match="float32 or float16"):
         sonar.simulate(room, poses, dtype=np.float64)
+
+
+def test_float16_energyscapes_convert_on_the_sonars_device_not_the_default(device):
+    """The float16 conversion once ran on Warp's default device: a sonar on a second GPU made an
+    illegal memory access (generate --device auto on two GPUs). With the default set to the CPU,
+    a GPU sonar's float16 energyscapes are still its float32 ones rounded."""
+    import scenes
+
+    if not device.startswith("cuda"):
+        pytest.skip("needs a CUDA device, to set the default to another one (the CPU)")
+    sonar = sim.Sonar(CONFIG, max_bounces=1, ray_count=2000, device=device)
+    poses = np.stack([scenes.pose(1.5 + 0.5 * i, 1.5, 0.3, 0.4 * i) for i in range(3)])
+    room = scenes.box_room(size=(4.0, 3.0, 2.5))
+    full = sonar.simulate(room, poses, seed=2).energyscape
+    with wp.ScopedDevice("cpu"):
+        half = sonar.simulate(room, poses, seed=2, dtype=np.float16).energyscape
+    np.testing.assert_array_equal(half.view(np.uint16), full.astype(np.float16).view(np.uint16))

@@ -188,7 +188,8 @@ class BatchCopies:
         self.turn ^= 1
         if out.dtype != self.dtype:  # float16 on the device: half the bytes to copy and to land
             half = wp.empty(out.shape, dtype=self.dtype, device=out.device)
-            wp.launch(beam_kernels.to_float16, dim=out.size, inputs=[out.flatten()], outputs=[half.flatten()])
+            convert = beam_kernels.to_float16
+            wp.launch(convert, dim=out.size, inputs=[out.flatten()], outputs=[half.flatten()], device=out.device)
             out = half
         self.stream.wait_stream(wp.get_stream(out.device))
         wp.copy(buffer[: out.shape[0]], out, stream=self.stream)
