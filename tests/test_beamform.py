@@ -247,3 +247,19 @@ if __name__ == "__main__":  # rewrite the stored default energyscape (see DEFAUL
     image = energyscape(reference_ping(), CONFIG, device="cpu")[0, ::REFERENCE_STRIDE, ::REFERENCE_STRIDE]
     np.save(DEFAULT_REFERENCE, np.ascontiguousarray(image, dtype=np.float32))
     print(f"wrote {DEFAULT_REFERENCE}: {image.shape}, peak {image.max():.4g}")
+
+
+def test_call_spectrum_by_fft_equals_the_direct_sum():
+    """The matched filter's spectrum of the call, taken from one FFT, against the sum that defines
+    it at each band frequency (a wrong sign, offset or FFT length breaks it)."""
+    from acoustic_sim.engine.beamform import call_spectrum
+
+    rng = np.random.default_rng(7)
+    call = rng.standard_normal(301)
+    points, shift = 1024, 0.2137
+    offsets = np.concatenate([np.arange(0, 40), np.arange(-40, 0), [511, -512]])
+    n = np.arange(len(call))
+    direct = np.exp(-2j * np.pi * (shift + offsets[:, None] / points) * n[None, :]) @ call
+    np.testing.assert_allclose(call_spectrum(call, shift, offsets, points), direct, rtol=0, atol=1e-10)
+    with pytest.raises(ValueError, match="cannot hold"):
+        call_spectrum(call, shift, offsets, 256)

@@ -87,7 +87,8 @@ class Beamformer:
         band = np.flatnonzero((freqs >= low) & (freqs <= high))
         # Correlation with the call (its spectrum at each bin's true frequency, conjugated), with
         # the scale that makes the envelope that of the full-rate analytic matched-filter output.
-        spectrum = np.exp(-2j * np.pi * freqs[band, None] * np.arange(len(call))[None, :] / fs) @ call
+        offsets = np.rint(np.fft.fftfreq(self.size) * self.size).astype(np.int64)[band]
+        spectrum = call_spectrum(call, centre / fs, offsets, self.size * self.decimation)
         matched = np.conj(spectrum) * 2.0 / (self.size * config.microphone_count)
 
         azimuth = self.grid.azimuth_rad
@@ -205,6 +206,17 @@ def band_tiles(band: np.ndarray, device) -> list[wp.array]:
     index = [t[0] for t in tiles]
     width = [len(t) for t in tiles]
     return [wp.array(np.asarray(v, dtype=np.int32), dtype=wp.int32, device=device) for v in (column, index, width)]
+
+
+def call_spectrum(call: np.ndarray, shift: float, offsets: np.ndarray, points: int) -> np.ndarray:
+    """The call's spectrum sum_n call[n] exp(-2 pi i (shift + k / points) n) at integer offsets k
+    (frequencies in cycles per sample): one `points`-point FFT of the call shifted down by `shift`
+    (`points` >= len(call)). Summing it directly over a beamformer's band took 0.06-0.15 s of each
+    process's first energyscape (2,549 bins x 1,126 samples), the FFT ~1 ms."""
+    if points < len(call):
+        raise ValueError(f"a {points}-point FFT cannot hold a {len(call)}-sample call")
+    shifted = call * np.exp(-2j * np.pi * shift * np.arange(len(call)))
+    return np.fft.fft(shifted, points)[np.mod(offsets, points)]
 
 
 # Beamformers of recent settings (all arguments hashable: no custom call waveform).
