@@ -292,7 +292,9 @@ def make_dataset(
                 elif pool:
                     # the card's plotting imports (~0.5 s) while the workers render, not after them
                     threading.Thread(target=importlib.import_module, args=("acoustic_sim.render",), daemon=True).start()
-                    parts = dict.fromkeys(PARTS, 0.0) | pool.run(todo, bar)
+                    # longest shards first: the last ones taken, and the workers' ends, differ less
+                    longest_first = sorted(todo, key=lambda t: -t.frame_count)
+                    parts = dict.fromkeys(PARTS, 0.0) | pool.run(longest_first, bar)
                 else:
                     parts = run_tasks(
                         todo, renderer, devices[0], on_frames=bar.update, overlap=overlap, helpers=helpers
