@@ -8,7 +8,7 @@ Writes benchmarks/results/learn_<cpu|cuda>.json and .md. Random weights and inpu
 grid (K = 5, 240 x 181): speed does not depend on the weights. Training: Adam steps at batch 12
 (bfloat16 autocast on GPUs, as `learn train` does); inference: batch 1 (per frame, as on a
 robot) and batch 32. Medians after warm-up steps. `--ddp` instead times DDP training of polar_unet
-on 1, 2, 4, ... GPUs (torchrun jobs in one run; gloo processes on the CPU) and writes
+and the paper network on 1, 2, 4, ... GPUs (torchrun jobs in one run; gloo processes on the CPU) and writes
 learn_ddp_<cpu|cuda>.json and .md with the scaling efficiency beside the one-GPU figure.
 """
 
@@ -98,8 +98,9 @@ def bench_model(
 
 
 def ddp_worker(args) -> None:
-    """One rank under torchrun: DDP training steps of polar_unet at `--batch` windows per GPU (NCCL
-    on GPUs, gloo on the CPU), as `learn train` runs them; rank 0 writes the rate to --worker-out."""
+    """One rank under torchrun: DDP training steps of `--ddp-model` at `--batch` windows per GPU
+    (NCCL on GPUs, gloo on the CPU), as `learn train` runs them; rank 0 writes the rate to
+    --worker-out."""
     import torch.distributed as dist
     from torch.nn.parallel import DistributedDataParallel
 
@@ -112,7 +113,7 @@ def ddp_worker(args) -> None:
         torch.backends.cudnn.benchmark = True
     torch.manual_seed(0)  # the same initial weights on every rank, as DDP expects
     model = DistributedDataParallel(
-        build_model(ModelConfig(name="polar_unet", frames=5)).to(device), device_ids=[local] if cuda else None
+        build_model(ModelConfig(name=args.ddp_model, frames=5)).to(device), device_ids=[local] if cuda else None
     )
     optimizer = torch.optim.Adam(model.parameters(), lr=1e-3)
     generator = torch.Generator().manual_seed(rank)  # each rank its own windows
@@ -136,30 +137,37 @@ def ddp_worker(args) -> None:
     dist.destroy_process_group()
 
 
+DDP_MODELS = ("polar_unet", "paper")
+
+
 def bench_ddp(args, device: torch.device, name: str) -> dict:
-    """Windows/s of DDP training on 1, 2, 4, ... GPUs of this host (or 1 and 2 gloo processes on the
-    CPU), each a torchrun job in this one run, and the scaling efficiency rate_N / (N x rate_1)."""
+    """Windows/s of DDP training of each of DDP_MODELS on 1, 2, 4, ... GPUs of this host (or 1 and 2
+    gloo processes on the CPU), each a torchrun job in this one run, and the scaling efficiency
+    rate_N / (N x rate_1)."""
     import subprocess
     import tempfile
 
     most = torch.cuda.device_count() if device.type == "cuda" else 2
     counts = [n for n in (1, 2, 4, 8) if n <= most]
-    runs = []
+    models = {}
     with tempfile.TemporaryDirectory() as tmp:
-        for n in counts:
-            out = Path(tmp) / f"{n}.json"
-            command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(n)]
-            command += [__file__, "--ddp-worker", "--device", str(device.type), "--batch", str(args.batch)]
-            command += ["--repeats", str(args.repeats), "--warmup", str(args.warmup), "--worker-out", str(out)]
-            done = subprocess.run(command, capture_output=True, text=True)
-            if done.returncode != 0:
-                raise RuntimeError(f"torchrun with {n} ranks failed:\n{done.stderr[-3000:]}")
-            runs.append(json.loads(out.read_text()))
-            print(f"{n} rank(s): {runs[-1]['windows_per_s']:,.1f} windows/s", flush=True)
-    one = runs[0]["windows_per_s"]
-    for n, r in zip(counts, runs, strict=True):
-        r["efficiency"] = r["windows_per_s"] / (n * one)
-    res = {"device_name": name, "torch": torch.__version__, "date": time.strftime("%Y-%m-%d"), "runs": runs}
+        for model in DDP_MODELS:
+            runs = models[model] = []
+            for n in counts:
+                out = Path(tmp) / f"{model}_{n}.json"
+                command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", str(n)]
+                command += [__file__, "--ddp-worker", "--ddp-model", model, "--device", str(device.type)]
+                command += ["--batch", str(args.batch), "--repeats", str(args.repeats), "--warmup", str(args.warmup)]
+                command += ["--worker-out", str(out)]
+                done = subprocess.run(command, capture_output=True, text=True)
+                if done.returncode != 0:
+                    raise RuntimeError(f"torchrun with {n} ranks failed ({model}):\n{done.stderr[-3000:]}")
+                runs.append(json.loads(out.read_text()))
+                print(f"{model}, {n} rank(s): {runs[-1]['windows_per_s']:,.1f} windows/s", flush=True)
+            one = runs[0]["windows_per_s"]
+            for n, r in zip(counts, runs, strict=True):
+                r["efficiency"] = r["windows_per_s"] / (n * one)
+    res = {"device_name": name, "torch": torch.__version__, "date": time.strftime("%Y-%m-%d"), "models": models}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     stem = f"learn_ddp_{device.type}"
@@ -168,14 +176,18 @@ def bench_ddp(args, device: torch.device, name: str) -> dict:
     lines = [
         f"# DDP training speed on {name} ({unit}, torch {res['torch']}, {res['date']})",
         "",
-        f"polar_unet, K = 5, 240 x 181, Adam at {args.batch} windows per rank"
+        f"K = 5, 240 x 181, Adam at {args.batch} windows per rank"
         f"{', bfloat16 autocast, NCCL' if device.type == 'cuda' else ', gloo'}; medians of {args.repeats} steps, "
-        "each rank count a torchrun job in the same run.",
+        "each model and rank count a torchrun job in the same run.",
         "",
-        f"| {unit} | training windows/s | efficiency (rate / (N x one)) |",
-        "|---|---|---|",
+        f"| model | {unit} | training windows/s | efficiency (rate / (N x one)) |",
+        "|---|---|---|---|",
     ]
-    lines += [f"| {n} | {r['windows_per_s']:,.1f} | {r['efficiency']:.0%} |" for n, r in zip(counts, runs, strict=True)]
+    lines += [
+        f"| {model} | {n} | {r['windows_per_s']:,.1f} | {r['efficiency']:.0%} |"
+        for model, runs in models.items()
+        for n, r in zip(counts, runs, strict=True)
+    ]
     lines += ["", provenance_line(res["provenance"])]
     (out / f"{stem}.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
@@ -197,6 +209,7 @@ def main(argv=None) -> dict:
     )
     parser.add_argument("--ddp", action="store_true", help="DDP scaling over this host's GPUs instead (torchrun)")
     parser.add_argument("--ddp-worker", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--ddp-model", default="polar_unet", help=argparse.SUPPRESS)
     parser.add_argument("--worker-out", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.ddp_worker:
