@@ -145,6 +145,7 @@ def _generate_dataset(args) -> int:
         device=args.device,
         workers=args.workers,
         ray_address=args.ray_address,
+        ray_tasks_per_gpu=args.ray_tasks_per_gpu,
         keep_signals=args.signals,
         keep_arrivals=args.arrivals,
         progress=not args.quiet,
@@ -184,6 +185,7 @@ def _generate_crossengine(args) -> int:
 
     own = {"--max-bounces": args.max_bounces, "--shards": args.shards, "--signals": args.signals}
     own |= {"--arrivals": args.arrivals, "--ray-address": args.ray_address, "--variants": args.variants}
+    own["--ray-tasks-per-gpu"] = args.ray_tasks_per_gpu if args.ray_tasks_per_gpu != 1 else None
     if given := [k for k, v in own.items() if v not in (None, False)]:
         raise ValueError(f"the {args.suite} test set is another engine's: {', '.join(given)} does not apply to it")
     summary = generate_crossengine(
@@ -358,6 +360,12 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--seed", type=int, default=0, help="seeds every scene, drive and noise")
     gen.add_argument(
         "--ray-address", default=None, help="run the shard tasks on this Ray cluster ('auto' or host:port)"
+    )
+    gen.add_argument(
+        "--ray-tasks-per-gpu",
+        type=int,
+        default=1,
+        help="with --ray-address: shard tasks sharing one GPU (each holds 1/N of it; default 1)",
     )
     gen.add_argument("--signals", action="store_true", help="also store the raw microphone signals (float16)")
     gen.add_argument("--arrivals", action="store_true", help="also store every traced echo (slow on a GPU)")

@@ -10,8 +10,9 @@
 #   bash benchmarks/multi_gpu.sh check WORKDIR  # on ONE GPU: --workers 2 --device auto gives the same shards,
 #                                               # torchrun's NCCL path at world size 1 trains as the plain run
 #
-# Environment: BENCH_FRAMES (75000, per timed run), FRAMES (12500, the dataset compared and trained
-# on), RAY_FRAMES (2500), EPOCHS (8 sub-epochs of 12,000 windows), RAY_SITE (a folder holding Ray).
+# Environment: BENCH_FRAMES (75000, per timed run), GEN_WORKERS (5 and 5 per GPU), FRAMES (12500, the
+# dataset compared and trained on), RAY_FRAMES (12500), RAY_TASKS_PER_GPU (1 5 1: each a run, the last
+# on warm Ray workers), EPOCHS (8 sub-epochs of 12,000 windows), RAY_SITE (a folder holding Ray).
 # NVLink multicast stays off.
 set -euo pipefail
 phase=$1 W=$2
@@ -27,11 +28,10 @@ stamp() { # the phase's start in the log, and its commit, machine and versions b
 
 gen() {
   stamp gen
-  # 8 workers were the best of 1, 4 and 8 on an H100; on an x2 host's H200s (h200x2/generate_cuda.md) 16
-  # on one GPU and 8 per GPU on two were slower than 8 and 4. A run carries 3-5 s of fixed cost (worker
-  # start, the last shards, the card), which 37,500 frames did not amortise on two GPUs: 75,000 by default.
-  python benchmarks/bench_generate.py --device cuda:0,auto --suite paper --frames "${BENCH_FRAMES:-75000}" \
-    --workers "8,$((6 * GPUS))" --modes overlapped --repeats 3 --out "$R"
+  # 4-5 workers a GPU are the best since helper processes (session 26). A run carries ~1-2 s of fixed cost
+  # (worker start, first episode, last shards), which 37,500 frames did not amortise on two GPUs: 75,000.
+  python benchmarks/bench_generate.py --device cuda:0,auto --suite "${SUITE:-paper}" --frames "${BENCH_FRAMES:-75000}" \
+    --workers "${GEN_WORKERS:-5,$((5 * GPUS))}" --modes overlapped --repeats 3 --out "$R"
   GEN=(--suite paper --frames "${FRAMES:-12500}" --seed 0 --quiet)
   python -m acoustic_sim generate "${GEN[@]}" --workers 8 --device cuda:0 --out "$W/one_gpu" | tee "$R/generate_one_gpu.txt"
   # the identity check needs every GPU busy with several workers, not the fastest count
@@ -44,17 +44,24 @@ ray_cluster() {
   stamp ray
   export RAY_AUTH_MODE=token # as `ray start` has by default since Ray 2.59; the caller must match
   export PYTHONPATH=${RAY_SITE:+$RAY_SITE:}${PYTHONPATH:-} # Ray installed apart, where it is
-  GEN=(--suite paper --frames "${RAY_FRAMES:-2500}" --seed 0 --quiet)
-  python -m acoustic_sim generate "${GEN[@]}" --device cuda:0 --out "$W/ray_reference"
+  GEN=(--suite paper --frames "${RAY_FRAMES:-12500}" --seed 0 --quiet)
+  # local workers on every GPU: the shards Ray's must equal, and the rate beside Ray's in the same job
+  python -m acoustic_sim generate "${GEN[@]}" --device auto --workers $((5 * GPUS)) --out "$W/ray_reference" |
+    tee "$R/generate_ray.txt"
   python -c "import ray; print('ray', ray.__version__)"
   # With the mode set, `ray start` refuses to run without a token (it makes one only when the mode is
   # left to its default), as the first x2 lease found: make one (kept in ~/.ray/auth_token) first.
   python -m ray.scripts.scripts get-auth-token --generate >/dev/null
   python -m ray.scripts.scripts start --head --port 6379 --num-gpus "$GPUS" --disable-usage-stats >"$W/ray_start.log" 2>&1
   trap 'python -m ray.scripts.scripts stop >/dev/null 2>&1 || true' EXIT # also when a step fails
-  python -m acoustic_sim generate "${GEN[@]}" --device auto --ray-address 127.0.0.1:6379 --out "$W/ray" |
-    tee "$R/generate_ray.txt"
-  python benchmarks/same_shards.py "$W/ray_reference" "$W/ray" | tee -a "$R/generate_ray.txt"
+  local run=0
+  for n in ${RAY_TASKS_PER_GPU:-1 5 1}; do # one shard task per GPU, or n sharing each
+    run=$((run + 1))
+    echo "-- Ray, $n task(s) per GPU (run $run)" | tee -a "$R/generate_ray.txt"
+    python -m acoustic_sim generate "${GEN[@]}" --device auto --ray-address 127.0.0.1:6379 --ray-tasks-per-gpu "$n" \
+      --out "$W/ray_$run" | tee -a "$R/generate_ray.txt"
+    python benchmarks/same_shards.py "$W/ray_reference" "$W/ray_$run" | tee -a "$R/generate_ray.txt"
+  done
 }
 
 ddp() {

@@ -8,6 +8,7 @@ import sys
 import threading
 import typing
 from pathlib import Path
+from types import SimpleNamespace
 
 import h5py
 import numpy as np
@@ -339,8 +340,40 @@ def test_a_refused_ray_connection_names_token_authentication(tmp_path, monkeypat
     else:
         monkeypatch.delenv("RAY_AUTH_MODE", raising=False)
     with pytest.raises(ConnectionError) as caught:
-        gen._run_on_ray([], gen.SuiteRenderer(), "10.0.0.1:6379", gpu=False, bar=None)
+        gen._run_on_ray([], gen.SuiteRenderer(), "10.0.0.1:6379", gpu_share=0, bar=None)
     assert ("RAY_AUTH_MODE=token" in str(caught.value)) == (mode != "token"), caught.value
+
+
+@pytest.mark.parametrize(("per_gpu", "share"), [(1, 1.0), (4, 0.25)])
+def test_ray_tasks_hold_their_share_of_a_gpu(tmp_path, monkeypatch, per_gpu, share):
+    """`ray_tasks_per_gpu` n asks Ray for 1/n of a GPU per shard task, so n share one; each task
+    renders on the GPU Ray shows it (its cuda:0). A fake Ray module stands in: CI has no Ray."""
+    asked = {}
+
+    class Recording:
+        @staticmethod
+        def init(**kwargs):
+            pass
+
+        @staticmethod
+        def remote(**options):
+            asked.update(options)
+            return lambda fn: SimpleNamespace(remote=lambda task, renderer, device: asked.setdefault("device", device))
+
+        @staticmethod
+        def wait(refs, num_returns):
+            return refs[:num_returns], refs[num_returns:]
+
+        @staticmethod
+        def get(ref):
+            return None
+
+    monkeypatch.setitem(sys.modules, "ray", Recording)
+    bar = SimpleNamespace(update=lambda frames: None)
+    gen._run_on_ray([SimpleNamespace(frame_count=1)], gen.SuiteRenderer(), "local", gpu_share=1 / per_gpu, bar=bar)
+    assert asked["num_gpus"] == share and asked["device"] == "cuda:0"
+    with pytest.raises(ValueError, match="needs a Ray address"):
+        gen.make_dataset([], gen.SuiteRenderer(), tmp_path, plan_meta={}, ray_tasks_per_gpu=2)
 
 
 def test_a_worker_takes_its_next_shard_only_during_the_last_episode_of_this_one(tmp_path, device, monkeypatch):

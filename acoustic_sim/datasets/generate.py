@@ -167,6 +167,7 @@ def generate(
     device: str = "auto",
     workers: int = 1,
     ray_address: str | None = None,
+    ray_tasks_per_gpu: int = 1,
     keep_signals: bool = False,
     keep_arrivals: bool = False,
     progress: bool = True,
@@ -208,6 +209,7 @@ def generate(
         device=device,
         workers=workers,
         ray_address=ray_address,
+        ray_tasks_per_gpu=ray_tasks_per_gpu,
         progress=progress,
         overlap=overlap,
         helpers=helpers,
@@ -245,6 +247,7 @@ def make_dataset(
     device: str = "auto",
     workers: int = 1,
     ray_address: str | None = None,
+    ray_tasks_per_gpu: int = 1,
     progress: bool = True,
     overlap: bool = True,
     helpers: int | None = None,
@@ -262,6 +265,8 @@ def make_dataset(
     out = Path(out)
     if workers < 1:
         raise ValueError(f"workers must be >= 1, got {workers}")
+    if ray_tasks_per_gpu < 1 or (ray_tasks_per_gpu != 1 and not ray_address):
+        raise ValueError(f"ray_tasks_per_gpu must be >= 1 and needs a Ray address, got {ray_tasks_per_gpu}")
     processes = 1 if ray_address else min(workers, len(tasks))
     helpers = host_helpers(processes, helpers)  # a negative count is refused before any process starts
     check_device_name(device, allow_auto=True)  # a typo fails here, before any process or Warp starts
@@ -287,7 +292,8 @@ def make_dataset(
             bar.set_description(name)
             try:
                 if ray_address:
-                    _run_on_ray(todo, renderer, ray_address, devices[0].startswith("cuda"), bar)
+                    gpu_share = 1 / ray_tasks_per_gpu if devices[0].startswith("cuda") else 0
+                    _run_on_ray(todo, renderer, ray_address, gpu_share, bar)
                     parts = {}  # not reported back by Ray tasks
                 elif pool:
                     # the card's plotting imports (~0.5 s) while the workers render, not after them
@@ -337,6 +343,7 @@ def make_dataset(
         "workers": processes,
         "worker_start": pool.start_method if pool else None,
         "helpers": helpers if overlap and not ray_address else 0,
+        "ray_tasks_per_gpu": ray_tasks_per_gpu if ray_address else None,
     }
 
 
@@ -355,7 +362,8 @@ def _ray():
     return ray
 
 
-def _run_on_ray(tasks: list[ShardTask], renderer: Renderer, address: str, gpu: bool, bar) -> None:
+def _run_on_ray(tasks: list[ShardTask], renderer: Renderer, address: str, gpu_share: float, bar) -> None:
+    """Each shard a Ray task holding `gpu_share` of a GPU (1/n: n tasks share one; 0: on the CPU)."""
     ray = _ray()
     try:
         ray.init(address=address, ignore_reinit_error=True, log_to_driver=False)
@@ -369,8 +377,9 @@ def _run_on_ray(tasks: list[ShardTask], renderer: Renderer, address: str, gpu: b
             "clusters since Ray 2.59), set RAY_AUTH_MODE=token here too (the token is read from "
             "~/.ray/auth_token or RAY_AUTH_TOKEN)"
         ) from error
-    remote = ray.remote(num_gpus=1 if gpu else 0, max_retries=2)(run_task)
-    pending = {remote.remote(t, renderer, "cuda:0" if gpu else "cpu"): t for t in tasks}
+    remote = ray.remote(num_gpus=gpu_share, max_retries=2)(run_task)
+    # Ray shows a task only the GPU it holds (CUDA_VISIBLE_DEVICES): its cuda:0
+    pending = {remote.remote(t, renderer, "cuda:0" if gpu_share else "cpu"): t for t in tasks}
     while pending:
         ready, _ = ray.wait(list(pending), num_returns=1)
         for ref in ready:
