@@ -55,7 +55,7 @@ def test_fletcher32_from_plain_sums_equals_the_loop_over_blocks():
 def test_rows_written_in_threads_read_back_through_hdf5(tmp_path, dtype):
     """A shard-like dataset (shuffle, gzip 1, Fletcher-32, one chunk per frame) written with
     `write_rows` in 3 threads reads back equal through h5py, which inflates, unshuffles and checks
-    every chunk's checksum; the stored chunks (deflated with runs only) are at most 5 % larger than
+    every chunk's checksum; the stored chunks (deflated by ISA-L) are at most 5 % larger than
     HDF5's own for the same data, and smaller than the raw rows."""
     rng = np.random.default_rng(2)
     array = (rng.random((9, 24, 18)) * (3.0 if dtype == np.float16 else 1.5)).astype(dtype)

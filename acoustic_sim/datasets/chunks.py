@@ -2,28 +2,29 @@
 applied here, in threads, and the finished chunks stored with `write_direct_chunk`.
 
 h5py runs HDF5's filters under one lock per process, one chunk at a time: on the H100 machine
-compressing a shard cost ~3 ms per frame, more than simulating it. zlib releases the GIL, so
-threads compress chunks side by side; the file is the same HDF5 any reader (h5py, MATLAB) opens
-and checks. Deflate runs with zlib's run-length strategy (DEFLATE_STRATEGY), which any inflater
-reads.
+compressing a shard cost ~3 ms per frame, more than simulating it. Deflate here is ISA-L's
+(python-isal), which releases the GIL, so threads compress chunks side by side; its output is the
+zlib stream any inflater reads, so the file is the same HDF5 any reader (h5py, MATLAB) opens and
+checks.
 """
 
 from __future__ import annotations
 
 import struct
-import zlib
 from concurrent.futures import ThreadPoolExecutor
 
 import h5py
 import numpy as np
+from isal import isal_zlib
 
 BLOCK = 360  # words per Fletcher block (HDF5's: the most sums that cannot overflow 32 bits)
-# Shuffled float16 energyscapes are runs (the high bytes) and noise (the low ones): searching for
-# repeated strings finds little there. At level 1 on a `tiny`-suite shard's energyscapes, runs
-# only took 0.62 ms a frame for 56.9 KB against 1.16 ms for 56.0 KB (LiDAR images 0.5 against
-# 0.9 KB, as fast); the `paper` suite's 12,500 frames on an H100 wrote 0.07 % more bytes, in 27.4
-# s of writing summed over 8 workers against 36.3 s (benchmarks/results/generate_cuda.md).
-DEFLATE_STRATEGY = zlib.Z_RLE
+# Deflating is most of a shard's writing, and writing the largest host cost of generation (38-45 s
+# summed over the workers for 25,000 frames on two H100s, benchmarks/results/multi_gpu/
+# h100x2_session27). On a `paper` shard's shuffled float16 energyscapes ISA-L's level 1 took
+# 0.19 ms a frame for 57.8 KB, zlib's level 1 with its run-length strategy (used here before)
+# 0.71 ms for the same 57.8 KB, zlib-ng's 0.37 ms, libdeflate's level 2 0.58 ms for 53.9 KB; LiDAR
+# images 0.03 against 0.06 ms (0.8 against 0.5 KB). ISA-L's levels go to 3: HDF5's above it is 3.
+ISAL_MAX_LEVEL = isal_zlib.ISAL_BEST_COMPRESSION
 
 
 # A block's sum of running sums below this cannot carry the 32-bit sums of HDF5's loop past 2^32
@@ -97,8 +98,7 @@ def encode(chunk: np.ndarray, filters: list[tuple[int, tuple]]) -> bytes:
         if code == h5py.h5z.FILTER_SHUFFLE and size > 1:  # byte k of every element, then byte k + 1
             data = np.frombuffer(data, np.uint8).reshape(-1, size).T.tobytes()
         elif code == h5py.h5z.FILTER_DEFLATE:
-            deflate = zlib.compressobj(values[0], zlib.DEFLATED, zlib.MAX_WBITS, 8, DEFLATE_STRATEGY)
-            data = deflate.compress(data) + deflate.flush()
+            data = isal_zlib.compress(data, min(values[0], ISAL_MAX_LEVEL))
         elif code == h5py.h5z.FILTER_FLETCHER32:
             data += struct.pack("<I", fletcher32(data))
     return data
