@@ -5,7 +5,7 @@ packages, `examples/` and the Makefile linked in), so outputs land there and a l
 earlier one wrote.
 
 - bash: bash itself expands each block (loops, quotes, line continuations, comments, globs) with
-  `python`, `torchrun`, `pip`, `make` and `.` replaced by functions that record their arguments; every
+  `python`, `torchrun`, `ray`, `pip`, `make` and `.` replaced by functions that record their arguments; every
   recorded command is then checked, in order. Each `python -m acoustic_sim|learn` command is parsed by
   that CLI's own argparse parser (unknown options, bad choices and wrong types fail) and its `--set`
   values, suite and device names are checked; every input file it names must exist or lie in the output
@@ -92,6 +92,7 @@ PARSE_ONLY: list[tuple[str, Callable[[Command], bool]]] = [
     ),
     ("trains models: minutes to hours", lambda c: c.subcommand in ("learn train", "learn table2", "learn sim2real")),
     ("installs packages (the test environment has the extras)", lambda c: c.argv[0] == "pip"),
+    ("needs a Ray cluster", lambda c: c.argv[0] == "ray" or bool(getattr(c.args, "ray_address", None))),
     ("make demo takes ~10 minutes, make test is the whole suite", lambda c: c.argv[0] == "make"),
 ]
 """Commands that cannot run in CI as written: (reason, rule). They are parsed and checked, not run."""
@@ -119,6 +120,7 @@ python() { _record python "$@"; }
 python3() { _record python "$@"; }
 .venv/bin/python() { _record python "$@"; }
 torchrun() { _record torchrun "$@"; }
+ray() { _record ray "$@"; }
 pip() { _record pip "$@"; }
 make() { _record make "$@"; }
 .() { _record . "$@"; }
@@ -224,6 +226,8 @@ class Walk:
             self._check_pip(argv[1:])
         elif argv[0] == "make":
             self._check_make(argv[1:])
+        elif argv[0] == "ray":
+            self._check_ray(argv[1:])
         elif argv[0] == "." and argv[1:] == [".venv/bin/activate"]:
             self.report.append(f"skipped      {command.text}  (the test runs the venv's interpreter already)")
             return
@@ -297,6 +301,14 @@ class Walk:
             name, sep, _ = arg.partition("=")
             pattern = rf"^{re.escape(name)} \?=" if sep else rf"^{re.escape(arg)}:"
             assert re.search(pattern, makefile, re.M), f"the Makefile has no {'variable' if sep else 'target'} {name}"
+
+    @staticmethod
+    def _check_ray(args: list[str]) -> None:
+        """Ray's own commands, as far as they can be checked without Ray: the two the README uses."""
+        if args[:2] == ["get-auth-token", "--generate"]:
+            return
+        assert args[:1] == ["start"], f"no rule for `ray {shlex.join(args)}` (get-auth-token --generate, start)"
+        assert ("--head" in args) != any(a.startswith("--address") for a in args), "ray start: --head or --address"
 
     def bash(self, code: str) -> None:
         for argv in shell_commands(code, self.cwd):
