@@ -3,6 +3,7 @@
 # (default benchmarks/results/multi_gpu), working files under WORKDIR:
 #
 #   bash benchmarks/multi_gpu.sh gen   WORKDIR  # bench_generate: one GPU vs all (frames/s); one GPU's shards = all GPUs'
+#   bash benchmarks/multi_gpu.sh timeline WORKDIR  # worker_timeline: one run on one GPU and one on all, per worker
 #   bash benchmarks/multi_gpu.sh ray   WORKDIR  # a local Ray cluster (ray start --head) writes one process's shards
 #   bash benchmarks/multi_gpu.sh ddp   WORKDIR  # bench_learn --ddp: windows/s on 1..N GPUs, efficiency
 #   bash benchmarks/multi_gpu.sh train WORKDIR  # one GPU at batch 16 vs N GPUs at 16/N each, seeds 0 and 1 (after gen)
@@ -38,6 +39,16 @@ gen() {
   python -m acoustic_sim generate "${GEN[@]}" --workers $((8 * GPUS)) --device auto --out "$W/all_gpus" |
     tee "$R/generate_${GPUS}_gpus.txt"
   python benchmarks/same_shards.py "$W/one_gpu" "$W/all_gpus" | tee "$R/generate_identical.txt"
+}
+
+timeline() {
+  stamp timeline
+  # where each run's time goes, worker by worker (start-up, first episode, steady episodes, last write)
+  local frames=${BENCH_FRAMES:-25000} suite=${SUITE:-paper}
+  python benchmarks/worker_timeline.py --suite "$suite" --frames "$frames" --workers 5 --device cuda:0 \
+    --out "$R/timeline_one_gpu"
+  python benchmarks/worker_timeline.py --suite "$suite" --frames "$frames" --workers $((5 * GPUS)) --device auto \
+    --out "$R/timeline_${GPUS}_gpus"
 }
 
 ray_cluster() {
@@ -115,6 +126,7 @@ PY
 
 case $phase in
 gen) gen ;;
+timeline) timeline ;;
 ray) ray_cluster ;;
 ddp) ddp ;;
 train) train ;;
@@ -124,7 +136,7 @@ all) # each phase in its own shell: one that fails is reported and the next stil
   ;;
 check) check ;;
 *)
-  echo "usage: $0 gen|ray|ddp|train|all|check WORKDIR" >&2
+  echo "usage: $0 gen|timeline|ray|ddp|train|all|check WORKDIR" >&2
   exit 2
   ;;
 esac
