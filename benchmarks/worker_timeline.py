@@ -3,13 +3,12 @@
     python benchmarks/worker_timeline.py --suite paper --frames 12500 --workers 4 --device cuda:0 --out DIR
 
 Runs one `generate` in a fresh process (as the command runs) with each worker's device-ready
-moment, its warm-up, every episode's render and every shard's write logged (wall clock, by
-process), then writes DIR/timeline.json (the events and a summary) and DIR/timeline.md: per
-worker, when its device was ready, how long its warm-up took (on a GPU: kernel modules and
-sensors, while its first episodes are prepared), when its first episode started and how long it
-took, its median episode after that, when its last episode ended and when its last shard was
-written. The fixed costs of a run (start-up, first episode, last write) read off it directly;
-`bench_generate` gives only their sums.
+moment, every episode's render and every shard's write logged (wall clock, by process), then
+writes DIR/timeline.json (the events and a summary) and DIR/timeline.md: per worker, when its
+device was ready, when its first episode started and how long it took (CUDA context, kernel
+modules, sensors), its median episode after that, when its last episode ended and when its last
+shard was written. The fixed costs of a run (start-up, first episode, last write) read off it
+directly; `bench_generate` gives only their sums.
 """
 
 from __future__ import annotations
@@ -57,14 +56,7 @@ def child(spec: dict) -> dict:
     from acoustic_sim.datasets import runner, workers
     from acoustic_sim.datasets.suites import load_suite
 
-    render, resolve, warm_up = gen.SuiteRenderer.render, workers.resolve_device, gen.SuiteRenderer.warm_up
-
-    def logged_warm_up(self, *args, **kwargs):
-        log("warm_up_start")
-        try:
-            return warm_up(self, *args, **kwargs)
-        finally:
-            log("warm_up_end")
+    render, resolve = gen.SuiteRenderer.render, workers.resolve_device
 
     def logged_render(self, *args, **kwargs):
         log("render_start")
@@ -78,7 +70,6 @@ def child(spec: dict) -> dict:
         return resolve(device, index)
 
     gen.SuiteRenderer.render, workers.resolve_device = logged_render, logged_resolve
-    gen.SuiteRenderer.warm_up = logged_warm_up
     _WRITE, runner._write = runner._write, timed_write
     log("call_start")
     summary = gen.generate(
@@ -111,7 +102,6 @@ def summarise(events: list[dict]) -> dict:
         up = [e["t"] - t0 for e in own if e["event"] == "worker_up"]
         begun = [e["t"] - t0 for e in own if e["event"] == "render_start"]
         ended = [e["t"] - t0 for e in own if e["event"] == "render_end"]
-        warm = [e["t"] - t0 for e in own if e["event"] in ("warm_up_start", "warm_up_end")]
         writes = [
             e["t"] - t0 for q, es in by_pid.items() for e in es if e["event"] == "write_end" and pid in (q, e["ppid"])
         ]
@@ -120,7 +110,6 @@ def summarise(events: list[dict]) -> dict:
             {
                 "pid": pid,
                 "up_s": up[0] if up else 0.0,
-                "warm_up_s": warm[1] - warm[0] if len(warm) == 2 else 0.0,
                 "first_episode_at_s": begun[0],
                 "first_episode_s": ended[0] - begun[0],
                 "median_episode_s": later[len(later) // 2] if later else None,
@@ -140,18 +129,16 @@ def markdown(res: dict) -> str:
         f"`generate --suite {s['suite']} --frames {s['frames']} --workers {s['workers']} --device {s['device']}`: "
         f"{run['frames_per_s']:,.0f} frames/s, {run['seconds']:.2f} s, on {', '.join(run['devices'])} "
         f"({run['helpers']} helpers a worker). Seconds from the workers' launch; *CUDA up*: the worker "
-        "has started CUDA and picks its device; *warm-up*: loading its kernel modules and building its sensors "
-        "on a GPU (while its first episodes are prepared), else in its first episode.",
+        "has started CUDA and picks its device; the first episode includes its kernel modules and sensors.",
         "",
-        "| worker | CUDA up | warm-up s | first episode at | first episode s | median episode s | episodes "
-        "| last episode ends | last shard written |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| worker | CUDA up | first episode at | first episode s | median episode s | episodes | last episode ends "
+        "| last shard written |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for i, w in enumerate(res["summary"]["workers"]):
         median = f"{w['median_episode_s']:.3f}" if w["median_episode_s"] is not None else "-"
         lines.append(
-            f"| {i} | {w['up_s']:.2f} | {w['warm_up_s']:.2f} | {w['first_episode_at_s']:.2f} | "
-            f"{w['first_episode_s']:.2f} | {median} | "
+            f"| {i} | {w['up_s']:.2f} | {w['first_episode_at_s']:.2f} | {w['first_episode_s']:.2f} | {median} | "
             f"{w['episodes']} | {w['last_episode_end_s']:.2f} | {w['last_write_end_s']:.2f} |"
         )
     return "\n".join(lines) + "\n\n" + provenance_line(res["provenance"]) + "\n"

@@ -376,29 +376,6 @@ def test_ray_tasks_hold_their_share_of_a_gpu(tmp_path, monkeypatch, per_gpu, sha
         gen.make_dataset([], gen.SuiteRenderer(), tmp_path, plan_meta={}, ray_tasks_per_gpu=2)
 
 
-def test_a_warm_up_before_the_first_episode_changes_no_array(reference, tmp_path, device, monkeypatch):
-    """On a GPU a process first renders one ping and one scan in a box room with its rig (kernels
-    loaded, sensors built) while its first episodes are prepared; the sensors it built are reused,
-    so the dataset must be the one made without it (forced on here, whatever the device)."""
-    from acoustic_sim.datasets import episode
-
-    warmed = []
-    real = gen.SuiteRenderer.warm_up
-    monkeypatch.setattr(runner, "warms_up", lambda device: True)
-    monkeypatch.setattr(
-        gen.SuiteRenderer, "warm_up", lambda self, task, dev: warmed.append(dev) or real(self, task, dev)
-    )
-    episode._sonar.cache_clear()  # the sensors the warm-up builds are the ones the episodes use
-    episode._lidar.cache_clear()
-    summary = generate(tmp_path, device)
-    assert warmed == [summary["devices"][0]]  # one process, warmed up once
-    assert summary["seconds_by_part"]["start-up"] > 0  # its time is counted
-    expected, got = shard_arrays(reference[0]), shard_arrays(tmp_path)
-    assert expected.keys() == got.keys()
-    for key in expected:
-        np.testing.assert_array_equal(got[key], expected[key], err_msg=key)
-
-
 def test_a_worker_takes_its_next_shard_only_during_the_last_episode_of_this_one(tmp_path, device, monkeypatch):
     """run_tasks reads its tasks lazily (in a worker, from the queue all workers share): the next
     shard is taken while the last episode of the current one renders, never earlier, so a worker

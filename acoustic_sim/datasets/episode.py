@@ -193,30 +193,6 @@ def simulate_episode(
     return arrays, record
 
 
-def warm_up_sensors(physics: Physics, nominal: SimConfig, device: str) -> None:
-    """Load the kernels of a rig and build its sensors on `device` with one ping and one scan in an
-    empty box room (results discarded), so that a process's first episode renders at the speed
-    of the next ones. A GPU worker's first episode took ~0.6 s against ~0.07 for the next (loading
-    nine kernel modules, building the tracer's rays and buffers; run 6 of
-    benchmarks/results/generate_cuda_same_job); run while the episode is prepared elsewhere, that
-    time is hidden. The sensors are the ones `simulate_episode` reuses for the nominal rig, and
-    none of their results depends on what they rendered before."""
-    import scenes
-
-    room = scenes.box_room((6.0, 4.0, 3.0))
-    pose = np.eye(4)[None]
-    pose[0, :3, 3] = (3.0, 2.0, 0.5)
-    _lidar(nominal.lidar, device).scan_begin(room, pose, seed=0).ranges()
-    _sonar(nominal.sonar, nominal.tracer, device).simulate(
-        room,
-        pose,
-        noise=physics.sonar_noise,
-        processing=nominal.processing,
-        assumed_array=nominal.sonar,
-        dtype=np.float16,
-    )
-
-
 # The sensors of the episodes a process renders, reused by the next episode with the same rig: a
 # new Sonar builds its tracer's rays and device buffers (~60 ms on the H100 machine, three times
 # the GPU time of a 100-frame episode), a new Lidar its buffers. Results never depend on reuse (the

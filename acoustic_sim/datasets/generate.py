@@ -27,7 +27,7 @@ from tqdm.auto import tqdm
 from ..config import SimConfig
 from ..devices import check_device_name, resolve_device
 from ..extras import MissingExtra
-from .episode import build_scene, prepare_episode, simulate_episode, warm_up_sensors
+from .episode import build_scene, prepare_episode, simulate_episode
 from .folder import (
     PLAN_FILE,
     check_no_strangers,
@@ -66,10 +66,6 @@ class SuiteRenderer:
 
     def prepare(self, task: ShardTask, episode: Episode):
         return prepare_episode(episode, *self.rig(task), task.suite, self.meshes)
-
-    def warm_up(self, task: ShardTask, device: str) -> None:
-        """Load the kernels and build the sensors of `task`'s rig on `device` (`warm_up_sensors`)."""
-        warm_up_sensors(*self.rig(task), device)
 
     def render(self, task: ShardTask, prepared, *, device: str, on_frames, seconds: dict) -> tuple[dict, dict]:
         physics, nominal = self.rig(task)

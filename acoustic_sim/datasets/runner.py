@@ -31,8 +31,7 @@ from .plan import Episode, ShardTask
 from .shards import ShardFrames, write_shard
 
 # Where a run's time goes: a worker process's start (launch to Warp and its device ready; a spawned
-# one also starts an interpreter and imports the package) and, on a GPU, the renderer's warm-up;
-# then run_tasks's parts.
+# one also starts an interpreter and imports the package; 0 in this process), then run_tasks's parts.
 PARTS = ("start-up", "prepare", "lidar", "sonar", "write", "waiting")
 PR_SET_PDEATHSIG = 1  # Linux prctl: the signal a process gets when its parent dies
 MAX_HELPERS = 4  # host processes beside one rendering process: enough to keep an H100's share fed
@@ -101,14 +100,6 @@ class Renderer(Protocol):
 
     def describe(self, tasks: list[ShardTask]) -> About:
         """The manifest fields and card tables of one variant's dataset (all its tasks)."""
-
-    # Optional: `warm_up(task, device)` loads what rendering `task` on a GPU loads first (kernels,
-    # sensors); `run_tasks` calls it while the first episodes are being prepared.
-
-
-def warms_up(device: str) -> bool:
-    """Whether `run_tasks` warms its renderer up on `device` first (see `_Run._warm_up`)."""
-    return device.startswith("cuda")
 
 
 def run_tasks(
@@ -180,8 +171,6 @@ class _Run:
         jobs = ((task, episode) for task in tasks for episode in task.episodes)
         upcoming: deque = deque()
         self._take(jobs, upcoming)
-        if upcoming:
-            self._warm_up(upcoming[0][0])
         shard = None
         while upcoming:
             task, episode, preparation = upcoming.popleft()
@@ -199,16 +188,6 @@ class _Run:
             self._wait_for_write()
         if last is not None:
             self.entries.append(last)
-
-    def _warm_up(self, task: ShardTask) -> None:
-        """On a GPU, the renderer's warm-up (its kernels loaded, its sensors built) while the first
-        episodes are prepared beside it; counted as "start-up". Not on the CPU: there the same
-        cores would do both, and the kernels load in milliseconds."""
-        warm_up = getattr(self.renderer, "warm_up", None)
-        if warm_up is not None and warms_up(self.device):
-            t0 = time.perf_counter()
-            warm_up(task, self.device)
-            self.seconds["start-up"] += time.perf_counter() - t0
 
     def _write_here(self, shard: _Shard) -> dict:
         """Write the last shard in this process: nothing is left to render beside it, and handing

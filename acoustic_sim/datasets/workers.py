@@ -45,8 +45,7 @@ class LocalWorkers:
     """`count` worker processes on `device` ("auto" spreads them over the GPUs), started at once.
     `wait_ready()` blocks until each has Warp and its device up, raising a worker's error (a GPU
     this machine lacks, say); `run(tasks, bar)` hands them the tasks and returns the seconds by
-    part summed over them, with each worker's "start-up" (launch to device ready, and on a GPU the
-    renderer's warm-up). `close()` ends
+    part summed over them, with each worker's "start-up" (launch to device ready). `close()` ends
     them: after their queued tasks, with `abort=True` after the task each is on, or with `now=True`
     too at once, wherever each is (Ctrl-C: a shard being written stays a `.tmp` for the caller to
     remove); call it before releasing what the tasks write under, such as the output lock. After a
@@ -174,8 +173,7 @@ def _serve(work: Work, device: str) -> dict:
     wp.get_device(device)
     started = time.time() - _LAUNCHED
     _READY.put(device)
-    seconds = work(_tasks_until_abort(), device, _PROGRESS.put)
-    return seconds | {"start-up": seconds.get("start-up", 0.0) + started}
+    return work(_tasks_until_abort(), device, _PROGRESS.put) | {"start-up": started}
 
 
 def _tasks_until_abort():
