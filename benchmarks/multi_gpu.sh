@@ -33,7 +33,7 @@ gen() {
   # (worker start, first episode, last shards), which 37,500 frames did not amortise on two GPUs: 75,000.
   python benchmarks/bench_generate.py --device cuda:0,auto --suite "${SUITE:-paper}" --frames "${BENCH_FRAMES:-75000}" \
     --workers "${GEN_WORKERS:-5,$((5 * GPUS))}" --modes overlapped --repeats 3 --out "$R"
-  GEN=(--suite paper --frames "${FRAMES:-12500}" --seed 0 --quiet)
+  GEN=(--suite "${SUITE:-paper}" --frames "${FRAMES:-12500}" --seed 0 --quiet)
   python -m acoustic_sim generate "${GEN[@]}" --workers 8 --device cuda:0 --out "$W/one_gpu" | tee "$R/generate_one_gpu.txt"
   # the identity check needs every GPU busy with several workers, not the fastest count
   python -m acoustic_sim generate "${GEN[@]}" --workers $((8 * GPUS)) --device auto --out "$W/all_gpus" |

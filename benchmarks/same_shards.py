@@ -1,4 +1,6 @@
-"""Whether two dataset folders hold identical shards: every array of every shard-*.h5, bit for bit.
+"""Whether two dataset folders hold identical shards: every array of every shard-*.h5, bit for bit,
+in the folder and its variants' subfolders (a suite with several physics variants, such as
+`randomised`, writes each variant's shards into its own).
 
 python benchmarks/same_shards.py FOLDER_A FOLDER_B   # prints one line; exit 1 if they differ
 """
@@ -12,10 +14,11 @@ import numpy as np
 
 def arrays(folder: str) -> dict[str, np.ndarray]:
     out = {}
-    for path in sorted(Path(folder).glob("shard-*.h5")):
+    root = Path(folder)
+    for path in sorted(root.rglob("shard-*.h5")):
         with h5py.File(path) as f:
             for name in _dataset_names(f):
-                out[f"{path.name}/{name}"] = f[name][()]
+                out[f"{path.relative_to(root).as_posix()}/{name}"] = f[name][()]
     return out
 
 
