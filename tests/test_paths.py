@@ -1,5 +1,6 @@
 """Specular path tracer against the analytic image sources of a shoebox room."""
 
+import dataclasses
 import itertools
 import warnings
 
@@ -87,6 +88,54 @@ def test_reflection_and_scattering_coefficients_scale_amplitude(device):
     got = got.select(got.kind == KIND_SPECULAR)
     factor = np.sqrt(0.97 * (1 - 0.05)) ** got.order
     np.testing.assert_allclose(got.amplitude * got.length_m, factor, rtol=1e-4)
+
+
+def wall_counts(image, emitter, size):
+    """Reflections off each wall (x = 0, x = Lx, y = 0, y = Ly, floor, ceiling) of the path of a
+    shoebox image source: along axis i the image is 2 n L + e (n reflections off each wall) or
+    2 n L - e (|2n - 1|: n off the far wall and n - 1 off the near one for n >= 1, |n| and |n| + 1
+    for n <= 0)."""
+    counts = []
+    for x, e, length in zip(image, emitter, size, strict=True):
+        even, odd = (x - e) / (2 * length), (x + e) / (2 * length)
+        if abs(even - round(even)) < 1e-4:
+            n = abs(round(even))
+            counts += [n, n]
+        else:
+            assert abs(odd - round(odd)) < 1e-4, "not an image source of this box"
+            n = round(odd)
+            counts += [n - 1, n] if n >= 1 else [abs(n) + 1, abs(n)]
+    return counts
+
+
+def test_each_specular_path_names_the_walls_it_reflects_off(device):
+    """A box whose six walls are six surface classes of different R: each specular arrival's
+    faces (`Arrivals.faces`, counted per class by `surface_counts`) reflect off each wall as often
+    as its image source says, and its amplitude is the product of sqrt(R) of those walls over its
+    length (an omnidirectional emitter)."""
+    mirror = scenes.material("mirror")
+    reflection = (0.9, 0.8, 0.7, 0.6, 0.5, 0.4)
+    room = scenes.box_room(tuple(SIZE), wall="mirror", floor="mirror", ceiling="mirror")
+    centre = room.mesh.triangles_center
+    wall = np.full(len(centre), -1)
+    for axis in range(3):
+        wall[np.isclose(centre[:, axis], 0.0)] = 2 * axis
+        wall[np.isclose(centre[:, axis], SIZE[axis])] = 2 * axis + 1
+    assert (wall >= 0).all()
+    materials = tuple(
+        dataclasses.replace(mirror, name=f"wall{k}", acoustic_reflection=r) for k, r in enumerate(reflection)
+    )
+    room = dataclasses.replace(room, face_material=wall, materials=materials)
+    arrivals = Sonar(OMNI, max_bounces=2, ray_count=20_000, scattering=False, device=device).trace(room, POSE)
+    assert (arrivals.kind == KIND_SPECULAR).all() and len(arrivals) > 30
+    emitter, _ = emitter_and_receiver(POSE, OMNI)
+    images = (POSE @ np.c_[arrivals.source_m, np.ones(len(arrivals))].T).T[:, :3]
+    expected = np.array([wall_counts(image, emitter, SIZE) for image in images])
+    got = arrivals.surface_counts(room.face_material, len(materials))
+    np.testing.assert_array_equal(got, expected)
+    assert (got.sum(axis=1) == arrivals.order).all()
+    factor = np.prod(np.sqrt(reflection) ** got, axis=1)
+    np.testing.assert_allclose(arrivals.amplitude * arrivals.length_m, factor, rtol=1e-4)
 
 
 def test_obstacle_occludes_its_wall(device):

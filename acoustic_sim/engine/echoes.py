@@ -38,6 +38,11 @@ class Arrivals:
             where the path last turned (delays: the path before it plus |source - mic|), (n, 3).
         length_m: Path length [m], (n,).
         point_m: Where the echo last reflected or scattered, sensor frame [m], (n, 3).
+        faces: The faces a specular path off planes reflects off, in order, int32 (n, MAX_ORDER),
+            -1 after its last; all -1 for scattered echoes and those off curved surfaces (their
+            faces are not recorded). What the amplitude owes to each surface: its factor
+            sqrt(R (1 - s)) per entry, R and s of that face (`surface_counts`). None where the
+            arrivals were not traced here.
     """
 
     pose_index: np.ndarray
@@ -49,12 +54,26 @@ class Arrivals:
     source_m: np.ndarray
     length_m: np.ndarray
     point_m: np.ndarray
+    faces: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.delay_s)
 
     def select(self, mask: np.ndarray) -> Arrivals:
-        return Arrivals(**{k: v[mask] for k, v in self.__dict__.items()})
+        return Arrivals(**{k: None if v is None else v[mask] for k, v in self.__dict__.items()})
+
+    def surface_counts(self, face_surface: np.ndarray, surfaces: int) -> np.ndarray:
+        """How often each arrival's path reflects off each surface class, int64 (n, surfaces):
+        `face_surface` gives every face's class (e.g. `Scene.face_material`). Zero rows for
+        arrivals whose faces are not recorded (see `faces`)."""
+        if self.faces is None:
+            raise ValueError("these arrivals carry no faces (trace them with PathTracer or Sonar.trace)")
+        face_surface = np.asarray(face_surface)
+        hit = self.faces >= 0
+        rows = np.nonzero(hit)[0]
+        counts = np.zeros((len(self), surfaces), dtype=np.int64)
+        np.add.at(counts, (rows, face_surface[self.faces[hit]]), 1)
+        return counts
 
     def for_pose(self, i: int) -> Arrivals:
         """The arrivals of ping i, sorted by delay."""
@@ -92,6 +111,7 @@ class SpecularEchoes(EchoBuffer):
     order: wp.array = None
     direction: wp.array = None
     point: wp.array = None
+    faces: wp.array = None  # (pings, size, MAX_ORDER) int32: a valid slot's faces, in order
 
 
 @dataclass
@@ -123,22 +143,28 @@ class TracedEchoes:
         pose_index, slot = np.nonzero(amplitude > 0)
         source = spec.source.numpy()[pose_index, slot].astype(np.float64)
         length = np.linalg.norm(source, axis=1)
+        order = spec.order.numpy()[pose_index, slot].astype(np.int64)
+        faces = spec.faces.numpy()[pose_index, slot]
+        faces[np.arange(faces.shape[1])[None, :] >= order[:, None]] = -1
         parts = [
             Arrivals(
                 pose_index=pose_index.astype(np.int64),
                 delay_s=length / speed_of_sound,
                 direction=spec.direction.numpy()[pose_index, slot].astype(np.float64),
                 amplitude=amplitude[pose_index, slot].astype(np.float64),
-                order=spec.order.numpy()[pose_index, slot].astype(np.int64),
+                order=order,
                 kind=np.full(len(length), KIND_SPECULAR, dtype=np.int64),
                 source_m=source,
                 length_m=length,
                 point_m=spec.point.numpy()[pose_index, slot].astype(np.float64),
+                faces=faces,
             )
         ]
         for echoes, kind in ((self.scattered, KIND_SCATTERED), (self.curved, KIND_SPECULAR)):
             if echoes.slots:
-                parts.append(_point_arrivals(echoes, kind, speed_of_sound))
+                found = _point_arrivals(echoes, kind, speed_of_sound)
+                found.faces = np.full((len(found), faces.shape[1]), -1, dtype=np.int32)
+                parts.append(found)
         found = concatenate(parts)
         return found.select(np.lexsort((found.order, found.delay_s, found.kind, found.pose_index)))
 
@@ -169,4 +195,9 @@ def _point_arrivals(echoes: PointEchoes, kind: int, speed_of_sound: float) -> Ar
 
 def concatenate(parts: list[Arrivals]) -> Arrivals:
     """Join arrival sets (kept flat; `for_pose` sorts by delay)."""
-    return Arrivals(**{k: np.concatenate([getattr(a, k) for a in parts]) for k in Arrivals.__dataclass_fields__})
+
+    def joined(key: str):
+        arrays = [getattr(a, key) for a in parts]
+        return None if any(a is None for a in arrays) else np.concatenate(arrays)
+
+    return Arrivals(**{k: joined(k) for k in Arrivals.__dataclass_fields__})

@@ -150,9 +150,9 @@ class BatchStages:
                 self.inputs.emitter,
                 rows(b.key),
                 rows(specular.order),
-                rows(b.planes),
                 ws.plane_curved,
                 self.inputs.directivity,
+                rows(b.planes),  # becomes each valid path's faces
             ],
             outputs=[
                 rows(specular.amplitude),

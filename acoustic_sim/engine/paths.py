@@ -209,11 +209,12 @@ class PathTracer:
         capacity = tracer.ray_count * (tracer.max_bounces + 1) if tracer.scattering else 0
         pinned = self.device.is_cuda  # host copies the GPU writes behind its work
         with wp.ScopedDevice(self.device):
+            planes = wp.empty((n, size, kernels.MAX_ORDER), dtype=wp.int32)
             buffers = TraceBuffers(
                 errors=wp.empty(n, dtype=float),
                 behind=wp.empty(n, dtype=wp.int32),
                 key=wp.empty((n, size), dtype=wp.uint64),
-                planes=wp.empty((n, size, kernels.MAX_ORDER), dtype=wp.int32),
+                planes=planes,
                 overflow=wp.empty(n, dtype=wp.int32),
                 ray_queries=wp.empty(n, dtype=wp.int32),
                 image_table=wp.empty((n, size), dtype=wp.uint64),
@@ -226,6 +227,7 @@ class PathTracer:
                     order=wp.empty((n, size), dtype=wp.int32),
                     direction=wp.empty((n, size), dtype=wp.vec3),
                     point=wp.empty((n, size), dtype=wp.vec3),
+                    faces=planes,  # the validation turns a valid slot's planes into its faces
                 ),
                 scattered=PointEchoes(
                     source=wp.empty((n, capacity), dtype=wp.vec3),

@@ -37,9 +37,10 @@ def validate_sequences(
     emitter: wp.vec3,
     table_key: wp.array2d[wp.uint64],
     table_order: wp.array2d[wp.int32],
-    table_planes: wp.array3d[wp.int32],
     plane_curved: wp.array[wp.uint8],
     directivity: wp.array[float],
+    # in-out: each slot's plane sequence, replaced by the faces its path reflects off
+    table_planes: wp.array3d[wp.int32],
     # out
     amplitude_out: wp.array2d[float],
     image_out: wp.array2d[wp.vec3],
@@ -55,10 +56,13 @@ def validate_sequences(
     reaches the emitter unoccluded, leaving it forwards. Outputs are in the sensor frame: the
     image source [m], the direction the echo arrives from and the last reflection point. The
     amplitude (0 where invalid) is the product of the specular pressure reflection factors
-    sqrt(R (1 - s)) along the path, times the emitter's directivity towards the path (table over
-    the cosine from its axis, 0..1), over the path length. Adds its BVH ray queries to
-    `ray_queries_out[pose]`. A sequence through a facet of a curved surface (`plane_curved`) is
-    left out: `kernels.curved.curved_echoes` reflects off the surface itself.
+    sqrt(R (1 - s)) along the path, R and s those of the face of each plane the path reflects
+    off, times the emitter's directivity towards the path (table over the cosine from its axis,
+    0..1), over the path length. Each reflection's entry of `table_planes` becomes that face once
+    it is checked (the planes before it are all a later check reads), so a valid slot's row holds
+    the faces of its path in order: what a path's amplitude owes to each surface. Adds its BVH ray
+    queries to `ray_queries_out[pose]`. A sequence through a facet of a curved surface
+    (`plane_curved`) is left out: `kernels.curved.curved_echoes` reflects off the surface itself.
     """
     p, s = wp.tid()
     amplitude_out[p, s] = 0.0
@@ -80,7 +84,6 @@ def validate_sequences(
 
     x = receiver
     gain = float(1.0)
-    face_gain = float(1.0)
     valid = int(1)
     arrival = wp.vec3(0.0)
     last_point = wp.vec3(0.0)
@@ -106,6 +109,7 @@ def validate_sequences(
         distance = wp.length(point - x)
         # The side of this plane the path reflects on: where the previous image lies.
         side = wp.sign(wp.dot(normal, mirror(target, normal, plane_offset[plane]) - point))
+        face = int(-1)
         if distance < PLANE_MATCH:
             # Reflects where the previous reflection did: on the edge where two planes meet (the
             # corner reflector case), if that edge point also lies on a face of this plane.
@@ -114,7 +118,6 @@ def validate_sequences(
             if face < 0:
                 valid = 0
                 break
-            gain = gain * face_gain
         else:
             direction = (point - x) / distance
             q = wp.mesh_query_ray(mesh, x + direction * SURFACE_STEP, direction, distance + PLANE_MATCH)
@@ -129,16 +132,17 @@ def validate_sequences(
                 break
             face = q.face
             if face_plane[face] != plane:
+                face = plane_face_at(mesh, point, normal * side)
                 queries += 1
-                if plane_face_at(mesh, point, normal * side) < 0:
+                if face < 0:
                     valid = 0
                     break
-            face_gain = wp.sqrt(face_reflection[face] * (1.0 - face_scattering[face]))
-            gain = gain * face_gain
             if back == 0:
                 arrival = direction
                 last_point = point
             x = point
+        gain = gain * wp.sqrt(face_reflection[face] * (1.0 - face_scattering[face]))
+        table_planes[p, s, j] = face
     if valid == 1:
         leg = source - x
         distance = wp.length(leg)
