@@ -1,0 +1,200 @@
+"""Calibrate the simulator to recordings of a known room: the surfaces' reflection coefficients and
+the microphones' gains, fitted by gradient to recorded microphone signals.
+
+The paths are traced once, with the scene's own coefficients. A specular path off planes owes its
+amplitude to the faces it reflects off (`Arrivals.faces`): a factor sqrt(R (1 - s)) each. With the
+paths fixed, the arrivals that reflect equally often off every surface class (one *signature*)
+scale together when the classes' R change, and a recording is linear in those scale factors. Each
+signature's signals are recorded once, and the squared error between simulated and recorded
+signals reduces to a small Gram matrix per microphone (`SignalGram`), so every step of the fit
+costs microseconds whatever the number of pings.
+
+What this fit leaves out (to come): scattered echoes (their faces are not recorded yet, so the
+tracer runs without them and a recording that holds them biases R upwards), the emitter's
+directivity and the microphones' delays.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+from tqdm.auto import tqdm
+
+import scenes
+
+from .config import SonarConfig, TracerConfig
+
+POSE_BLOCK = 8  # pings whose signature signals are held at once (signatures x 8 x 2 MB at 32 mics)
+
+
+@dataclass
+class SignalGram:
+    """The fit's data: per microphone m, the inner products of the signature signals U_g (summed
+    over the pings) with each other (`gram[m]`, G x G) and with the recording x (`cross[m]`, G),
+    and the recording's energy `energy[m]`. Every simulated recording y_m = g_m sum_g c_g U_gm
+    has squared error g_m^2 c' gram[m] c - 2 g_m c' cross[m] + energy[m].
+
+    Attributes:
+        signatures: Reflections off each fitted class per signature, int (G, K).
+        gram, cross, energy: (M, G, G), (M, G), (M,), float64.
+    """
+
+    signatures: np.ndarray
+    gram: np.ndarray
+    cross: np.ndarray
+    energy: np.ndarray
+
+
+@dataclass
+class SurfaceFit:
+    """A calibration's result.
+
+    Attributes:
+        classes: The fitted surface classes (material names).
+        reflection: Fitted energy reflection coefficient R per class, as `classes`.
+        nominal: The scene's R per class, where the fit started.
+        mic_gain_db: Fitted gain per microphone [dB] (0 where gains were not fitted).
+        loss: The relative squared error (error energy over the recording's) at each step.
+        signatures: How many signatures (groups of arrivals scaling together) the fit saw.
+    """
+
+    classes: tuple[str, ...]
+    reflection: np.ndarray
+    nominal: np.ndarray
+    mic_gain_db: np.ndarray
+    loss: list[float]
+    signatures: int
+
+    def scene(self, scene: scenes.Scene) -> scenes.Scene:
+        """`scene` with its materials' reflection coefficients replaced by the fitted ones."""
+        fitted = dict(zip(self.classes, self.reflection, strict=True))
+        materials = tuple(
+            dataclasses.replace(m, acoustic_reflection=float(fitted[m.name])) if m.name in fitted else m
+            for m in scene.materials
+        )
+        return dataclasses.replace(scene, materials=materials)
+
+
+def signal_gram(
+    scene: scenes.Scene,
+    poses: np.ndarray,
+    signals: np.ndarray,
+    config: SonarConfig,
+    tracer: TracerConfig | None = None,
+    *,
+    absorption: bool = True,
+    device=None,
+    progress: bool = False,
+) -> tuple[SignalGram, tuple[str, ...], np.ndarray]:
+    """Trace `poses` in `scene` once (specular paths), group the arrivals by signature and reduce
+    the recorded `signals` (pings, mics, samples) against each signature's signals; returns the
+    Gram data, the classes (the scene's materials) and their nominal R."""
+    from .engine.sonar import Sonar
+
+    poses = np.asarray(poses, dtype=np.float64)
+    signals = np.asarray(signals, dtype=np.float32)
+    shape = (len(poses), config.microphone_count, config.record_samples)
+    if signals.shape != shape:
+        raise ValueError(
+            f"signals must be (pings, microphones, samples) = {shape} for these poses, got {signals.shape}"
+        )
+    if not np.isfinite(signals).all():
+        raise ValueError("signals hold non-finite samples")
+    tracer = dataclasses.replace(tracer or TracerConfig(), scattering=False)
+    sonar = Sonar(config, tracer, device=device)
+    arrivals = sonar.trace(scene, poses)
+    classes = tuple(m.name for m in scene.materials)
+    counts = arrivals.surface_counts(scene.face_material, len(classes))
+    signatures, group = np.unique(counts, axis=0, return_inverse=True)
+    group = group.reshape(-1)
+    mics, count = config.microphone_count, len(signatures)
+    gram = np.zeros((mics, count, count))
+    cross = np.zeros((mics, count))
+    energy = np.zeros(mics)
+    blocks = range(0, len(poses), POSE_BLOCK)
+    for first in tqdm(blocks, desc="signature signals", unit="block", disable=not progress):
+        last = min(first + POSE_BLOCK, len(poses))
+        mine = (arrivals.pose_index >= first) & (arrivals.pose_index < last)
+        block = np.zeros((count, mics, (last - first) * config.record_samples))
+        for g in range(count):
+            chosen = arrivals.select(mine & (group == g))
+            chosen.pose_index = chosen.pose_index - first
+            recorded = sonar.record(chosen, pose_count=last - first, absorption=absorption)  # (pings, mics, samples)
+            block[g] = recorded.transpose(1, 0, 2).reshape(mics, -1)
+        measured = signals[first:last].transpose(1, 0, 2).reshape(mics, -1).astype(np.float64)
+        by_mic = block.transpose(1, 0, 2)  # (mics, G, samples)
+        gram += by_mic @ by_mic.transpose(0, 2, 1)
+        cross += np.einsum("mgt,mt->mg", by_mic, measured)
+        energy += np.einsum("mt,mt->m", measured, measured)
+    nominal = np.array([m.acoustic_reflection for m in scene.materials])
+    return SignalGram(signatures, gram, cross, energy), classes, nominal
+
+
+def loss_and_gradient(theta: np.ndarray, data: SignalGram, nominal: np.ndarray, fit_gains: bool):
+    """The relative squared error and its gradient at theta = (log R per class, then log gain per
+    microphone where `fit_gains`)."""
+    classes = len(nominal)
+    log_r = theta[:classes]
+    log_g = theta[classes:] if fit_gains else np.zeros(len(data.energy))
+    gains = np.exp(log_g)
+    scale = np.exp(data.signatures @ (0.5 * (log_r - np.log(nominal))))  # c_g (G,)
+    quad = np.einsum("g,mgh,h->m", scale, data.gram, scale)  # c' A_m c
+    lin = data.cross @ scale  # c' b_m
+    total = data.energy.sum()
+    loss = (gains**2 * quad - 2 * gains * lin + data.energy).sum() / total
+    d_scale = 2 * np.einsum("m,mgh,h->g", gains**2, data.gram, scale) - 2 * (gains[:, None] * data.cross).sum(axis=0)
+    d_log_r = data.signatures.T @ (d_scale * scale) * 0.5 / total
+    if not fit_gains:
+        return loss, d_log_r
+    d_log_g = (2 * gains**2 * quad - 2 * gains * lin) / total
+    return loss, np.concatenate([d_log_r, d_log_g])
+
+
+def fit_surfaces(
+    scene: scenes.Scene,
+    poses: np.ndarray,
+    signals: np.ndarray,
+    config: SonarConfig,
+    tracer: TracerConfig | None = None,
+    *,
+    fit_gains: bool = True,
+    absorption: bool = True,
+    device=None,
+    progress: bool = False,
+    max_steps: int = 500,
+) -> SurfaceFit:
+    """Fit the energy reflection coefficient of each of the scene's surface classes (materials)
+    and, with `fit_gains`, each microphone's gain to recorded `signals` (pings, mics, samples) made
+    at `poses` (sensor-to-world (N, 4, 4)) by a sonar `config` in the room `scene` describes (its
+    geometry right; its materials' R the starting point, their scattering taken as known).
+
+    Minimises the squared error between simulated and recorded signals, relative to the
+    recording's energy, by L-BFGS on log R (R within (0, 1]) and log gain. A class no specular
+    path of these poses reflects off keeps its nominal R. `absorption`: whether the recording's
+    air absorbs (real air does; a simulation may have left it out)."""
+    from scipy.optimize import minimize
+
+    data, classes, nominal = signal_gram(
+        scene, poses, signals, config, tracer, absorption=absorption, device=device, progress=progress
+    )
+    mics = config.microphone_count
+    theta0 = np.concatenate([np.log(nominal), np.zeros(mics if fit_gains else 0)])
+    bounds = [(np.log(1e-4), 0.0)] * len(classes) + [(None, None)] * (mics if fit_gains else 0)
+    losses: list[float] = []
+    bar = tqdm(total=max_steps, desc="fit", unit="step", disable=not progress)
+
+    def step(theta):
+        loss, grad = loss_and_gradient(theta, data, nominal, fit_gains)
+        losses.append(float(loss))
+        bar.update(1)
+        bar.set_postfix(loss=f"{loss:.3g}")
+        return loss, grad
+
+    done = minimize(step, theta0, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxfun": max_steps})
+    bar.close()
+    reached = data.signatures.sum(axis=0) > 0
+    reflection = np.where(reached, np.exp(done.x[: len(classes)]), nominal)
+    gains_db = 20 / np.log(10) * done.x[len(classes) :] if fit_gains else np.zeros(mics)
+    return SurfaceFit(classes, reflection, nominal, gains_db, losses, len(data.signatures))

@@ -1,0 +1,160 @@
+"""Calibration (acoustic_sim.calibrate): reflection coefficients and microphone gains fitted to
+recordings made by the simulator with hidden values."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from scipy.optimize import check_grad
+
+import acoustic_sim as sim
+import scenes
+from acoustic_sim.calibrate import SignalGram, fit_surfaces, loss_and_gradient
+from acoustic_sim.engine.sonar import Sonar
+
+CONFIG = sim.SonarConfig.ertis()
+TRACER = sim.TracerConfig(max_bounces=2, ray_count=5000, scattering=False)
+HIDDEN_R = {"painted_wall": 0.80, "floor": 0.62, "ceiling_tile": 0.45}  # nominal 0.97, 0.95, 0.60
+
+
+def test_the_gradient_is_the_losss():
+    """The analytic gradient against finite differences, R and gains together (a wrong factor or
+    sign in either part fails here)."""
+    rng = np.random.default_rng(0)
+    mics, groups = 4, 5
+    basis = rng.normal(size=(mics, groups, 50))
+    data = SignalGram(
+        signatures=rng.integers(0, 3, size=(groups, 3)),
+        gram=basis @ basis.transpose(0, 2, 1),
+        cross=rng.normal(size=(mics, groups)),
+        energy=rng.uniform(1, 2, size=mics) * 10,
+    )
+    nominal = np.array([0.9, 0.7, 0.5])
+    for fit_gains in (False, True):
+        theta = np.log(nominal) + rng.normal(scale=0.2, size=3)
+        if fit_gains:
+            theta = np.concatenate([theta, rng.normal(scale=0.1, size=mics)])
+        error = check_grad(
+            lambda t, g=fit_gains: loss_and_gradient(t, data, nominal, g)[0],
+            lambda t, g=fit_gains: loss_and_gradient(t, data, nominal, g)[1],
+            theta,
+        )
+        assert error < 1e-5 * np.linalg.norm(loss_and_gradient(theta, data, nominal, fit_gains)[1])
+
+
+@pytest.fixture(scope="module")
+def room_and_recording(device):
+    """A 6 x 4 x 3 m room of three surface classes, 20 poses across it, and its recordings with the
+    hidden R and microphone gains, clean and at 20 dB SNR."""
+    room = scenes.box_room((6.0, 4.0, 3.0), wall="painted_wall", floor="floor", ceiling="ceiling_tile")
+    hidden = dataclasses.replace(
+        room,
+        materials=tuple(dataclasses.replace(m, acoustic_reflection=HIDDEN_R[m.name]) for m in room.materials),
+    )
+    rng = np.random.default_rng(3)
+    xy = rng.uniform([1.0, 1.0], [5.0, 3.0], size=(20, 2))
+    poses = np.stack(
+        [
+            scenes.pose(x, y, yaw, z)
+            for (x, y), yaw, z in zip(xy, rng.uniform(-np.pi, np.pi, 20), rng.uniform(0.4, 2.0, 20), strict=True)
+        ]
+    )
+    gains_db = rng.uniform(-2.0, 2.0, CONFIG.microphone_count)
+    sonar = Sonar(CONFIG, TRACER, device=device)
+    arrivals = sonar.trace(hidden, poses)
+    gains = 10 ** (gains_db / 20)[None, :, None]
+    clean = sonar.record(arrivals, pose_count=len(poses)) * gains
+    noisy = sonar.record(arrivals, pose_count=len(poses), noise="gaussian", snr_db=20.0, seed=1) * gains
+    return room, poses, gains_db, clean, noisy
+
+
+@pytest.mark.parametrize(("kind", "tolerance"), [("clean", 0.05), ("noisy", 0.10)])
+def test_hidden_reflection_and_gains_are_recovered(room_and_recording, device, kind, tolerance):
+    """R of each class within 5 % without noise and 10 % at 20 dB SNR, every microphone's gain
+    within 0.5 dB; starting from the scene's own R (17-35 % off)."""
+    room, poses, gains_db, clean, noisy = room_and_recording
+    fit = fit_surfaces(room, poses, clean if kind == "clean" else noisy, CONFIG, TRACER, device=device)
+    got = dict(zip(fit.classes, fit.reflection, strict=True))
+    for name, value in HIDDEN_R.items():
+        assert abs(got[name] / value - 1) < tolerance, (name, got[name], value)
+    assert np.abs(fit.mic_gain_db - gains_db).max() < 0.5
+    assert fit.loss[-1] < fit.loss[0]
+    refit = fit.scene(room)  # the fitted materials, ready for generation
+    assert {m.name: m.acoustic_reflection for m in refit.materials} == pytest.approx(got)
+
+
+def pra_recording(pose, config, size, reflection, rng, snr_db=40.0):
+    """One ping recorded by pyroomacoustics in the shoebox [0, size] whose walls, floor and ceiling
+    reflect `reflection` (pressure, absorption 1 - r^2 each), no air absorption, at our speed of
+    sound. Its image sources are kept where our sensor hears them: not the direct path (an
+    emitter's call to its own array is no echo) and not paths that leave the emitter backwards
+    (ours is baffled); each image's axis parities give its leaving direction."""
+    pra = pytest.importorskip("pyroomacoustics")
+    absorbed = {name: pra.Material(1.0 - r**2) for name, r in reflection.items()}
+    walls = {"west": "wall", "east": "wall", "south": "wall", "north": "wall", "floor": "floor", "ceiling": "ceiling"}
+    room = pra.ShoeBox(
+        size,
+        fs=450_000,
+        max_order=3,
+        materials={face: absorbed[kind] for face, kind in walls.items()},
+        air_absorption=False,
+        ray_tracing=False,
+    )
+    rotation, position = pose[:3, :3], pose[:3, 3]
+    emitter = rotation @ np.asarray(config.emitter_m) + position
+    room.add_source(emitter, signal=config.chirp.samples())
+    room.add_microphone_array((np.asarray(config.microphones_m) @ rotation.T + position).T)
+    room.image_source_model()
+    source = room.sources[0]
+    images = source.images.T
+    arrival = (position - images) / np.linalg.norm(position - images, axis=1, keepdims=True)
+    flips = np.stack([axis_reflections(images[:, i], emitter[i], size[i]) for i in range(3)], axis=1)
+    leaving = (arrival * (-1.0) ** flips) @ rotation  # in the sensor frame
+    heard = (source.orders > 0) & (leaving[:, 0] >= -1e-6)  # sideways (floor, ceiling) counts as forwards, as ours
+    source.damping[:, ~heard] = 0.0
+    room.compute_rir()
+    room.simulate(recompute_rir=False)
+    start = pra.constants.get("frac_delay_length") // 2
+    signals = room.mic_array.signals[:, start : start + config.record_samples]
+    signals = np.pad(signals, ((0, 0), (0, config.record_samples - signals.shape[1])))
+    noise = rng.normal(0.0, 1.0, signals.shape) * np.sqrt(np.mean(signals**2)) * 10.0 ** (-snr_db / 20)
+    return (signals + noise).astype(np.float32)
+
+
+def axis_reflections(image, emitter, length):
+    """Reflections along one axis of a shoebox image source: 2 n L + e takes |2n|, 2 n L - e |2n - 1|."""
+    even = (image - emitter) / (2 * length)
+    odd = (image + emitter) / (2 * length)
+    return np.where(
+        np.isclose(even, np.round(even), atol=1e-6), np.abs(2 * np.round(even)), np.abs(2 * np.round(odd) - 1)
+    )
+
+
+def test_pyroomacoustics_absorption_is_recovered_as_our_reflection(device):
+    """Recordings by another engine (pyroomacoustics' image sources in a shoebox, known
+    absorption a per class): the fitted R of each class within 10 % of 1 - a (its pressure factor
+    sqrt(R) within 5 % of sqrt(1 - a)), our classes purely specular as image sources are; every
+    microphone's gain within 0.5 dB of 0 dB (both engines' sources give pressure 1 at 1 m)."""
+    pra = pytest.importorskip("pyroomacoustics")
+    omni = sim.SonarConfig.ertis(emitter_radius_m=1e-6)
+    size = np.array([6.0, 4.0, 3.0])
+    reflection = {"wall": 0.85, "floor": 0.7, "ceiling": 0.55}
+    rng = np.random.default_rng(5)
+    xy = rng.uniform([1.0, 1.0], [5.0, 3.0], size=(20, 2))
+    yaws, heights = rng.uniform(-np.pi, np.pi, 20), rng.uniform(0.5, 2.2, 20)
+    poses = np.stack([scenes.pose(x, y, yaw, z) for (x, y), yaw, z in zip(xy, yaws, heights, strict=True)])
+    speed = pra.constants.get("c")
+    pra.constants.set("c", omni.atmosphere.speed_of_sound)  # one speed of sound for both engines
+    try:
+        signals = np.stack([pra_recording(pose, omni, size, reflection, rng) for pose in poses])
+    finally:
+        pra.constants.set("c", speed)
+    room = scenes.box_room(tuple(size), wall="painted_wall", floor="floor", ceiling="ceiling_tile")
+    specular = tuple(dataclasses.replace(m, acoustic_scattering=0.0) for m in room.materials)
+    room = dataclasses.replace(room, materials=specular)
+    tracer = sim.TracerConfig(max_bounces=2, ray_count=20_000, scattering=False)
+    fit = fit_surfaces(room, poses, signals, omni, tracer, absorption=False, device=device)
+    got = dict(zip(fit.classes, fit.reflection, strict=True))
+    for ours, theirs in (("painted_wall", "wall"), ("floor", "floor"), ("ceiling_tile", "ceiling")):
+        assert abs(got[ours] / reflection[theirs] ** 2 - 1) < 0.10, (ours, got[ours], reflection[theirs] ** 2)
+    assert np.abs(fit.mic_gain_db).max() < 0.5, fit.mic_gain_db
