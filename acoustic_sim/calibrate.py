@@ -77,6 +77,31 @@ class SurfaceFit:
         return dataclasses.replace(scene, materials=materials)
 
 
+def load_recordings(path, pings: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Poses (N, 4, 4) and microphone signals (N, mics, samples) float32 of recorded pings, from a
+    .npz holding `poses` and `signals`; with `pings`, at most that many, evenly spaced."""
+    from pathlib import Path
+
+    path = Path(path)
+    if path.suffix != ".npz":
+        raise ValueError(f"{path}: recordings come as a .npz with `poses` (N, 4, 4) and `signals` (N, mics, samples)")
+    with np.load(path) as data:
+        missing = [k for k in ("poses", "signals") if k not in data]
+        if missing:
+            raise ValueError(f"{path} lacks {' and '.join(missing)}; it holds {', '.join(data.files) or 'nothing'}")
+        poses, signals = np.asarray(data["poses"], np.float64), np.asarray(data["signals"], np.float32)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or signals.ndim != 3 or len(signals) != len(poses):
+        raise ValueError(
+            f"{path}: poses {poses.shape} and signals {signals.shape} must be (N, 4, 4) and (N, mics, samples)"
+        )
+    if pings is not None and pings < len(poses):
+        if pings < 1:
+            raise ValueError(f"pings must be >= 1, got {pings}")
+        chosen = np.linspace(0, len(poses) - 1, pings).round().astype(int)
+        poses, signals = poses[chosen], signals[chosen]
+    return poses, signals
+
+
 def signal_gram(
     scene: scenes.Scene,
     poses: np.ndarray,

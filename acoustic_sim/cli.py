@@ -1,4 +1,4 @@
-"""Command line: `python -m acoustic_sim render|generate|import|export ...` (the words of its help in
+"""Command line: `python -m acoustic_sim render|calibrate|generate|import|export ...` (the words of its help in
 cli_text.py); handlers import the heavy modules (Warp, scenes, h5py) themselves."""
 
 from __future__ import annotations
@@ -14,7 +14,8 @@ from clitools import HelpFormatter, counted, run_command
 from clitools.errors import interrupt_after
 from clitools.outputs import OVERWRITE_HELP, atomic_folder
 
-from .cli_scene import check_mesh_options, scene_from_args
+from .cli_calibrate import add_calibrate_parser
+from .cli_scene import add_scene_options, check_mesh_options, scene_from_args
 from .cli_text import COMMANDS, DESCRIPTION, EXAMPLES, MESH_OPTIONS, SET_HELP, VERBOSE_HELP
 from .extras import MissingExtra  # no heavy imports: a plain exception class
 
@@ -293,18 +294,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--debug", action="store_true", help="show the full trace of an error (anywhere on the line)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     render = sub.add_parser("render", formatter_class=HelpFormatter, **COMMANDS["render"])
-    source = render.add_mutually_exclusive_group()
-    source.add_argument("--scene", choices=sorted(scenes.BUILDERS), default="office", help="scene builder")
-    source.add_argument("--svg", help="SVG floor plan to extrude instead of a builder")
-    source.add_argument("--mesh", help="mesh file (any format trimesh loads) instead of a builder")
-    for flag, options in MESH_OPTIONS.items():  # --up, --units, --materials
-        render.add_argument(flag, **options)
-    render.add_argument(
-        "--scene-arg",
-        action="append",
-        metavar="KEY=VALUE",
-        help="extra builder argument, e.g. clutter=high or size=[10,8,3] (repeatable)",
-    )
+    add_scene_options(render, scenes.BUILDERS, MESH_OPTIONS)
     render.add_argument("--seed", type=int, default=0, help="seeds the scene, trajectory and noise")
     render.add_argument("--frames", type=int, default=100, help="trajectory length in poses")
     render.add_argument("--dt", type=float, default=0.1, help="time between poses [s]")
@@ -332,6 +322,8 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     render.add_argument("--verbose", action="store_true", help=VERBOSE_HELP)
     render.set_defaults(handler=_render)
+
+    add_calibrate_parser(sub, scenes.BUILDERS)
 
     from .datasets.suites import SUITES
 

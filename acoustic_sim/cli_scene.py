@@ -1,11 +1,29 @@
-"""The scene `render` draws, from its options: a builder (--scene, --scene-arg), an SVG floor plan
-(--svg) or a mesh file (--mesh, read as --up, --units and --materials say)."""
+"""The scene of `render` and `calibrate`, from their options: a builder (--scene, --scene-arg), an
+SVG floor plan (--svg) or a mesh file (--mesh, read as --up, --units and --materials say)."""
 
 from __future__ import annotations
 
 import json
 
 MESH_ONLY = ("up", "units", "materials")
+
+
+def add_scene_options(parser, builders, mesh_options: dict, *, default: str = "office") -> None:
+    """--scene (one of `builders`) or --svg or --mesh, how to read a mesh, and --scene-arg."""
+    source = parser.add_mutually_exclusive_group()
+    source.add_argument("--scene", choices=sorted(builders), default=default, help="scene builder")
+    source.add_argument("--svg", help="SVG floor plan to extrude instead of a builder")
+    source.add_argument("--mesh", help="mesh file (any format trimesh loads) instead of a builder")
+    for flag, options in mesh_options.items():  # --up, --units, --materials
+        parser.add_argument(flag, **options)
+    parser.add_argument(
+        "--scene-arg",
+        action="append",
+        metavar="KEY=VALUE",
+        help="extra builder argument, e.g. clutter=high or size=[10,8,3] (repeatable)",
+    )
+
+
 """render's options that say how to read a --mesh file (cli_text.MESH_OPTIONS); None when not given."""
 
 

@@ -4,9 +4,10 @@ summary line (help), description and examples (epilog); `cli.build_parser` adds 
 from clitools import examples
 
 DESCRIPTION = (
-    "The simulator: draw scenes and sonar pings (render), simulate datasets of LiDAR and sonar frames "
-    "(generate), turn real recordings into energyscapes or datasets (import), and write datasets for robotics "
-    "tools (export). Each command's --help lists its options and ends with examples."
+    "The simulator: draw scenes and sonar pings (render), fit its surfaces and microphones to recordings of a "
+    "known room (calibrate), simulate datasets of LiDAR and sonar frames (generate), turn real recordings into "
+    "energyscapes or datasets (import), and write datasets for robotics tools (export). Each command's --help "
+    "lists its options and ends with examples."
 )
 EXAMPLES = examples(
     "python -m acoustic_sim render --scene office --out office.png",
@@ -51,6 +52,21 @@ COMMANDS = {
         "epilog": examples(
             "python -m acoustic_sim generate --suite tiny --out data/tiny",
             "python -m acoustic_sim generate --suite paper --frames 12500 --workers 4 --device cuda:0 --out data/paper",
+        ),
+    },
+    "calibrate": {
+        "help": "fit the scene's surface reflection and the microphones' gains to recorded pings",
+        "description": "Fit each surface class's (material's) energy reflection coefficient and every "
+        "microphone's gain to recorded microphone signals of pings at known poses in a room whose geometry the "
+        "scene gives (its materials are the starting point, their scattering taken as known). The specular "
+        "paths are traced once; the fit minimises the squared error between simulated and recorded signals. "
+        "RECORDINGS: a .npz with `poses` (N, 4, 4) and `signals` (N, mics, samples) recorded by the rig's "
+        "sonar. Writes OUT (.json: the fitted and nominal values, the loss at each step, the "
+        "settings) and a picture beside it (.png: the loss, the coefficients, one ping's energyscape recorded "
+        "and simulated before and after). Scattered echoes, the emitter's directivity and the microphones' "
+        "delays are not fitted yet.",
+        "epilog": examples(
+            "python -m acoustic_sim calibrate rec.npz --scene box_room --scene-arg size=[6,4,3] --out fit.json",
         ),
     },
     "import": {

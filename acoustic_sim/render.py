@@ -78,10 +78,19 @@ def draw_polar_image(
 
 
 def draw_energyscape(
-    ax, image: np.ndarray, lidar: np.ndarray | None, grid: PolarGrid, *, title: str, dynamic_range_db: float = 40.0
+    ax,
+    image: np.ndarray,
+    lidar: np.ndarray | None,
+    grid: PolarGrid,
+    *,
+    title: str,
+    dynamic_range_db: float = 40.0,
+    peak: float | None = None,
 ) -> None:
-    """An energyscape (R, A) in dB below its peak, with the LiDAR image's occupied cells on top."""
-    db = 20 * np.log10(np.maximum(image / max(float(image.max()), 1e-30), 10 ** (-dynamic_range_db / 20)))
+    """An energyscape (R, A) in dB below its peak (or `peak`, to compare images on one scale),
+    with the LiDAR image's occupied cells on top."""
+    peak = float(image.max()) if peak is None else peak
+    db = 20 * np.log10(np.maximum(image / max(peak, 1e-30), 10 ** (-dynamic_range_db / 20)))
     draw_polar_image(ax, db, grid, title=title, label="dB")
     if lidar is not None:
         lidar_r, lidar_a = np.nonzero(lidar)
@@ -99,6 +108,35 @@ def render_examples(examples: list[tuple[str, np.ndarray, np.ndarray]], grid: Po
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=90, bbox_inches="tight")
+    plt.close(fig)
+    return out
+
+
+def render_calibration(fit, energyscapes: list[tuple[str, np.ndarray]], grid: PolarGrid, out: str | Path) -> Path:
+    """A calibration at a glance: the relative error at each step, each class's R before and after,
+    and one ping's energyscapes (recorded, simulated with the nominal and the fitted values), in dB
+    below the first one's peak."""
+    out = Path(out)
+    n = len(energyscapes)
+    fig = plt.figure(figsize=(5.5 * n, 8.6))
+    grid_spec = fig.add_gridspec(2, 2 * n)  # the top row's two panels over the bottom row's n
+    loss = fig.add_subplot(grid_spec[0, :n])
+    loss.semilogy(np.arange(1, len(fit.loss) + 1), fit.loss, marker=".")
+    loss.set(xlabel="evaluation", ylabel="error energy / recording's", title="fit")
+    bars = fig.add_subplot(grid_spec[0, n:])
+    where = np.arange(len(fit.classes))
+    bars.bar(where - 0.2, fit.nominal, 0.4, label="scene (start)")
+    bars.bar(where + 0.2, fit.reflection, 0.4, label="fitted")
+    bars.set_xticks(where, fit.classes, rotation=20)
+    bars.set(ylabel="energy reflection R", ylim=(0, 1.05), title="surface classes")
+    bars.legend(loc="upper right", fontsize=8)
+    peak = float(np.max(energyscapes[0][1]))  # one dB scale: the first image's peak
+    for k, (title, image) in enumerate(energyscapes):
+        ax = fig.add_subplot(grid_spec[1, 2 * k : 2 * k + 2])
+        draw_energyscape(ax, np.asarray(image, dtype=np.float32), None, grid, title=title, peak=peak)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=80, bbox_inches="tight")
     plt.close(fig)
     return out
 

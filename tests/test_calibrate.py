@@ -2,6 +2,7 @@
 recordings made by the simulator with hidden values."""
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -158,3 +159,37 @@ def test_pyroomacoustics_absorption_is_recovered_as_our_reflection(device):
     for ours, theirs in (("painted_wall", "wall"), ("floor", "floor"), ("ceiling_tile", "ceiling")):
         assert abs(got[ours] / reflection[theirs] ** 2 - 1) < 0.10, (ours, got[ours], reflection[theirs] ** 2)
     assert np.abs(fit.mic_gain_db).max() < 0.5, fit.mic_gain_db
+
+
+def test_the_command_writes_the_fit_and_its_picture(tmp_path, device, capsys):
+    """`calibrate` on a .npz of recorded pings: the JSON names each class's fitted and nominal R
+    (the hidden one recovered), the gains, the loss at each step and the settings; the picture is
+    written beside it; bad recordings are refused naming what is wrong."""
+    from acoustic_sim.cli import main
+
+    size = [5.0, 4.0, 3.0]
+    room = scenes.box_room(tuple(size), wall="painted_wall", floor="floor", ceiling="ceiling_tile")
+    hidden = dataclasses.replace(
+        room,
+        materials=tuple(dataclasses.replace(m, acoustic_reflection=HIDDEN_R[m.name]) for m in room.materials),
+    )
+    poses = np.stack([scenes.pose(1.5 + 0.4 * i, 1.2 + 0.3 * i, 0.5 * i, 0.6 + 0.2 * i) for i in range(6)])
+    tracer = dataclasses.replace(TRACER, max_bounces=1)
+    sonar = Sonar(CONFIG, tracer, device=device)
+    signals = sonar.record(sonar.trace(hidden, poses), pose_count=len(poses))
+    np.savez(tmp_path / "rec.npz", poses=poses, signals=signals)
+    out = tmp_path / "fit" / "fit.json"
+    argv = ["calibrate", str(tmp_path / "rec.npz"), "--scene", "box_room", "--scene-arg", f"size={size}"]
+    argv += ["--scene-arg", "floor=floor", "--scene-arg", "ceiling=ceiling_tile"]
+    argv += ["--max-bounces", "1", "--rays", "5000", "--set", "tracer.scattering=false", "--no-gains"]
+    assert main([*argv, "--device", device, "--out", str(out)]) == 0
+    fit = json.loads(out.read_text())
+    for name, value in HIDDEN_R.items():
+        assert fit["classes"][name]["reflection"] == pytest.approx(value, rel=0.05)
+        assert fit["classes"][name]["nominal"] == scenes.material(name).acoustic_reflection
+    assert fit["pings"] == 6 and fit["loss"][-1] < fit["loss"][0] and fit["sim"]["tracer"]["max_bounces"] == 1
+    assert out.with_suffix(".png").stat().st_size > 10_000
+    assert "relative error" in capsys.readouterr().out
+    np.savez(tmp_path / "bad.npz", poses=poses[:3], signals=signals)
+    assert main(["calibrate", str(tmp_path / "bad.npz"), "--out", str(tmp_path / "bad.json")]) == 2
+    assert "must be (N, 4, 4) and (N, mics, samples)" in capsys.readouterr().err

@@ -1,0 +1,127 @@
+"""`python -m acoustic_sim calibrate`: the rig's surfaces and microphones fitted to recorded pings
+(`calibrate.fit_surfaces`), written as a JSON file and a picture beside it."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+from clitools import HelpFormatter
+from clitools.outputs import OVERWRITE_HELP, atomic_folder
+
+from .cli_scene import add_scene_options, scene_from_args
+from .cli_text import COMMANDS, MESH_OPTIONS, SET_HELP, VERBOSE_HELP
+
+
+def add_calibrate_parser(sub, builders) -> None:
+    cal = sub.add_parser("calibrate", formatter_class=HelpFormatter, **COMMANDS["calibrate"])
+    cal.add_argument("recordings", help="a .npz with `poses` (N, 4, 4) and `signals` (N, mics, samples)")
+    add_scene_options(cal, builders, MESH_OPTIONS, default="box_room")
+    cal.add_argument("--seed", type=int, default=0, help="seeds a builder's scene")
+    cal.add_argument("--pings", type=int, help="fit to at most this many pings, evenly spaced (20-50 suffice)")
+    cal.add_argument("--max-bounces", type=int, help="secondary reflections traced (default: tracer.max_bounces)")
+    cal.add_argument("--rays", type=int, help="rays per ping (default: tracer.ray_count)")
+    cal.add_argument("--no-gains", action="store_true", help="keep every microphone's gain at 0 dB")
+    cal.add_argument(
+        "--no-air-absorption",
+        action="store_true",
+        help="the recordings' air does not absorb (a simulation that left it out)",
+    )
+    cal.add_argument("--set", action="append", metavar="SECTION.FIELD=VALUE", help=SET_HELP)
+    cal.add_argument("--device", default="cpu", help="Warp device: cpu, cuda:0, ...")
+    cal.add_argument("--out", default="fit.json", help="JSON file to write (and its picture, .png, beside it)")
+    cal.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
+    cal.add_argument("--verbose", action="store_true", help=VERBOSE_HELP)
+    cal.set_defaults(handler=_calibrate)
+
+
+def _calibrate(args) -> int:
+    out = Path(args.out)
+    if out.suffix != ".json":
+        raise ValueError(f"--out {out}: give a .json file (its picture is written beside it as .png)")
+    names = [out.name, out.with_suffix(".png").name]
+    inputs = [p for p in (args.recordings, args.svg, args.mesh, args.materials) if p]
+    with atomic_folder(out.parent, overwrite=args.overwrite, inputs=inputs, expected=names) as stage:
+        line = _calibrate_into(args, stage / out.name)
+    print(line)
+    return 0
+
+
+def _calibrate_into(args, written: Path) -> str:
+    import numpy as np
+
+    from . import __version__
+    from .calibrate import fit_surfaces, load_recordings
+    from .config import SimConfig
+    from .devices import check_device, quiet_warp
+    from .render import render_calibration
+    from .settings import apply_settings
+
+    t0 = time.perf_counter()
+    quiet_warp(not args.verbose)
+    check_device(args.device)
+    rig = apply_settings(SimConfig(), args.set or ())
+    tracer = rig.tracer
+    if args.max_bounces is not None:
+        tracer = dataclasses.replace(tracer, max_bounces=args.max_bounces)
+    if args.rays is not None:
+        tracer = dataclasses.replace(tracer, ray_count=args.rays)
+    poses, signals = load_recordings(args.recordings, args.pings)
+    scene = scene_from_args(args)
+    absorption = not args.no_air_absorption
+    fit = fit_surfaces(
+        scene,
+        poses,
+        signals,
+        rig.sonar,
+        tracer,
+        fit_gains=not args.no_gains,
+        absorption=absorption,
+        device=args.device,
+        progress=True,
+    )
+    middle = len(poses) // 2
+    panels = _before_and_after(scene, fit, poses[middle], signals[middle], rig, tracer, absorption, args.device)
+    render_calibration(fit, panels, rig.processing.grid, written.with_suffix(".png"))
+    options = {k: v for k, v in vars(args).items() if not callable(v)}
+    record = {
+        "classes": {
+            name: {"reflection": float(r), "nominal": float(r0)}
+            for name, r, r0 in zip(fit.classes, fit.reflection, fit.nominal, strict=True)
+        },
+        "mic_gain_db": np.round(fit.mic_gain_db, 4).tolist(),
+        "loss": fit.loss,
+        "signatures": fit.signatures,
+        "pings": len(poses),
+        "scene": scene.describe(),
+        "sim": dataclasses.replace(rig, tracer=tracer).to_dict(),
+        "options": options,
+        "package_version": __version__,
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+    written.write_text(json.dumps(record, indent=1))
+    fitted = ", ".join(
+        f"{n} {r:.3f} (was {r0:.3f})" for n, r, r0 in zip(fit.classes, fit.reflection, fit.nominal, strict=True)
+    )
+    return (
+        f"{len(poses)} pings, {fit.signatures} signatures: R {fitted}; relative error {fit.loss[0]:.3g} -> "
+        f"{fit.loss[-1]:.3g}; wrote {args.out} and its picture in {time.perf_counter() - t0:.1f} s"
+    )
+
+
+def _before_and_after(scene, fit, pose, recorded, rig, tracer, absorption: bool, device) -> list:
+    """One ping's energyscape as recorded and as simulated with the scene's own and the fitted
+    coefficients and gains: (title, energyscape (R, A))."""
+    import numpy as np
+
+    from .engine.sonar import Sonar
+
+    sonar = Sonar(rig.sonar, dataclasses.replace(tracer, scattering=False), device=device)
+    gains = 10 ** (fit.mic_gain_db / 20)[:, None]
+    panels = [("recorded", recorded)]
+    for title, room, gain in (("simulated, nominal", scene, 1.0), ("simulated, fitted", fit.scene(scene), gains)):
+        arrivals = sonar.trace(room, pose)
+        panels.append((title, sonar.record(arrivals, pose_count=1, absorption=absorption)[0] * gain))
+    return [(t, sonar.energyscape(np.asarray(s, np.float32)[None], rig.processing)[0]) for t, s in panels]
