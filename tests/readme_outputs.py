@@ -74,6 +74,26 @@ def check_render(args, cwd: Path, stdout: str) -> str:
     )
 
 
+def check_calibrate(args, cwd: Path, stdout: str) -> str:
+    """`calibrate` writes OUT (.json: each class's fitted and nominal R, a gain per microphone, the
+    error at each step, falling) and its picture beside it, and says so; where the recordings carry
+    the truth they were made with (`truth`, JSON), every fitted R is within 5 % of it."""
+    written = cwd / args.out
+    fit = json.loads(written.read_text())
+    assert f"wrote {args.out} and its picture" in stdout, stdout
+    assert all(0 < c["reflection"] <= 1 and 0 < c["nominal"] <= 1 for c in fit["classes"].values()), fit["classes"]
+    assert len(fit["mic_gain_db"]) == 32 and fit["loss"][-1] < fit["loss"][0]
+    assert read_rgb(written.with_suffix(".png")).shape[0] > 400
+    with np.load(cwd / args.recordings) as recording:
+        truth = json.loads(str(recording["truth"])) if "truth" in recording else {}
+    for name, value in truth.items():
+        got = fit["classes"][name]["reflection"]
+        assert abs(got / value - 1) < 0.05, f"{name}: fitted R {got:.3f}, recorded with {value}"
+    found = f"; R within 5 % of the recordings' truth ({', '.join(truth)})" if truth else ""
+    picture = written.with_suffix(".png").name
+    return f"{written.name}: {len(fit['classes'])} classes, the error falling; {picture}{found}"
+
+
 def _check_mesh_report(args, cwd: Path, stdout: str) -> str:
     """`render --mesh` prints the import report: the file, its frame and unit (as given), and one
     line per material name of the file with the material it got, each key of --materials by the

@@ -260,6 +260,8 @@ class Walk:
             return out.check_render(args, self.cwd, stdout)
         if command.subcommand == "acoustic_sim generate":
             return out.check_generate(args, self.cwd, stdout, command.frames)
+        if command.subcommand == "acoustic_sim calibrate":
+            return out.check_calibrate(args, self.cwd, stdout)
         if command.subcommand == "acoustic_sim export" and args.format == "mcap":
             return out.check_export_mcap(args, self.cwd)
         if command.subcommand == "acoustic_sim export" and args.format == "chirp":
