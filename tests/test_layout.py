@@ -138,7 +138,8 @@ MAY_IMPORT = {
     "render": {"base", "engine"},  # pictures of every stage's output
     "datasets": {"base", "engine", "render", "datasets"},
     "formats": {"base", "engine", "render", "datasets", "formats"},
-    "cli": {"base", "engine", "render", "datasets", "formats", "cli"},
+    "calibrate": {"base", "engine"},  # the engine run backwards on recordings
+    "cli": {"base", "engine", "render", "datasets", "formats", "calibrate", "cli"},
 }
 
 
@@ -149,7 +150,7 @@ def part(module: str) -> str | None:
         return None
     if names[1] in BASE:
         return "base"
-    if names[1] in ("__main__", "cli", "cli_text", "cli_scene"):
+    if names[1] in ("__main__", "cli", "cli_text", "cli_scene", "cli_calibrate"):
         return "cli"
     return names[1]
 
