@@ -1,13 +1,16 @@
-"""Calibrate the simulator to recordings of a known room: the surfaces' reflection coefficients and
-the microphones' gains, fitted by gradient to recorded microphone signals.
+"""Calibrate the simulator to recordings of a known room: the reflection coefficient of each surface
+class (walls, floor, ceiling, objects: `scenes.surfaces`) and the microphones' gains, fitted by
+gradient to recorded microphone signals.
 
 The paths are traced once, with the scene's own coefficients. A specular path off planes owes its
-amplitude to the faces it reflects off (`Arrivals.faces`): a factor sqrt(R (1 - s)) each. With the
-paths fixed, the arrivals that reflect equally often off every surface class (one *signature*)
-scale together when the classes' R change, and a recording is linear in those scale factors. Each
-signature's signals are recorded once, and the squared error between simulated and recorded
-signals reduces to a small Gram matrix per microphone (`SignalGram`), so every step of the fit
-costs microseconds whatever the number of pings.
+amplitude to the faces it reflects off (`Arrivals.faces`): a factor sqrt(R (1 - s)) each. Each
+arrival is taken back to R = 1 on its faces (its amplitude over the product of their sqrt(R)), so
+that with the classes' R it scales by the product of R_k^(n_k / 2), n_k its reflections off class k.
+The arrivals with the same n (one *signature*) scale together, and a recording is linear in those
+scale factors. Each signature's signals are recorded once, and the squared error between simulated
+and recorded signals reduces to a small Gram matrix per microphone (`SignalGram`), so every step of
+the fit costs microseconds whatever the number of pings. A fit sets every material of a class to
+one R (`scenes.surfaces.with_surfaces`), as a suite's `surfaces` physics does.
 
 What this fit leaves out (to come): scattered echoes (their faces are not recorded yet, so the
 tracer runs without them and a recording that holds them biases R upwards), the emitter's
@@ -23,6 +26,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 import scenes
+from scenes.surfaces import SURFACE_CLASSES, surface_classes, with_surfaces
 
 from .config import SonarConfig, TracerConfig
 
@@ -52,9 +56,9 @@ class SurfaceFit:
     """A calibration's result.
 
     Attributes:
-        classes: The fitted surface classes (material names).
+        classes: The surface classes the paths reflect off (of walls, floor, ceiling, objects).
         reflection: Fitted energy reflection coefficient R per class, as `classes`.
-        nominal: The scene's R per class, where the fit started.
+        nominal: Where the fit started: per class the scene's R, averaged over the class's faces.
         mic_gain_db: Fitted gain per microphone [dB] (0 where gains were not fitted).
         loss: The relative squared error (error energy over the recording's) at each step.
         signatures: How many signatures (groups of arrivals scaling together) the fit saw.
@@ -67,14 +71,13 @@ class SurfaceFit:
     loss: list[float]
     signatures: int
 
+    def surfaces(self) -> dict[str, dict[str, float]]:
+        """The fit as acoustics per surface class, e.g. {"walls": {"reflection": 0.8}}."""
+        return {name: {"reflection": float(r)} for name, r in zip(self.classes, self.reflection, strict=True)}
+
     def scene(self, scene: scenes.Scene) -> scenes.Scene:
-        """`scene` with its materials' reflection coefficients replaced by the fitted ones."""
-        fitted = dict(zip(self.classes, self.reflection, strict=True))
-        materials = tuple(
-            dataclasses.replace(m, acoustic_reflection=float(fitted[m.name])) if m.name in fitted else m
-            for m in scene.materials
-        )
-        return dataclasses.replace(scene, materials=materials)
+        """`scene` with every material of a fitted class reflecting the fitted R."""
+        return with_surfaces(scene, self.surfaces())
 
 
 def load_recordings(path, pings: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -115,7 +118,7 @@ def signal_gram(
 ) -> tuple[SignalGram, tuple[str, ...], np.ndarray]:
     """Trace `poses` in `scene` once (specular paths), group the arrivals by signature and reduce
     the recorded `signals` (pings, mics, samples) against each signature's signals; returns the
-    Gram data, the classes (the scene's materials) and their nominal R."""
+    Gram data, the surface classes the paths reflect off and their nominal R."""
     from .engine.sonar import Sonar
 
     poses = np.asarray(poses, dtype=np.float64)
@@ -130,9 +133,18 @@ def signal_gram(
     tracer = dataclasses.replace(tracer or TracerConfig(), scattering=False)
     sonar = Sonar(config, tracer, device=device)
     arrivals = sonar.trace(scene, poses)
-    classes = tuple(m.name for m in scene.materials)
-    counts = arrivals.surface_counts(scene.face_material, len(classes))
-    signatures, group = np.unique(counts, axis=0, return_inverse=True)
+    face_class = surface_classes(scene)
+    face_r = scene.material_table("acoustic_reflection")
+    reflecting = arrivals.faces >= 0
+    # Each arrival at R = 1 on its faces: its amplitude over the product of their sqrt(R).
+    arrivals.amplitude = arrivals.amplitude / np.prod(
+        np.sqrt(np.where(reflecting, face_r[arrivals.faces], 1.0)), axis=1
+    )
+    counts = arrivals.surface_counts(face_class, len(SURFACE_CLASSES))
+    seen = counts.sum(axis=0) > 0
+    classes = tuple(np.array(SURFACE_CLASSES)[seen])
+    nominal = np.array([face_r[face_class == k].mean() for k in np.nonzero(seen)[0]])
+    signatures, group = np.unique(counts[:, seen], axis=0, return_inverse=True)
     group = group.reshape(-1)
     mics, count = config.microphone_count, len(signatures)
     gram = np.zeros((mics, count, count))
@@ -153,18 +165,17 @@ def signal_gram(
         gram += by_mic @ by_mic.transpose(0, 2, 1)
         cross += np.einsum("mgt,mt->mg", by_mic, measured)
         energy += np.einsum("mt,mt->m", measured, measured)
-    nominal = np.array([m.acoustic_reflection for m in scene.materials])
     return SignalGram(signatures, gram, cross, energy), classes, nominal
 
 
-def loss_and_gradient(theta: np.ndarray, data: SignalGram, nominal: np.ndarray, fit_gains: bool):
+def loss_and_gradient(theta: np.ndarray, data: SignalGram, fit_gains: bool):
     """The relative squared error and its gradient at theta = (log R per class, then log gain per
     microphone where `fit_gains`)."""
-    classes = len(nominal)
+    classes = data.signatures.shape[1]
     log_r = theta[:classes]
     log_g = theta[classes:] if fit_gains else np.zeros(len(data.energy))
     gains = np.exp(log_g)
-    scale = np.exp(data.signatures @ (0.5 * (log_r - np.log(nominal))))  # c_g (G,)
+    scale = np.exp(data.signatures @ (0.5 * log_r))  # c_g (G,): the signature signals are at R = 1
     quad = np.einsum("g,mgh,h->m", scale, data.gram, scale)  # c' A_m c
     lin = data.cross @ scale  # c' b_m
     total = data.energy.sum()
@@ -190,15 +201,15 @@ def fit_surfaces(
     progress: bool = False,
     max_steps: int = 500,
 ) -> SurfaceFit:
-    """Fit the energy reflection coefficient of each of the scene's surface classes (materials)
-    and, with `fit_gains`, each microphone's gain to recorded `signals` (pings, mics, samples) made
-    at `poses` (sensor-to-world (N, 4, 4)) by a sonar `config` in the room `scene` describes (its
-    geometry right; its materials' R the starting point, their scattering taken as known).
+    """Fit the energy reflection coefficient of each surface class of the scene (walls, floor,
+    ceiling, objects: `scenes.surfaces`) that these pings' specular paths reflect off and, with
+    `fit_gains`, each microphone's gain to recorded `signals` (pings, mics, samples) made at `poses`
+    (sensor-to-world (N, 4, 4)) by a sonar `config` in the room `scene` describes (its geometry
+    right; its materials' R the starting point, their scattering taken as known).
 
     Minimises the squared error between simulated and recorded signals, relative to the
-    recording's energy, by L-BFGS on log R (R within (0, 1]) and log gain. A class no specular
-    path of these poses reflects off keeps its nominal R. `absorption`: whether the recording's
-    air absorbs (real air does; a simulation may have left it out)."""
+    recording's energy, by L-BFGS on log R (R within (0, 1]) and log gain. `absorption`: whether the
+    recording's air absorbs (real air does; a simulation may have left it out)."""
     from scipy.optimize import minimize
 
     data, classes, nominal = signal_gram(
@@ -211,7 +222,7 @@ def fit_surfaces(
     bar = tqdm(total=max_steps, desc="fit", unit="step", disable=not progress)
 
     def step(theta):
-        loss, grad = loss_and_gradient(theta, data, nominal, fit_gains)
+        loss, grad = loss_and_gradient(theta, data, fit_gains)
         losses.append(float(loss))
         bar.update(1)
         bar.set_postfix(loss=f"{loss:.3g}")
@@ -219,7 +230,6 @@ def fit_surfaces(
 
     done = minimize(step, theta0, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxfun": max_steps})
     bar.close()
-    reached = data.signatures.sum(axis=0) > 0
-    reflection = np.where(reached, np.exp(done.x[: len(classes)]), nominal)
+    reflection = np.exp(done.x[: len(classes)])
     gains_db = 20 / np.log(10) * done.x[len(classes) :] if fit_gains else np.zeros(mics)
     return SurfaceFit(classes, reflection, nominal, gains_db, losses, len(data.signatures))

@@ -56,10 +56,11 @@ COMMANDS = {
     },
     "calibrate": {
         "help": "fit the scene's surface reflection and the microphones' gains to recorded pings",
-        "description": "Fit each surface class's (material's) energy reflection coefficient and every "
-        "microphone's gain to recorded microphone signals of pings at known poses in a room whose geometry the "
-        "scene gives (its materials are the starting point, their scattering taken as known). The specular "
-        "paths are traced once; the fit minimises the squared error between simulated and recorded signals. "
+        "description": "Fit the energy reflection coefficient of each surface class (walls, floor, ceiling, "
+        "objects) and every microphone's gain to recorded microphone signals of pings at known poses in a room "
+        "whose geometry the scene gives (its materials are the starting point, their scattering taken as "
+        "known). The specular paths are traced once; the fit minimises the squared error between simulated "
+        "and recorded signals. "
         "RECORDINGS: a .npz with `poses` (N, 4, 4) and `signals` (N, mics, samples) recorded by the rig's "
         "sonar. Writes OUT (.json: the fitted and nominal values, the loss at each step, the "
         "settings) and a picture beside it (.png: the loss, the coefficients, one ping's energyscape recorded "

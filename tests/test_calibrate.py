@@ -12,10 +12,15 @@ import acoustic_sim as sim
 import scenes
 from acoustic_sim.calibrate import SignalGram, fit_surfaces, loss_and_gradient
 from acoustic_sim.engine.sonar import Sonar
+from scenes.surfaces import with_surfaces
 
 CONFIG = sim.SonarConfig.ertis()
 TRACER = sim.TracerConfig(max_bounces=2, ray_count=5000, scattering=False)
-HIDDEN_R = {"painted_wall": 0.80, "floor": 0.62, "ceiling_tile": 0.45}  # nominal 0.97, 0.95, 0.60
+HIDDEN_R = {
+    "walls": 0.80,
+    "floor": 0.62,
+    "ceiling": 0.45,
+}  # the scene's painted_wall 0.97, floor 0.95, ceiling_tile 0.60
 
 
 def test_the_gradient_is_the_losss():
@@ -30,17 +35,16 @@ def test_the_gradient_is_the_losss():
         cross=rng.normal(size=(mics, groups)),
         energy=rng.uniform(1, 2, size=mics) * 10,
     )
-    nominal = np.array([0.9, 0.7, 0.5])
     for fit_gains in (False, True):
-        theta = np.log(nominal) + rng.normal(scale=0.2, size=3)
+        theta = np.log([0.9, 0.7, 0.5]) + rng.normal(scale=0.2, size=3)
         if fit_gains:
             theta = np.concatenate([theta, rng.normal(scale=0.1, size=mics)])
         error = check_grad(
-            lambda t, g=fit_gains: loss_and_gradient(t, data, nominal, g)[0],
-            lambda t, g=fit_gains: loss_and_gradient(t, data, nominal, g)[1],
+            lambda t, g=fit_gains: loss_and_gradient(t, data, g)[0],
+            lambda t, g=fit_gains: loss_and_gradient(t, data, g)[1],
             theta,
         )
-        assert error < 1e-5 * np.linalg.norm(loss_and_gradient(theta, data, nominal, fit_gains)[1])
+        assert error < 1e-5 * np.linalg.norm(loss_and_gradient(theta, data, fit_gains)[1])
 
 
 @pytest.fixture(scope="module")
@@ -48,10 +52,7 @@ def room_and_recording(device):
     """A 6 x 4 x 3 m room of three surface classes, 20 poses across it, and its recordings with the
     hidden R and microphone gains, clean and at 20 dB SNR."""
     room = scenes.box_room((6.0, 4.0, 3.0), wall="painted_wall", floor="floor", ceiling="ceiling_tile")
-    hidden = dataclasses.replace(
-        room,
-        materials=tuple(dataclasses.replace(m, acoustic_reflection=HIDDEN_R[m.name]) for m in room.materials),
-    )
+    hidden = with_surfaces(room, {name: {"reflection": r} for name, r in HIDDEN_R.items()})
     rng = np.random.default_rng(3)
     xy = rng.uniform([1.0, 1.0], [5.0, 3.0], size=(20, 2))
     poses = np.stack(
@@ -80,8 +81,8 @@ def test_hidden_reflection_and_gains_are_recovered(room_and_recording, device, k
         assert abs(got[name] / value - 1) < tolerance, (name, got[name], value)
     assert np.abs(fit.mic_gain_db - gains_db).max() < 0.5
     assert fit.loss[-1] < fit.loss[0]
-    refit = fit.scene(room)  # the fitted materials, ready for generation
-    assert {m.name: m.acoustic_reflection for m in refit.materials} == pytest.approx(got)
+    refit = fit.scene(room)  # the fitted classes, as a suite's surfaces physics sets them
+    assert {m.name.split(":")[1]: m.acoustic_reflection for m in refit.materials} == pytest.approx(got)
 
 
 def pra_recording(pose, config, size, reflection, rng, snr_db=40.0):
@@ -156,7 +157,7 @@ def test_pyroomacoustics_absorption_is_recovered_as_our_reflection(device):
     tracer = sim.TracerConfig(max_bounces=2, ray_count=20_000, scattering=False)
     fit = fit_surfaces(room, poses, signals, omni, tracer, absorption=False, device=device)
     got = dict(zip(fit.classes, fit.reflection, strict=True))
-    for ours, theirs in (("painted_wall", "wall"), ("floor", "floor"), ("ceiling_tile", "ceiling")):
+    for ours, theirs in (("walls", "wall"), ("floor", "floor"), ("ceiling", "ceiling")):
         assert abs(got[ours] / reflection[theirs] ** 2 - 1) < 0.10, (ours, got[ours], reflection[theirs] ** 2)
     assert np.abs(fit.mic_gain_db).max() < 0.5, fit.mic_gain_db
 
@@ -169,10 +170,7 @@ def test_the_command_writes_the_fit_and_its_picture(tmp_path, device, capsys):
 
     size = [5.0, 4.0, 3.0]
     room = scenes.box_room(tuple(size), wall="painted_wall", floor="floor", ceiling="ceiling_tile")
-    hidden = dataclasses.replace(
-        room,
-        materials=tuple(dataclasses.replace(m, acoustic_reflection=HIDDEN_R[m.name]) for m in room.materials),
-    )
+    hidden = with_surfaces(room, {name: {"reflection": r} for name, r in HIDDEN_R.items()})
     poses = np.stack([scenes.pose(1.5 + 0.4 * i, 1.2 + 0.3 * i, 0.5 * i, 0.6 + 0.2 * i) for i in range(6)])
     tracer = dataclasses.replace(TRACER, max_bounces=1)
     sonar = Sonar(CONFIG, tracer, device=device)
@@ -186,10 +184,44 @@ def test_the_command_writes_the_fit_and_its_picture(tmp_path, device, capsys):
     fit = json.loads(out.read_text())
     for name, value in HIDDEN_R.items():
         assert fit["classes"][name]["reflection"] == pytest.approx(value, rel=0.05)
-        assert fit["classes"][name]["nominal"] == scenes.material(name).acoustic_reflection
+    nominal = {"walls": "painted_wall", "floor": "floor", "ceiling": "ceiling_tile"}
+    for name, material in nominal.items():
+        assert fit["classes"][name]["nominal"] == pytest.approx(scenes.material(material).acoustic_reflection)
     assert fit["pings"] == 6 and fit["loss"][-1] < fit["loss"][0] and fit["sim"]["tracer"]["max_bounces"] == 1
     assert out.with_suffix(".png").stat().st_size > 10_000
     assert "relative error" in capsys.readouterr().out
     np.savez(tmp_path / "bad.npz", poses=poses[:3], signals=signals)
     assert main(["calibrate", str(tmp_path / "bad.npz"), "--out", str(tmp_path / "bad.json")]) == 2
     assert "must be (N, 4, 4) and (N, mics, samples)" in capsys.readouterr().err
+
+
+def test_a_suite_generates_in_the_fitted_physics(tmp_path):
+    """A suite file's physics names a fit (`calibration`): its classes' R become the variant's
+    surfaces, R itself or a band of +-`calibration_spread` (capped at 1), drawn per episode;
+    a class given twice, a spread without a fit or a file that is no fit is refused by name."""
+    from acoustic_sim.datasets.suites import load_suite
+
+    fit = {"classes": {"walls": {"reflection": 0.8, "nominal": 0.97}, "floor": {"reflection": 0.95, "nominal": 0.9}}}
+    (tmp_path / "fit.json").write_text(json.dumps(fit))
+    suite = tmp_path / "mine.toml"
+    suite.write_text('base = "tiny"\n[physics]\ncalibration = "fit.json"\ncalibration_spread = 0.1\n')
+    (physics,) = load_suite(suite).variants.values()
+    assert physics.surfaces == {
+        "walls": {"reflection": [pytest.approx(0.72), pytest.approx(0.88)]},
+        "floor": {"reflection": [pytest.approx(0.855), 1.0]},
+    }
+    drawn = physics.draw_surfaces(np.random.default_rng(0))
+    assert 0.72 <= drawn["walls"]["reflection"] <= 0.88
+    suite.write_text('base = "tiny"\n[physics]\ncalibration = "fit.json"\n')
+    (physics,) = load_suite(suite).variants.values()
+    assert physics.surfaces["walls"]["reflection"] == [0.8, 0.8]
+    refused = {
+        "[physics]\ncalibration_spread = 0.1\n": "calibration_spread needs calibration",
+        '[physics]\ncalibration = "fit.json"\nsurfaces = {walls = {reflection = [0.5, 0.6]}}\n': "both give walls",
+        '[physics]\ncalibration = "mine.toml"\n': "is not a fit",
+        '[physics]\ncalibration = "fit.json"\ncalibration_spread = 1.5\n': "a fraction of R",
+    }
+    for text, complaint in refused.items():
+        suite.write_text('base = "tiny"\n' + text)
+        with pytest.raises(ValueError, match=complaint):
+            load_suite(suite)

@@ -44,7 +44,7 @@ IDS = [f"{cli} {name}".strip() for cli, name, _ in PARSERS]
 def test_both_command_lines_are_walked():
     """The walk finds every command (a missing one would be silently unchecked)."""
     names = {cli: sorted(_subcommands(p).choices) for cli, p in _parsers().items()}
-    assert names["acoustic_sim"] == ["export", "generate", "import", "render"]
+    assert names["acoustic_sim"] == ["calibrate", "export", "generate", "import", "render"]
     assert {"train", "evaluate", "predict", "export", "table2", "sim2real", "table2-summary"} <= set(names["learn"])
 
 

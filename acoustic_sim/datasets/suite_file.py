@@ -2,7 +2,8 @@
 file that is no suite is refused naming the file and the field, before anything is planned.
 
 `read_suite_file` returns the file's tables as plain values of the types `suites.load_suite`
-builds a Suite from; the values' ranges are the Suite's, Scenario's and Physics' own checks.
+builds a Suite from; the values' ranges are the Suite's, Scenario's and Physics' own checks. A
+physics table's `calibration` (a fit `calibrate` wrote) is turned into its `surfaces` here.
 """
 
 from __future__ import annotations
@@ -83,8 +84,45 @@ def read_suite_file(path: Path, named: list[str]) -> dict:
         (f"variants.{k}", v) for k, v in data.get("variants", {}).items()
     ]
     for where, table in tables:
+        _calibrated_surfaces(table, path, f"{path}: {where}")
         _check_physics(table, f"{path}: {where}")
     return data
+
+
+CALIBRATION_MAX_BYTES = 1_000_000  # a fit is a few kilobytes (a loss per step, a gain per microphone)
+
+
+def _calibrated_surfaces(table: dict, path: Path, where: str) -> None:
+    """A physics table's `calibration = "FIT.json"` (a file `calibrate` wrote; a relative path is
+    beside the suite file) becomes its `surfaces`: each fitted class's reflection R, drawn per
+    episode from [R (1 - s), min(1, R (1 + s))] with `calibration_spread = s` (default 0: R itself)."""
+    spread = table.pop("calibration_spread", None)
+    if "calibration" not in table:
+        if spread is not None:
+            raise ValueError(f"{where}: calibration_spread needs calibration = FIT.json (a file calibrate wrote)")
+        return
+    name = table.pop("calibration")
+    _check(name, "a string", f"{where}.calibration")
+    if spread is None:
+        spread = 0.0
+    _check(spread, "a number", f"{where}.calibration_spread")
+    if not 0 <= spread < 1:
+        raise ValueError(f"{where}.calibration_spread: a fraction of R in [0, 1), got {spread}")
+    fit_path = path.parent / name
+    input_file(fit_path, what="calibration", max_bytes=CALIBRATION_MAX_BYTES, bound="a fit is a few kilobytes")
+    try:
+        classes = json.loads(fit_path.read_text(encoding="utf-8"))["classes"]
+        fitted = {cls: float(values["reflection"]) for cls, values in classes.items()}
+    except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError):
+        raise ValueError(
+            f"{where}.calibration: {fit_path} is not a fit `calibrate` wrote (classes with reflection)"
+        ) from None
+    surfaces = table.setdefault("surfaces", {})
+    _check(surfaces, "a table of tables", f"{where}.surfaces")
+    for cls, r in fitted.items():
+        if "reflection" in surfaces.get(cls, {}):
+            raise ValueError(f"{where}: surfaces.{cls}.reflection and calibration both give {cls}' reflection")
+        surfaces.setdefault(cls, {})["reflection"] = [r * (1 - spread), min(1.0, r * (1 + spread))]
 
 
 def _check(value, kind: str, where: str) -> None:
