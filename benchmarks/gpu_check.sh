@@ -26,7 +26,7 @@ export PYTHONUNBUFFERED=1
 # The tests whose kernels run on the --device (the rest of the suite is CPU-only or device-free).
 GPU_TESTS=(tests/test_curved_echoes.py tests/test_smooth_mesh.py tests/test_paths.py tests/test_beamform.py
   tests/test_beamform_kernels.py tests/test_record.py tests/test_lidar.py tests/test_pose_checks.py
-  tests/test_chirp.py tests/test_crossengine.py tests/test_image_sources_high_order.py)
+  tests/test_chirp.py tests/test_crossengine.py tests/test_image_sources_high_order.py tests/test_calibrate.py)
 # Always on the CPU, whose kernels the lent machine's Warp build cannot compile: not a GPU result.
 CPU_ONLY=(--deselect tests/test_lidar.py::test_cpu_threads_split_the_poses_without_changing_a_range)
 status=0
