@@ -225,3 +225,23 @@ def test_a_suite_generates_in_the_fitted_physics(tmp_path):
         suite.write_text('base = "tiny"\n' + text)
         with pytest.raises(ValueError, match=complaint):
             load_suite(suite)
+
+
+def test_the_offices_four_surface_classes_are_recovered(device):
+    """The office (walls, floor, ceiling, and objects of several materials, round chair legs and
+    pillars among them), 20 poses, R of every class hidden 10-30 % below the scene's: each within
+    5 % without noise. Every object face takes the objects' one R, as a suite's surfaces do."""
+    office = scenes.office(seed=2)
+    hidden_r = {"walls": 0.75, "floor": 0.7, "ceiling": 0.5, "objects": 0.6}
+    hidden = with_surfaces(office, {name: {"reflection": r} for name, r in hidden_r.items()})
+    poses = scenes.trajectory(office, frames=20, dt=0.5, speed=0.4, seed=2)
+    tracer = dataclasses.replace(TRACER, max_bounces=1)
+    sonar = Sonar(CONFIG, tracer, device=device)
+    arrivals = sonar.trace(hidden, poses)
+    assert (arrivals.faces[:, 0] >= 0).all()  # every echo names a face, the round ones' too
+    signals = sonar.record(arrivals, pose_count=len(poses))
+    fit = fit_surfaces(office, poses, signals, CONFIG, tracer, fit_gains=False, device=device)
+    got = dict(zip(fit.classes, fit.reflection, strict=True))
+    assert set(got) == set(hidden_r)
+    for name, value in hidden_r.items():
+        assert abs(got[name] / value - 1) < 0.05, (name, got[name], value)

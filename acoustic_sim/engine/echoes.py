@@ -38,11 +38,11 @@ class Arrivals:
             where the path last turned (delays: the path before it plus |source - mic|), (n, 3).
         length_m: Path length [m], (n,).
         point_m: Where the echo last reflected or scattered, sensor frame [m], (n, 3).
-        faces: The faces a specular path off planes reflects off, in order, int32 (n, MAX_ORDER),
-            -1 after its last; all -1 for scattered echoes and those off curved surfaces (their
-            faces are not recorded). What the amplitude owes to each surface: its factor
-            sqrt(R (1 - s)) per entry, R and s of that face (`surface_counts`). None where the
-            arrivals were not traced here.
+        faces: The faces a specular path reflects off, in order, int32 (n, MAX_ORDER), -1 after
+            its last: off planes, each reflection's face; off a sphere or cylinder, the face whose
+            material it reflects with; all -1 for scattered echoes (their faces are not recorded).
+            What the amplitude owes to each surface: a factor sqrt(R (1 - s)) per entry, R and s
+            of that face (`surface_counts`). None where the arrivals were not traced here.
     """
 
     pose_index: np.ndarray
@@ -136,8 +136,9 @@ class TracedEchoes:
     def buffers(self) -> list[EchoBuffer]:
         return [self.specular, self.scattered, self.curved]
 
-    def arrivals(self, speed_of_sound: float) -> Arrivals:
-        """Copy to the host as Arrivals, sorted by pose, kind, delay (a reproducible order)."""
+    def arrivals(self, speed_of_sound: float, curved_faces: np.ndarray | None = None) -> Arrivals:
+        """Copy to the host as Arrivals, sorted by pose, kind, delay (a reproducible order).
+        `curved_faces`: per curved surface the face whose material its echoes took (their faces)."""
         spec = self.specular
         amplitude = spec.amplitude.numpy()
         pose_index, slot = np.nonzero(amplitude > 0)
@@ -162,21 +163,23 @@ class TracedEchoes:
         ]
         for echoes, kind in ((self.scattered, KIND_SCATTERED), (self.curved, KIND_SPECULAR)):
             if echoes.slots:
-                found = _point_arrivals(echoes, kind, speed_of_sound)
+                found, slot = _point_arrivals(echoes, kind, speed_of_sound)
                 found.faces = np.full((len(found), faces.shape[1]), -1, dtype=np.int32)
+                if echoes is self.curved and curved_faces is not None:  # a curved echo's slot is its surface
+                    found.faces[:, 0] = curved_faces[slot]
                 parts.append(found)
         found = concatenate(parts)
         return found.select(np.lexsort((found.order, found.delay_s, found.kind, found.pose_index)))
 
 
-def _point_arrivals(echoes: PointEchoes, kind: int, speed_of_sound: float) -> Arrivals:
-    """Arrivals of point echoes (slots below each ping's count with an amplitude)."""
+def _point_arrivals(echoes: PointEchoes, kind: int, speed_of_sound: float) -> tuple[Arrivals, np.ndarray]:
+    """Arrivals of point echoes (slots below each ping's count with an amplitude), and their slots."""
     count = echoes.count.numpy()
     if (count > echoes.slots).any():  # cannot happen: each ray scatters at most once per order
         raise RuntimeError("point echo buffer overflow")
     amplitude = echoes.amplitude.numpy()
     keep = (np.arange(echoes.slots)[None, :] < count[:, None]) & (amplitude > 0)
-    pose_index = np.nonzero(keep)[0]
+    pose_index, slot = np.nonzero(keep)
     source = echoes.source.numpy()[keep].astype(np.float64)
     distance = np.linalg.norm(source, axis=1)
     length = echoes.extra_length.numpy()[keep].astype(np.float64) + distance
@@ -190,7 +193,7 @@ def _point_arrivals(echoes: PointEchoes, kind: int, speed_of_sound: float) -> Ar
         source_m=source,
         length_m=length,
         point_m=source,
-    )
+    ), slot
 
 
 def concatenate(parts: list[Arrivals]) -> Arrivals:

@@ -137,7 +137,7 @@ class PathTracer:
         poses = check_poses(poses)
         parts = []
         for index, keep, echoes in self.traced(scene, poses, batch):
-            found = echoes.arrivals(self.sonar.atmosphere.speed_of_sound)
+            found = echoes.arrivals(self.sonar.atmosphere.speed_of_sound, warp_scene(scene, self.device).curved.face)
             found = found.select(keep[found.pose_index])
             found.pose_index = index[found.pose_index]
             parts.append(found)

@@ -60,6 +60,7 @@ class CurvedArrays:
     z_range: wp.array  # vec2 [m]: the cylinder's extent along its axis (axis . x)
     axis: wp.array  # vec3, unit: the cylinder's axis
     gain: wp.array  # float: specular pressure reflection factor sqrt(R (1 - s)) of its material
+    face: np.ndarray  # int32, on the host: the face whose material `gain` is (its echoes' `Arrivals.faces`)
 
     @property
     def count(self) -> int:
@@ -71,12 +72,13 @@ def curved_arrays(scene: Scene) -> dict[str, np.ndarray]:
     most of its faces have (`scene.face_curved` names only a cylinder's side faces, not its caps)."""
     reflection = scene.material_table("acoustic_reflection")
     scattering = scene.material_table("acoustic_scattering")
-    gain = []
+    gain, chosen = [], []
     for k in range(len(scene.curved)):
         faces = np.flatnonzero(scene.face_curved == k)
         most = np.bincount(scene.face_material[faces]).argmax() if len(faces) else 0
         face = faces[scene.face_material[faces] == most][0] if len(faces) else 0
         gain.append(np.sqrt(reflection[face] * (1.0 - scattering[face])))
+        chosen.append(face)
     curved = scene.curved
     return {
         "kind": np.array([CURVED_KINDS.index(c.kind) for c in curved], dtype=np.int32),
@@ -85,6 +87,7 @@ def curved_arrays(scene: Scene) -> dict[str, np.ndarray]:
         "z_range": np.array([c.z_range for c in curved], dtype=np.float32).reshape(-1, 2),
         "axis": np.array([c.axis for c in curved], dtype=np.float32).reshape(-1, 3),
         "gain": np.array(gain, dtype=np.float32),
+        "face": np.array(chosen, dtype=np.int32),
     }
 
 
@@ -208,6 +211,7 @@ def warp_scene(scene: Scene, device=None) -> WarpScene:
                 z_range=wp.array(curved["z_range"], dtype=wp.vec2),
                 axis=wp.array(curved["axis"], dtype=wp.vec3),
                 gain=wp.array(curved["gain"], dtype=float),
+                face=curved["face"],
             ),
             mesh_hash=mesh_hash,
         )
