@@ -4,6 +4,7 @@
 #
 #   bash benchmarks/multi_gpu.sh gen   WORKDIR  # bench_generate: one GPU vs all (frames/s); one GPU's shards = all GPUs'
 #   bash benchmarks/multi_gpu.sh timeline WORKDIR  # worker_timeline: one run on one GPU and one on all, per worker
+#   bash benchmarks/multi_gpu.sh start WORKDIR  # start_costs: a worker's start step by step, 1..10 processes at once
 #   bash benchmarks/multi_gpu.sh ray   WORKDIR  # a local Ray cluster (ray start --head) writes one process's shards
 #   bash benchmarks/multi_gpu.sh ddp   WORKDIR  # bench_learn --ddp: windows/s on 1..N GPUs, efficiency
 #   bash benchmarks/multi_gpu.sh train WORKDIR  # one GPU at batch 16 vs N GPUs at 16/N each, seeds 0 and 1 (after gen)
@@ -49,6 +50,12 @@ timeline() {
     --out "$R/timeline_one_gpu"
   python benchmarks/worker_timeline.py --suite "$suite" --frames "$frames" --workers $((5 * GPUS)) --device auto \
     --out "$R/timeline_${GPUS}_gpus"
+}
+
+start_costs() {
+  stamp start
+  # which step of a worker's start is served one process at a time (it grew ~0.15 s a process on two H200s)
+  python benchmarks/start_costs.py --device auto --processes "${START_PROCESSES:-1,2,4,6,8,10}" --out "$R/start_costs"
 }
 
 ray_cluster() {
@@ -127,6 +134,7 @@ PY
 case $phase in
 gen) gen ;;
 timeline) timeline ;;
+start) start_costs ;;
 ray) ray_cluster ;;
 ddp) ddp ;;
 train) train ;;
@@ -136,7 +144,7 @@ all) # each phase in its own shell: one that fails is reported and the next stil
   ;;
 check) check ;;
 *)
-  echo "usage: $0 gen|timeline|ray|ddp|train|all|check WORKDIR" >&2
+  echo "usage: $0 gen|timeline|start|ray|ddp|train|all|check WORKDIR" >&2
   exit 2
   ;;
 esac
