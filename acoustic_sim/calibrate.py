@@ -80,14 +80,32 @@ class SurfaceFit:
         return with_surfaces(scene, self.surfaces())
 
 
-def load_recordings(path, pings: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+def load_recordings(path, pings: int | None = None, episode: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Poses (N, 4, 4) and microphone signals (N, mics, samples) float32 of recorded pings, from a
-    .npz holding `poses` and `signals`; with `pings`, at most that many, evenly spaced."""
+    .npz holding `poses` and `signals`, or from a dataset folder (or one shard) made with
+    `generate --signals`: the frames of one `episode` (one room; required where the data hold
+    several). With `pings`, at most that many, evenly spaced."""
     from pathlib import Path
 
     path = Path(path)
-    if path.suffix != ".npz":
-        raise ValueError(f"{path}: recordings come as a .npz with `poses` (N, 4, 4) and `signals` (N, mics, samples)")
+    if path.suffix == ".npz":
+        poses, signals = _npz_recordings(path)
+    elif path.is_dir() or path.suffix == ".h5":
+        poses, signals = _shard_recordings(path, episode)
+    else:
+        raise ValueError(
+            f"{path}: recordings come as a .npz with `poses` (N, 4, 4) and `signals` (N, mics, samples), or a "
+            "dataset folder (or shard) made with generate --signals"
+        )
+    if pings is not None and pings < len(poses):
+        if pings < 1:
+            raise ValueError(f"pings must be >= 1, got {pings}")
+        chosen = np.linspace(0, len(poses) - 1, pings).round().astype(int)
+        poses, signals = poses[chosen], signals[chosen]
+    return poses, signals
+
+
+def _npz_recordings(path) -> tuple[np.ndarray, np.ndarray]:
     with np.load(path) as data:
         missing = [k for k in ("poses", "signals") if k not in data]
         if missing:
@@ -97,11 +115,32 @@ def load_recordings(path, pings: int | None = None) -> tuple[np.ndarray, np.ndar
         raise ValueError(
             f"{path}: poses {poses.shape} and signals {signals.shape} must be (N, 4, 4) and (N, mics, samples)"
         )
-    if pings is not None and pings < len(poses):
-        if pings < 1:
-            raise ValueError(f"pings must be >= 1, got {pings}")
-        chosen = np.linspace(0, len(poses) - 1, pings).round().astype(int)
-        poses, signals = poses[chosen], signals[chosen]
+    return poses, signals
+
+
+def _shard_recordings(path, episode: int | None) -> tuple[np.ndarray, np.ndarray]:
+    """The poses and signals of one episode of a dataset folder or shard."""
+    import h5py
+
+    from .datasets.shards import dataset_shards
+
+    shards = dataset_shards(path) if path.is_dir() else [path]
+    found = []
+    for shard in shards:
+        with h5py.File(shard, "r") as f:
+            if "signals" not in f:
+                raise ValueError(f"{shard} holds no microphone signals: make the dataset with generate --signals")
+            episodes = f["episode"][()]
+            if episode is None and len(set(episodes.tolist()) | {e for e, *_ in found}) > 1:
+                listed = sorted(set(episodes.tolist()) | {e for e, *_ in found})
+                raise ValueError(f"{path} holds episodes {listed[:10]}: give one (--episode), one room a fit")
+            rows = episodes == (episodes[0] if episode is None else episode)
+            if rows.any():
+                found.append((int(episodes[rows][0]), f["pose"][rows], f["signals"][rows]))
+    if not found:
+        raise ValueError(f"{path} holds no frames of episode {episode}")
+    poses = np.concatenate([p for _, p, _ in found]).astype(np.float64)
+    signals = np.concatenate([s for _, _, s in found]).astype(np.float32)
     return poses, signals
 
 

@@ -17,7 +17,12 @@ from .cli_text import COMMANDS, MESH_OPTIONS, SET_HELP, VERBOSE_HELP
 
 def add_calibrate_parser(sub, builders) -> None:
     cal = sub.add_parser("calibrate", formatter_class=HelpFormatter, **COMMANDS["calibrate"])
-    cal.add_argument("recordings", help="a .npz with `poses` (N, 4, 4) and `signals` (N, mics, samples)")
+    cal.add_argument(
+        "recordings",
+        help="a .npz with `poses` (N, 4, 4) and `signals` (N, mics, samples), or a dataset folder or shard made "
+        "with generate --signals",
+    )
+    cal.add_argument("--episode", type=int, help="of a dataset: the episode (one room) to fit to")
     add_scene_options(cal, builders, MESH_OPTIONS, default="box_room")
     cal.add_argument("--seed", type=int, default=0, help="seeds a builder's scene")
     cal.add_argument("--pings", type=int, help="fit to at most this many pings, evenly spaced (20-50 suffice)")
@@ -68,7 +73,7 @@ def _calibrate_into(args, written: Path) -> str:
         tracer = dataclasses.replace(tracer, max_bounces=args.max_bounces)
     if args.rays is not None:
         tracer = dataclasses.replace(tracer, ray_count=args.rays)
-    poses, signals = load_recordings(args.recordings, args.pings)
+    poses, signals = load_recordings(args.recordings, args.pings, args.episode)
     scene = scene_from_args(args)
     absorption = not args.no_air_absorption
     fit = fit_surfaces(

@@ -62,7 +62,8 @@ COMMANDS = {
         "known). The specular paths are traced once; the fit minimises the squared error between simulated "
         "and recorded signals. "
         "RECORDINGS: a .npz with `poses` (N, 4, 4) and `signals` (N, mics, samples) recorded by the rig's "
-        "sonar. Writes OUT (.json: the fitted and nominal values, the loss at each step, the "
+        "sonar, or a dataset folder (or shard) made with `generate --signals` (one --episode of it). "
+        "Writes OUT (.json: the fitted and nominal values, the loss at each step, the "
         "settings) and a picture beside it (.png: the loss, the coefficients, one ping's energyscape recorded "
         "and simulated before and after). Scattered echoes, the emitter's directivity and the microphones' "
         "delays are not fitted yet.",

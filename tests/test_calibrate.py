@@ -4,6 +4,7 @@ recordings made by the simulator with hidden values."""
 import dataclasses
 import json
 
+import h5py
 import numpy as np
 import pytest
 from scipy.optimize import check_grad
@@ -245,3 +246,32 @@ def test_the_offices_four_surface_classes_are_recovered(device):
     assert set(got) == set(hidden_r)
     for name, value in hidden_r.items():
         assert abs(got[name] / value - 1) < 0.05, (name, got[name], value)
+
+
+def test_recordings_come_from_a_dataset_made_with_signals(tmp_path, device):
+    """A dataset folder made with --signals gives one episode's poses and signals (float32); a
+    dataset of several episodes without --episode, one without signals, an episode it lacks and a
+    file of another kind are refused naming what to do."""
+    from acoustic_sim.calibrate import load_recordings
+    from acoustic_sim.datasets.generate import generate
+    from acoustic_sim.datasets.suites import SUITES, Physics
+
+    suite = dataclasses.replace(SUITES["tiny"], episode_frames=3, variants={"": Physics(ray_count=500)})
+    for name, signals in (("with", True), ("without", False)):
+        generate(suite, tmp_path / name, frames=6, shards=1, device=device, progress=False, keep_signals=signals)
+    with h5py.File(next((tmp_path / "with").glob("shard-*.h5"))) as f:
+        episodes, want_poses, want_signals = f["episode"][()], f["pose"][()], f["signals"][()]
+    second = sorted(set(episodes.tolist()))[1]
+    poses, signals = load_recordings(tmp_path / "with", episode=second)
+    np.testing.assert_array_equal(poses, want_poses[episodes == second])
+    np.testing.assert_array_equal(signals, want_signals[episodes == second].astype(np.float32))
+    assert signals.dtype == np.float32 and signals.shape[1:] == (CONFIG.microphone_count, CONFIG.record_samples)
+    refusals = {
+        (tmp_path / "with", None): "give one \\(--episode\\)",
+        (tmp_path / "without", second): "generate --signals",
+        (tmp_path / "with", 10**6): "no frames of episode",
+        (tmp_path / "with" / "manifest.json", None): "recordings come as",
+    }
+    for (path, episode), complaint in refusals.items():
+        with pytest.raises(ValueError, match=complaint):
+            load_recordings(path, episode=episode)
