@@ -138,7 +138,7 @@ MAY_IMPORT = {
     "render": {"base", "engine"},  # pictures of every stage's output
     "datasets": {"base", "engine", "render", "datasets"},
     "formats": {"base", "engine", "render", "datasets", "formats"},
-    "calibrate": {"base", "engine"},  # the engine run backwards on recordings
+    "calibrate": {"base", "engine", "datasets"},  # the engine run backwards on recordings (a dataset its input)
     "cli": {"base", "engine", "render", "datasets", "formats", "calibrate", "cli"},
 }
 
