@@ -30,7 +30,7 @@ from scenes.surfaces import SURFACE_CLASSES, surface_classes, with_surfaces
 
 from .config import SonarConfig, TracerConfig
 
-POSE_BLOCK = 8  # pings whose signature signals are held at once (signatures x 8 x 2 MB at 32 mics)
+BLOCK_BYTES = 512e6  # the signature signals held at once (float64: signatures x pings x mics x samples)
 
 
 @dataclass
@@ -189,9 +189,10 @@ def signal_gram(
     gram = np.zeros((mics, count, count))
     cross = np.zeros((mics, count))
     energy = np.zeros(mics)
-    blocks = range(0, len(poses), POSE_BLOCK)
+    per_block = max(1, int(BLOCK_BYTES // (count * mics * config.record_samples * 8)))
+    blocks = range(0, len(poses), per_block)
     for first in tqdm(blocks, desc="signature signals", unit="block", disable=not progress):
-        last = min(first + POSE_BLOCK, len(poses))
+        last = min(first + per_block, len(poses))
         mine = (arrivals.pose_index >= first) & (arrivals.pose_index < last)
         block = np.zeros((count, mics, (last - first) * config.record_samples))
         for g in range(count):
