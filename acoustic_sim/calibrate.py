@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -85,8 +86,6 @@ def load_recordings(path, pings: int | None = None, episode: int | None = None) 
     .npz holding `poses` and `signals`, or from a dataset folder (or one shard) made with
     `generate --signals`: the frames of one `episode` (one room; required where the data hold
     several). With `pings`, at most that many, evenly spaced."""
-    from pathlib import Path
-
     path = Path(path)
     if path.suffix == ".npz":
         poses, signals = _npz_recordings(path)

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import multiprocessing
+import os
 import sys
 import time
 import traceback
@@ -156,8 +157,6 @@ def main(argv=None) -> dict:
     quiet_warp()
     device = resolve_device(args.device)
     name = wp.get_device(device).name if wp.get_device(device).is_cuda else "CPU"
-    import os
-
     res = {"device": args.device, "device_name": name, "cpu_count": os.cpu_count(), "rows": rows}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
