@@ -192,7 +192,7 @@ def test_the_command_writes_the_fit_and_its_picture(tmp_path, device, capsys):
     assert out.with_suffix(".png").stat().st_size > 10_000
     assert "relative error" in capsys.readouterr().out
     np.savez(tmp_path / "bad.npz", poses=poses[:3], signals=signals)
-    assert main(["calibrate", str(tmp_path / "bad.npz"), "--out", str(tmp_path / "bad.json")]) == 2
+    assert main(["calibrate", str(tmp_path / "bad.npz"), "--device", device, "--out", str(tmp_path / "bad.json")]) == 2
     assert "must be (N, 4, 4) and (N, mics, samples)" in capsys.readouterr().err
 
 
