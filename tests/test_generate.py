@@ -344,11 +344,12 @@ def test_a_refused_ray_connection_names_token_authentication(tmp_path, monkeypat
     assert ("RAY_AUTH_MODE=token" in str(caught.value)) == (mode != "token"), caught.value
 
 
-@pytest.mark.parametrize(("per_gpu", "share"), [(1, 1.0), (4, 0.25)])
-def test_ray_tasks_hold_their_share_of_a_gpu(tmp_path, monkeypatch, per_gpu, share):
-    """`ray_tasks_per_gpu` n asks Ray for 1/n of a GPU per shard task, so n share one; each task
-    renders on the GPU Ray shows it (its cuda:0). A fake Ray module stands in: CI has no Ray."""
-    asked = {}
+@pytest.mark.parametrize(("per_gpu", "share", "actors"), [(1, 1.0, 2), (4, 0.25, 8), (None, 0, 3)])
+def test_ray_actors_hold_a_share_of_a_gpu_and_render_every_shard_once(tmp_path, monkeypatch, per_gpu, share, actors):
+    """`ray_tasks_per_gpu` n asks Ray for 1/n of a GPU per actor, so n share one, and the cluster's
+    GPUs / (1/n) actors render the shards, each on the GPU Ray shows it (its cuda:0), the next shard
+    to whichever is free (on CPUs: an actor per CPU). A fake Ray module stands in: CI has no Ray."""
+    asked, rendered, made = {}, [], []
 
     class Recording:
         @staticmethod
@@ -356,9 +357,22 @@ def test_ray_tasks_hold_their_share_of_a_gpu(tmp_path, monkeypatch, per_gpu, sha
             pass
 
         @staticmethod
+        def cluster_resources():
+            return {"GPU": 2.0, "CPU": 3.0}
+
+        @staticmethod
         def remote(**options):
             asked.update(options)
-            return lambda fn: SimpleNamespace(remote=lambda task, renderer, device: asked.setdefault("device", device))
+
+            def actor_class(cls):
+                def make(renderer, device):
+                    made.append(device)
+                    me = len(made) - 1
+                    return SimpleNamespace(render=SimpleNamespace(remote=lambda task: (me, rendered.append(task))))
+
+                return SimpleNamespace(remote=make)
+
+            return actor_class
 
         @staticmethod
         def wait(refs, num_returns):
@@ -369,9 +383,14 @@ def test_ray_tasks_hold_their_share_of_a_gpu(tmp_path, monkeypatch, per_gpu, sha
             return None
 
     monkeypatch.setitem(sys.modules, "ray", Recording)
-    bar = SimpleNamespace(update=lambda frames: None)
-    gen._run_on_ray([SimpleNamespace(frame_count=1)], gen.SuiteRenderer(), "local", gpu_share=1 / per_gpu, bar=bar)
-    assert asked["num_gpus"] == share and asked["device"] == "cuda:0"
+    frames = []
+    bar = SimpleNamespace(update=frames.append)
+    tasks = [SimpleNamespace(frame_count=i + 1) for i in range(10)]
+    gen._run_on_ray(tasks, gen.SuiteRenderer(), "local", gpu_share=1 / per_gpu if per_gpu else 0, bar=bar)
+    assert asked.get("num_gpus", 0) == share and asked.get("num_cpus") == (None if share else 1)
+    assert made == ["cuda:0" if share else "cpu"] * actors
+    assert sorted(t.frame_count for t in rendered) == list(range(1, 11)) and sum(frames) == 55
+    assert gen.ray_slots(Recording, 0.5, tasks=3) == 3  # never more actors than shards
     with pytest.raises(ValueError, match="needs a Ray address"):
         gen.make_dataset([], gen.SuiteRenderer(), tmp_path, plan_meta={}, ray_tasks_per_gpu=2)
 
