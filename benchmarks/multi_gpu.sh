@@ -63,6 +63,8 @@ ray_cluster() {
   export RAY_AUTH_MODE=token # as `ray start` has by default since Ray 2.59; the caller must match
   export PYTHONPATH=${RAY_SITE:+$RAY_SITE:}${PYTHONPATH:-} # Ray installed apart, where it is
   GEN=(--suite paper --frames "${RAY_FRAMES:-12500}" --seed 0 --quiet)
+  # the kernel cache filled first (a fresh machine compiles them), so no run below pays for it
+  python -m acoustic_sim generate --suite paper --frames 500 --workers 2 --device auto --out "$W/ray_warm" --quiet >/dev/null
   # local workers on every GPU: the shards Ray's must equal, and the rate beside Ray's in the same job
   python -m acoustic_sim generate "${GEN[@]}" --device auto --workers $((5 * GPUS)) --out "$W/ray_reference" |
     tee "$R/generate_ray.txt"
