@@ -12,9 +12,16 @@ and recorded signals reduces to a small Gram matrix per microphone (`SignalGram`
 the fit costs microseconds whatever the number of pings. A fit sets every material of a class to
 one R (`scenes.surfaces.with_surfaces`), as a suite's `surfaces` physics does.
 
+Each microphone's delay is fitted too: delaying a simulated signal leaves its Gram products as
+they are and turns its inner product with the recording into their cross-correlation at that lag,
+kept as a cross-spectrum over the call's band (`SignalGram.spectra`) and evaluated at any
+fractional lag, with its derivative, at each step. A coarse search over lags (the correlation of
+the nominal simulation with the recording, per microphone) starts each delay on the right cycle
+of the carrier.
+
 What this fit leaves out (to come): scattered echoes (their faces are not recorded yet, so the
-tracer runs without them and a recording that holds them biases R upwards), the emitter's
-directivity and the microphones' delays.
+tracer runs without them and a recording that holds them biases R upwards) and the emitter's
+directivity.
 """
 
 from __future__ import annotations
@@ -32,6 +39,8 @@ from scenes.surfaces import SURFACE_CLASSES, surface_classes, with_surfaces
 from .config import SonarConfig, TracerConfig
 
 BLOCK_BYTES = 512e6  # the signature signals held at once (float64: signatures x pings x mics x samples)
+MAX_DELAY_S = 20e-6  # how far a microphone's fitted delay may go either way (9 samples at 450 kHz)
+BAND_FLOOR = 1e-3  # the call's band: frequencies within 60 dB of its spectrum's peak
 
 
 @dataclass
@@ -41,15 +50,31 @@ class SignalGram:
     and the recording's energy `energy[m]`. Every simulated recording y_m = g_m sum_g c_g U_gm
     has squared error g_m^2 c' gram[m] c - 2 g_m c' cross[m] + energy[m].
 
+    With delays, U_gm delayed by tau_m samples meets the recording in `cross_at(tau)`: the
+    cross-spectrum `spectra[m, g]` over the call's band (angular frequencies `omega` [rad per
+    sample], Hermitian weights `weight` over the FFT length) turned back into a correlation at tau.
+
     Attributes:
         signatures: Reflections off each fitted class per signature, int (G, K).
         gram, cross, energy: (M, G, G), (M, G), (M,), float64.
+        spectra, omega, weight: (M, G, F) complex128, (F,), (F,); None where not kept.
     """
 
     signatures: np.ndarray
     gram: np.ndarray
     cross: np.ndarray
     energy: np.ndarray
+    spectra: np.ndarray | None = None
+    omega: np.ndarray | None = None
+    weight: np.ndarray | None = None
+
+    def cross_at(self, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Inner products of the signature signals delayed by tau (M,) samples with the recording,
+        and their derivatives in tau: (M, G) each."""
+        turn = self.weight * np.exp(1j * self.omega * tau[:, None])  # (M, F)
+        at = np.einsum("mgf,mf->mg", self.spectra, turn)
+        slope = np.einsum("mgf,mf->mg", self.spectra, turn * (1j * self.omega))
+        return at.real, slope.real
 
 
 @dataclass
@@ -61,6 +86,7 @@ class SurfaceFit:
         reflection: Fitted energy reflection coefficient R per class, as `classes`.
         nominal: Where the fit started: per class the scene's R, averaged over the class's faces.
         mic_gain_db: Fitted gain per microphone [dB] (0 where gains were not fitted).
+        mic_delay_s: Fitted extra delay per microphone [s] (0 where delays were not fitted).
         loss: The relative squared error (error energy over the recording's) at each step.
         signatures: How many signatures (groups of arrivals scaling together) the fit saw.
     """
@@ -69,6 +95,7 @@ class SurfaceFit:
     reflection: np.ndarray
     nominal: np.ndarray
     mic_gain_db: np.ndarray
+    mic_delay_s: np.ndarray
     loss: list[float]
     signatures: int
 
@@ -79,6 +106,14 @@ class SurfaceFit:
     def scene(self, scene: scenes.Scene) -> scenes.Scene:
         """`scene` with every material of a fitted class reflecting the fitted R."""
         return with_surfaces(scene, self.surfaces())
+
+    def sonar(self, config: SonarConfig) -> SonarConfig:
+        """`config` with the fitted gain and delay of each microphone."""
+        return dataclasses.replace(
+            config,
+            microphone_gain=tuple(float(g) for g in 10 ** (self.mic_gain_db / 20)),
+            microphone_delay_s=tuple(float(d) for d in self.mic_delay_s),
+        )
 
 
 def load_recordings(path, pings: int | None = None, episode: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -188,43 +223,75 @@ def signal_gram(
     gram = np.zeros((mics, count, count))
     cross = np.zeros((mics, count))
     energy = np.zeros(mics)
+    size, band = _delay_band(config)
+    spectra = np.zeros((mics, count, len(band)), dtype=np.complex128)
     per_block = max(1, int(BLOCK_BYTES // (count * mics * config.record_samples * 8)))
     blocks = range(0, len(poses), per_block)
     for first in tqdm(blocks, desc="signature signals", unit="block", disable=not progress):
         last = min(first + per_block, len(poses))
         mine = (arrivals.pose_index >= first) & (arrivals.pose_index < last)
         block = np.zeros((count, mics, (last - first) * config.record_samples))
+        heard = np.fft.rfft(signals[first:last].astype(np.float64), n=size, axis=-1)[..., band]  # (pings, mics, F)
         for g in range(count):
             chosen = arrivals.select(mine & (group == g))
             chosen.pose_index = chosen.pose_index - first
             recorded = sonar.record(chosen, pose_count=last - first, absorption=absorption)  # (pings, mics, samples)
             block[g] = recorded.transpose(1, 0, 2).reshape(mics, -1)
+            made = np.fft.rfft(recorded.astype(np.float64), n=size, axis=-1)[..., band]
+            spectra[:, g] += np.einsum("pmf,pmf->mf", made.conj(), heard)
         measured = signals[first:last].transpose(1, 0, 2).reshape(mics, -1).astype(np.float64)
         by_mic = block.transpose(1, 0, 2)  # (mics, G, samples)
         gram += by_mic @ by_mic.transpose(0, 2, 1)
         cross += np.einsum("mgt,mt->mg", by_mic, measured)
         energy += np.einsum("mt,mt->m", measured, measured)
-    return SignalGram(signatures, gram, cross, energy), classes, nominal
+    weight = np.where((band == 0) | (2 * band == size), 1.0, 2.0) / size  # rfft's bins stand for two but DC, Nyquist
+    omega = 2 * np.pi * band / size
+    data = SignalGram(signatures, gram, cross, energy, spectra, omega, weight)
+    return data, classes, nominal
 
 
-def loss_and_gradient(theta: np.ndarray, data: SignalGram, fit_gains: bool):
+def _delay_band(config: SonarConfig) -> tuple[int, np.ndarray]:
+    """The FFT length that holds a ping's samples and the largest delay, and the bins of the call's
+    band in it (where the simulated signals have their energy)."""
+    from scipy.fft import next_fast_len
+
+    reach = int(np.ceil(MAX_DELAY_S * config.chirp.sample_rate_hz)) + 1
+    size = next_fast_len(config.record_samples + 2 * reach)
+    call = np.abs(np.fft.rfft(config.chirp.samples(), n=size))
+    return size, np.nonzero(call >= BAND_FLOOR * call.max())[0]
+
+
+def loss_and_gradient(theta: np.ndarray, data: SignalGram, fit_gains: bool, fit_delays: bool = False):
     """The relative squared error and its gradient at theta = (log R per class, then log gain per
-    microphone where `fit_gains`)."""
-    classes = data.signatures.shape[1]
+    microphone where `fit_gains`, then delay per microphone [samples] where `fit_delays`)."""
+    classes, mics = data.signatures.shape[1], len(data.energy)
     log_r = theta[:classes]
-    log_g = theta[classes:] if fit_gains else np.zeros(len(data.energy))
+    log_g = theta[classes : classes + mics] if fit_gains else np.zeros(mics)
+    tau = theta[len(theta) - mics :] if fit_delays else None
     gains = np.exp(log_g)
     scale = np.exp(data.signatures @ (0.5 * log_r))  # c_g (G,): the signature signals are at R = 1
     quad = np.einsum("g,mgh,h->m", scale, data.gram, scale)  # c' A_m c
-    lin = data.cross @ scale  # c' b_m
+    cross, slope = data.cross_at(tau) if fit_delays else (data.cross, None)
+    lin = cross @ scale  # c' b_m
     total = data.energy.sum()
     loss = (gains**2 * quad - 2 * gains * lin + data.energy).sum() / total
-    d_scale = 2 * np.einsum("m,mgh,h->g", gains**2, data.gram, scale) - 2 * (gains[:, None] * data.cross).sum(axis=0)
-    d_log_r = data.signatures.T @ (d_scale * scale) * 0.5 / total
-    if not fit_gains:
-        return loss, d_log_r
-    d_log_g = (2 * gains**2 * quad - 2 * gains * lin) / total
-    return loss, np.concatenate([d_log_r, d_log_g])
+    d_scale = 2 * np.einsum("m,mgh,h->g", gains**2, data.gram, scale) - 2 * (gains[:, None] * cross).sum(axis=0)
+    grad = [data.signatures.T @ (d_scale * scale) * 0.5 / total]
+    if fit_gains:
+        grad.append((2 * gains**2 * quad - 2 * gains * lin) / total)
+    if fit_delays:
+        grad.append(-2 * gains * (slope @ scale) / total)
+    return loss, np.concatenate(grad)
+
+
+def _coarse_delays(data: SignalGram, scale: np.ndarray, reach: float) -> np.ndarray:
+    """Per microphone, the lag [samples] within +-reach (steps of a quarter sample) at which the
+    nominal simulation correlates best with the recording: the fit's start, on the carrier's right
+    cycle."""
+    lags = np.arange(-reach, reach + 1e-9, 0.25)
+    total = np.einsum("mgf,g->mf", data.spectra, scale) * data.weight  # (M, F)
+    correlation = (total[:, None, :] * np.exp(1j * data.omega * lags[:, None])).sum(axis=-1).real  # (M, lags)
+    return lags[correlation.argmax(axis=1)]
 
 
 def fit_surfaces(
@@ -235,6 +302,7 @@ def fit_surfaces(
     tracer: TracerConfig | None = None,
     *,
     fit_gains: bool = True,
+    fit_delays: bool = True,
     absorption: bool = True,
     device=None,
     progress: bool = False,
@@ -242,26 +310,32 @@ def fit_surfaces(
 ) -> SurfaceFit:
     """Fit the energy reflection coefficient of each surface class of the scene (walls, floor,
     ceiling, objects: `scenes.surfaces`) that these pings' specular paths reflect off and, with
-    `fit_gains`, each microphone's gain to recorded `signals` (pings, mics, samples) made at `poses`
+    `fit_gains`, each microphone's gain and, with `fit_delays`, its delay (within +-MAX_DELAY_S) to
+    recorded `signals` (pings, mics, samples) made at `poses`
     (sensor-to-world (N, 4, 4)) by a sonar `config` in the room `scene` describes (its geometry
     right; its materials' R the starting point, their scattering taken as known).
 
     Minimises the squared error between simulated and recorded signals, relative to the
-    recording's energy, by L-BFGS on log R (R within (0, 1]) and log gain. `absorption`: whether the
+    recording's energy, by L-BFGS on log R (R within (0, 1]), log gain and delay. `absorption`: whether the
     recording's air absorbs (real air does; a simulation may have left it out)."""
     from scipy.optimize import minimize
 
     data, classes, nominal = signal_gram(
         scene, poses, signals, config, tracer, absorption=absorption, device=device, progress=progress
     )
-    mics = config.microphone_count
-    theta0 = np.concatenate([np.log(nominal), np.zeros(mics if fit_gains else 0)])
+    mics, fs = config.microphone_count, config.chirp.sample_rate_hz
+    reach = MAX_DELAY_S * fs
+    theta0 = [np.log(nominal), np.zeros(mics if fit_gains else 0)]
     bounds = [(np.log(1e-4), 0.0)] * len(classes) + [(None, None)] * (mics if fit_gains else 0)
+    if fit_delays:
+        theta0.append(_coarse_delays(data, np.exp(data.signatures @ (0.5 * np.log(nominal))), reach))
+        bounds += [(-reach, reach)] * mics
+    theta0 = np.concatenate(theta0)
     losses: list[float] = []
     bar = tqdm(total=max_steps, desc="fit", unit="step", disable=not progress)
 
     def step(theta):
-        loss, grad = loss_and_gradient(theta, data, fit_gains)
+        loss, grad = loss_and_gradient(theta, data, fit_gains, fit_delays)
         losses.append(float(loss))
         bar.update(1)
         bar.set_postfix(loss=f"{loss:.3g}")
@@ -270,5 +344,6 @@ def fit_surfaces(
     done = minimize(step, theta0, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxfun": max_steps})
     bar.close()
     reflection = np.exp(done.x[: len(classes)])
-    gains_db = 20 / np.log(10) * done.x[len(classes) :] if fit_gains else np.zeros(mics)
-    return SurfaceFit(classes, reflection, nominal, gains_db, losses, len(data.signatures))
+    gains_db = 20 / np.log(10) * done.x[len(classes) : len(classes) + mics] if fit_gains else np.zeros(mics)
+    delays_s = done.x[len(done.x) - mics :] / fs if fit_delays else np.zeros(mics)
+    return SurfaceFit(classes, reflection, nominal, gains_db, delays_s, losses, len(data.signatures))

@@ -29,6 +29,7 @@ def add_calibrate_parser(sub, builders) -> None:
     cal.add_argument("--max-bounces", type=int, help="secondary reflections traced (default: tracer.max_bounces)")
     cal.add_argument("--rays", type=int, help="rays per ping (default: tracer.ray_count)")
     cal.add_argument("--no-gains", action="store_true", help="keep every microphone's gain at 0 dB")
+    cal.add_argument("--no-delays", action="store_true", help="keep every microphone's delay at 0")
     cal.add_argument(
         "--no-air-absorption",
         action="store_true",
@@ -83,6 +84,7 @@ def _calibrate_into(args, written: Path) -> str:
         rig.sonar,
         tracer,
         fit_gains=not args.no_gains,
+        fit_delays=not args.no_delays,
         absorption=absorption,
         device=args.device,
         progress=True,
@@ -97,6 +99,7 @@ def _calibrate_into(args, written: Path) -> str:
             for name, r, r0 in zip(fit.classes, fit.reflection, fit.nominal, strict=True)
         },
         "mic_gain_db": np.round(fit.mic_gain_db, 4).tolist(),
+        "mic_delay_us": np.round(fit.mic_delay_s * 1e6, 5).tolist(),
         "loss": fit.loss,
         "signatures": fit.signatures,
         "pings": len(poses),
@@ -118,15 +121,17 @@ def _calibrate_into(args, written: Path) -> str:
 
 def _before_and_after(scene, fit, pose, recorded, rig, tracer, absorption: bool, device) -> list:
     """One ping's energyscape as recorded and as simulated with the scene's own and the fitted
-    coefficients and gains: (title, energyscape (R, A))."""
+    coefficients, gains and delays: (title, energyscape (R, A))."""
     import numpy as np
 
     from .engine.sonar import Sonar
 
-    sonar = Sonar(rig.sonar, dataclasses.replace(tracer, scattering=False), device=device)
-    gains = 10 ** (fit.mic_gain_db / 20)[:, None]
+    specular = dataclasses.replace(tracer, scattering=False)
     panels = [("recorded", recorded)]
-    for title, room, gain in (("simulated, nominal", scene, 1.0), ("simulated, fitted", fit.scene(scene), gains)):
-        arrivals = sonar.trace(room, pose)
-        panels.append((title, sonar.record(arrivals, pose_count=1, absorption=absorption)[0] * gain))
+    for title, room, array in (
+        ("simulated, nominal", scene, rig.sonar),
+        ("simulated, fitted", fit.scene(scene), fit.sonar(rig.sonar)),
+    ):
+        sonar = Sonar(array, specular, device=device)
+        panels.append((title, sonar.record(sonar.trace(room, pose), pose_count=1, absorption=absorption)[0]))
     return [(t, sonar.energyscape(np.asarray(s, np.float32)[None], rig.processing)[0]) for t, s in panels]

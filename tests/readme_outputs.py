@@ -75,21 +75,27 @@ def check_render(args, cwd: Path, stdout: str) -> str:
 
 
 def check_calibrate(args, cwd: Path, stdout: str) -> str:
-    """`calibrate` writes OUT (.json: each class's fitted and nominal R, a gain per microphone, the
-    error at each step, falling) and its picture beside it, and says so; where the recordings carry
-    the truth they were made with (`truth`, JSON), every fitted R is within 5 % of it."""
+    """`calibrate` writes OUT (.json: each class's fitted and nominal R, a gain and a delay per
+    microphone, the error at each step, falling) and its picture beside it, and says so; where the
+    recordings carry the truth they were made with (`truth`, JSON; `delay_s`), every fitted R is
+    within 5 % of it and every delay within 0.2 us."""
     written = cwd / args.out
     fit = json.loads(written.read_text())
     assert f"wrote {args.out} and its picture" in stdout, stdout
     assert all(0 < c["reflection"] <= 1 and 0 < c["nominal"] <= 1 for c in fit["classes"].values()), fit["classes"]
-    assert len(fit["mic_gain_db"]) == 32 and fit["loss"][-1] < fit["loss"][0]
+    assert len(fit["mic_gain_db"]) == len(fit["mic_delay_us"]) == 32 and fit["loss"][-1] < fit["loss"][0]
     assert read_rgb(written.with_suffix(".png")).shape[0] > 400
     with np.load(cwd / args.recordings) as recording:
         truth = json.loads(str(recording["truth"])) if "truth" in recording else {}
+        delay_us = recording["delay_s"] * 1e6 if "delay_s" in recording else None
     for name, value in truth.items():
         got = fit["classes"][name]["reflection"]
         assert abs(got / value - 1) < 0.05, f"{name}: fitted R {got:.3f}, recorded with {value}"
     found = f"; R within 5 % of the recordings' truth ({', '.join(truth)})" if truth else ""
+    if delay_us is not None:
+        missed = np.abs(np.asarray(fit["mic_delay_us"]) - delay_us).max()
+        assert missed < 0.2, f"a microphone's fitted delay is {missed:.3f} us off the recordings' truth"
+        found += f"; delays within {missed:.3f} us"
     picture = written.with_suffix(".png").name
     return f"{written.name}: {len(fit['classes'])} classes, the error falling; {picture}{found}"
 

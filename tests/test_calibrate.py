@@ -24,34 +24,39 @@ HIDDEN_R = {
 }  # the scene's painted_wall 0.97, floor 0.95, ceiling_tile 0.60
 
 
-def test_the_gradient_is_the_losss():
-    """The analytic gradient against finite differences, R and gains together (a wrong factor or
-    sign in either part fails here)."""
+@pytest.mark.parametrize(("fit_gains", "fit_delays"), [(False, False), (True, False), (False, True), (True, True)])
+def test_the_gradient_is_the_losss(fit_gains, fit_delays):
+    """The analytic gradient against finite differences, R, gains and delays in every combination
+    (a wrong factor or sign in any part fails here)."""
     rng = np.random.default_rng(0)
-    mics, groups = 4, 5
+    mics, groups, bins = 4, 5, 40
     basis = rng.normal(size=(mics, groups, 50))
     data = SignalGram(
         signatures=rng.integers(0, 3, size=(groups, 3)),
         gram=basis @ basis.transpose(0, 2, 1),
         cross=rng.normal(size=(mics, groups)),
         energy=rng.uniform(1, 2, size=mics) * 10,
+        spectra=rng.normal(size=(mics, groups, bins)) + 1j * rng.normal(size=(mics, groups, bins)),
+        omega=np.linspace(0.3, 1.2, bins),
+        weight=np.full(bins, 2.0 / 64),
     )
-    for fit_gains in (False, True):
-        theta = np.log([0.9, 0.7, 0.5]) + rng.normal(scale=0.2, size=3)
-        if fit_gains:
-            theta = np.concatenate([theta, rng.normal(scale=0.1, size=mics)])
-        error = check_grad(
-            lambda t, g=fit_gains: loss_and_gradient(t, data, g)[0],
-            lambda t, g=fit_gains: loss_and_gradient(t, data, g)[1],
-            theta,
-        )
-        assert error < 1e-5 * np.linalg.norm(loss_and_gradient(theta, data, fit_gains)[1])
+    theta = [np.log([0.9, 0.7, 0.5]) + rng.normal(scale=0.2, size=3)]
+    theta += [rng.normal(scale=0.1, size=mics)] if fit_gains else []
+    theta += [rng.normal(scale=2.0, size=mics)] if fit_delays else []
+    theta = np.concatenate(theta)
+    error = check_grad(
+        lambda t: loss_and_gradient(t, data, fit_gains, fit_delays)[0],
+        lambda t: loss_and_gradient(t, data, fit_gains, fit_delays)[1],
+        theta,
+    )
+    assert error < 1e-5 * np.linalg.norm(loss_and_gradient(theta, data, fit_gains, fit_delays)[1])
 
 
 @pytest.fixture(scope="module")
 def room_and_recording(device):
     """A 6 x 4 x 3 m room of three surface classes, 20 poses across it, and its recordings with the
-    hidden R and microphone gains, clean and at 20 dB SNR."""
+    hidden R, microphone gains (+-2 dB) and delays (+-5 us, up to a quarter of the call's carrier
+    period), clean and at 20 dB SNR."""
     room = scenes.box_room((6.0, 4.0, 3.0), wall="painted_wall", floor="floor", ceiling="ceiling_tile")
     hidden = with_surfaces(room, {name: {"reflection": r} for name, r in HIDDEN_R.items()})
     rng = np.random.default_rng(3)
@@ -63,27 +68,38 @@ def room_and_recording(device):
         ]
     )
     gains_db = rng.uniform(-2.0, 2.0, CONFIG.microphone_count)
-    sonar = Sonar(CONFIG, TRACER, device=device)
+    delays_s = rng.uniform(-5e-6, 5e-6, CONFIG.microphone_count)
+    sonar = Sonar(dataclasses.replace(CONFIG, microphone_delay_s=tuple(delays_s)), TRACER, device=device)
     arrivals = sonar.trace(hidden, poses)
     gains = 10 ** (gains_db / 20)[None, :, None]
     clean = sonar.record(arrivals, pose_count=len(poses)) * gains
     noisy = sonar.record(arrivals, pose_count=len(poses), noise="gaussian", snr_db=20.0, seed=1) * gains
-    return room, poses, gains_db, clean, noisy
+    return room, poses, (gains_db, delays_s), clean, noisy
 
 
 @pytest.mark.parametrize(("kind", "tolerance"), [("clean", 0.05), ("noisy", 0.10)])
-def test_hidden_reflection_and_gains_are_recovered(room_and_recording, device, kind, tolerance):
+def test_hidden_reflection_gains_and_delays_are_recovered(room_and_recording, device, kind, tolerance):
     """R of each class within 5 % without noise and 10 % at 20 dB SNR, every microphone's gain
-    within 0.5 dB; starting from the scene's own R (17-35 % off)."""
-    room, poses, gains_db, clean, noisy = room_and_recording
+    within 0.5 dB and delay within 0.1 us (a 45th of a sample); starting from the scene's own R
+    (17-35 % off), 0 dB and no delay."""
+    room, poses, (gains_db, delays_s), clean, noisy = room_and_recording
     fit = fit_surfaces(room, poses, clean if kind == "clean" else noisy, CONFIG, TRACER, device=device)
     got = dict(zip(fit.classes, fit.reflection, strict=True))
     for name, value in HIDDEN_R.items():
         assert abs(got[name] / value - 1) < tolerance, (name, got[name], value)
     assert np.abs(fit.mic_gain_db - gains_db).max() < 0.5
+    assert np.abs(fit.mic_delay_s - delays_s).max() < 0.1e-6
     assert fit.loss[-1] < fit.loss[0]
     refit = fit.scene(room)  # the fitted classes, as a suite's surfaces physics sets them
     assert {m.name.split(":")[1]: m.acoustic_reflection for m in refit.materials} == pytest.approx(got)
+
+
+def test_without_delays_the_gains_come_out_wrong(room_and_recording, device):
+    """The same clean recordings fitted with every delay frozen at 0: the gains absorb what the
+    delays explain and miss by far more than 0.5 dB (so the delay fit is what the test above checks)."""
+    room, poses, (gains_db, _), clean, _ = room_and_recording
+    fit = fit_surfaces(room, poses, clean, CONFIG, TRACER, device=device, fit_delays=False)
+    assert np.abs(fit.mic_gain_db - gains_db).max() > 1.0 and not fit.mic_delay_s.any()
 
 
 def pra_recording(pose, config, size, reflection, rng, snr_db=40.0):
