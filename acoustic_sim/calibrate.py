@@ -342,6 +342,7 @@ def fit_surfaces(
         return loss, grad
 
     done = minimize(step, theta0, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxfun": max_steps})
+    bar.total = bar.n  # converged before the step budget: the bar ends full
     bar.close()
     reflection = np.exp(done.x[: len(classes)])
     gains_db = 20 / np.log(10) * done.x[len(classes) : len(classes) + mics] if fit_gains else np.zeros(mics)

@@ -114,25 +114,33 @@ def render_examples(examples: list[tuple[str, np.ndarray, np.ndarray]], grid: Po
 
 def render_calibration(fit, energyscapes: list[tuple[str, np.ndarray]], grid: PolarGrid, out: str | Path) -> Path:
     """A calibration at a glance: the relative error at each step, each class's R before and after,
-    and one ping's energyscapes (recorded, simulated with the nominal and the fitted values), in dB
-    below the first one's peak."""
+    each microphone's fitted gain and delay, and one ping's energyscapes (recorded, simulated with
+    the nominal and the fitted values), in dB below the first one's peak."""
     out = Path(out)
     n = len(energyscapes)
     fig = plt.figure(figsize=(5.5 * n, 8.6))
-    grid_spec = fig.add_gridspec(2, 2 * n)  # the top row's two panels over the bottom row's n
+    grid_spec = fig.add_gridspec(2, 3 * n)  # the top row's three panels over the bottom row's n
     loss = fig.add_subplot(grid_spec[0, :n])
     loss.semilogy(np.arange(1, len(fit.loss) + 1), fit.loss, marker=".")
     loss.set(xlabel="evaluation", ylabel="error energy / recording's", title="fit")
-    bars = fig.add_subplot(grid_spec[0, n:])
+    bars = fig.add_subplot(grid_spec[0, n : 2 * n])
     where = np.arange(len(fit.classes))
     bars.bar(where - 0.2, fit.nominal, 0.4, label="scene (start)")
     bars.bar(where + 0.2, fit.reflection, 0.4, label="fitted")
     bars.set_xticks(where, fit.classes, rotation=20)
     bars.set(ylabel="energy reflection R", ylim=(0, 1.05), title="surface classes")
     bars.legend(loc="upper right", fontsize=8)
+    mics = fig.add_subplot(grid_spec[0, 2 * n :])
+    index = np.arange(len(fit.mic_gain_db))
+    mics.bar(index, fit.mic_gain_db, 0.8, color="tab:blue")
+    mics.set(xlabel="microphone", title="microphones (fitted)")
+    mics.set_ylabel("gain [dB]", color="tab:blue")
+    lags = mics.twinx()
+    lags.plot(index, fit.mic_delay_s * 1e6, "o", color="tab:red", markersize=4)
+    lags.set_ylabel("delay [us]", color="tab:red")
     peak = float(np.max(energyscapes[0][1]))  # one dB scale: the first image's peak
     for k, (title, image) in enumerate(energyscapes):
-        ax = fig.add_subplot(grid_spec[1, 2 * k : 2 * k + 2])
+        ax = fig.add_subplot(grid_spec[1, 3 * k : 3 * k + 3])
         draw_energyscape(ax, np.asarray(image, dtype=np.float32), None, grid, title=title, peak=peak)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
