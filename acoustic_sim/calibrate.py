@@ -19,9 +19,16 @@ fractional lag, with its derivative, at each step. A coarse search over lags (th
 the nominal simulation with the recording, per microphone) starts each delay on the right cycle
 of the carrier.
 
+The emitter's directivity can be fitted as well (`directivity_knots`): its pressure at the call's
+centre frequency, piecewise linear over the angle from its axis between knots (1 on the axis, the
+knots' values fitted). Each arrival is taken back to an omnidirectional emitter (its amplitude over
+the nominal baffled piston's directivity towards the direction it left in, found by reflecting its
+arrival direction back through its faces) and shared between the two knots around that angle, so
+the recording stays linear in each (signature, knot) group's scale.
+
 What this fit leaves out (to come): scattered echoes (their faces are not recorded yet, so the
-tracer runs without them and a recording that holds them biases R upwards) and the emitter's
-directivity.
+tracer runs without them and a recording that holds them biases R upwards), and paths leaving the
+emitter backwards (the tracer's baffled emitter sends none).
 """
 
 from __future__ import annotations
@@ -36,11 +43,13 @@ from tqdm.auto import tqdm
 import scenes
 from scenes.surfaces import SURFACE_CLASSES, surface_classes, with_surfaces
 
+from .array import piston_directivity
 from .config import SonarConfig, TracerConfig
 
 BLOCK_BYTES = 512e6  # the signature signals held at once (float64: signatures x pings x mics x samples)
 MAX_DELAY_S = 20e-6  # how far a microphone's fitted delay may go either way (9 samples at 450 kHz)
 BAND_FLOOR = 1e-3  # the call's band: frequencies within 60 dB of its spectrum's peak
+QUIET_DIRECTIVITY = 1e-3  # arrivals the nominal emitter sends less pressure than this are left out of a directivity fit
 
 
 @dataclass
@@ -54,10 +63,14 @@ class SignalGram:
     cross-spectrum `spectra[m, g]` over the call's band (angular frequencies `omega` [rad per
     sample], Hermitian weights `weight` over the FFT length) turned back into a correlation at tau.
 
+    With a fitted directivity a group is a (signature, knot) pair: `knot` (G,) the knot its
+    arrivals share (0 on the axis, pinned to 1), its scale c_g times that knot's value.
+
     Attributes:
         signatures: Reflections off each fitted class per signature, int (G, K).
         gram, cross, energy: (M, G, G), (M, G), (M,), float64.
         spectra, omega, weight: (M, G, F) complex128, (F,), (F,); None where not kept.
+        knot, knot_deg: (G,) int and the knots' angles from the emitter axis [deg]; None without.
     """
 
     signatures: np.ndarray
@@ -67,6 +80,13 @@ class SignalGram:
     spectra: np.ndarray | None = None
     omega: np.ndarray | None = None
     weight: np.ndarray | None = None
+    knot: np.ndarray | None = None
+    knot_deg: np.ndarray | None = None
+
+    @property
+    def fitted_knots(self) -> int:
+        """The knots whose values are fitted (every one but the axis')."""
+        return 0 if self.knot_deg is None else len(self.knot_deg) - 1
 
     def cross_at(self, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Inner products of the signature signals delayed by tau (M,) samples with the recording,
@@ -87,6 +107,9 @@ class SurfaceFit:
         nominal: Where the fit started: per class the scene's R, averaged over the class's faces.
         mic_gain_db: Fitted gain per microphone [dB] (0 where gains were not fitted).
         mic_delay_s: Fitted extra delay per microphone [s] (0 where delays were not fitted).
+        directivity_deg, directivity, directivity_nominal: The knots' angles from the emitter's
+            axis [deg], the fitted pressure there (1 on the axis) and the nominal piston's; empty
+            where the directivity was not fitted.
         loss: The relative squared error (error energy over the recording's) at each step.
         signatures: How many signatures (groups of arrivals scaling together) the fit saw.
     """
@@ -98,6 +121,9 @@ class SurfaceFit:
     mic_delay_s: np.ndarray
     loss: list[float]
     signatures: int
+    directivity_deg: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    directivity: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    directivity_nominal: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
 
     def surfaces(self) -> dict[str, dict[str, float]]:
         """The fit as acoustics per surface class, e.g. {"walls": {"reflection": 0.8}}."""
@@ -108,12 +134,25 @@ class SurfaceFit:
         return with_surfaces(scene, self.surfaces())
 
     def sonar(self, config: SonarConfig) -> SonarConfig:
-        """`config` with the fitted gain and delay of each microphone."""
+        """`config` with the fitted gain and delay of each microphone and, where the directivity
+        was fitted, the baffled piston closest to it (`piston_radius_m`)."""
+        emitter = {"emitter_radius_m": self.piston_radius_m(config)} if len(self.directivity) else {}
         return dataclasses.replace(
             config,
             microphone_gain=tuple(float(g) for g in 10 ** (self.mic_gain_db / 20)),
             microphone_delay_s=tuple(float(d) for d in self.mic_delay_s),
+            **emitter,
         )
+
+    def piston_radius_m(self, config: SonarConfig) -> float:
+        """The radius of the baffled piston whose directivity at the call's centre frequency is
+        closest (least squares over the knots) to the fitted one, 0.5-20 mm in steps of 0.05 mm."""
+        if not len(self.directivity):
+            raise ValueError("the directivity was not fitted (directivity_knots = 0)")
+        radii = np.arange(0.5e-3, 20e-3 + 1e-9, 0.05e-3)
+        centre, air = config.chirp.centre_frequency_hz, config.atmosphere.speed_of_sound
+        shapes = piston_directivity(np.radians(self.directivity_deg)[None, :], centre, radii[:, None], air)
+        return float(radii[((shapes - self.directivity) ** 2).sum(axis=1).argmin()])
 
 
 def load_recordings(path, pings: int | None = None, episode: int | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -186,12 +225,14 @@ def signal_gram(
     tracer: TracerConfig | None = None,
     *,
     absorption: bool = True,
+    directivity_knots: int = 0,
     device=None,
     progress: bool = False,
 ) -> tuple[SignalGram, tuple[str, ...], np.ndarray]:
-    """Trace `poses` in `scene` once (specular paths), group the arrivals by signature and reduce
-    the recorded `signals` (pings, mics, samples) against each signature's signals; returns the
-    Gram data, the surface classes the paths reflect off and their nominal R."""
+    """Trace `poses` in `scene` once (specular paths), group the arrivals by signature (and, with
+    `directivity_knots` > 0, by knot of the emitter's directivity, that many every 90 / knots degrees
+    from the axis) and reduce the recorded `signals` (pings, mics, samples) against each group's
+    signals; returns the Gram data, the surface classes the paths reflect off and their nominal R."""
     from .engine.sonar import Sonar
 
     poses = np.asarray(poses, dtype=np.float64)
@@ -217,7 +258,14 @@ def signal_gram(
     seen = counts.sum(axis=0) > 0
     classes = tuple(np.array(SURFACE_CLASSES)[seen])
     nominal = np.array([face_r[face_class == k].mean() for k in np.nonzero(seen)[0]])
-    signatures, group = np.unique(counts[:, seen], axis=0, return_inverse=True)
+    counts = counts[:, seen]
+    knot = knot_deg = None
+    if directivity_knots > 0:
+        arrivals, counts, knot, knot_deg = _by_knot(arrivals, counts, scene, poses, config, directivity_knots)
+        keys, group = np.unique(np.column_stack([counts, knot]), axis=0, return_inverse=True)
+        signatures, knot = keys[:, :-1], keys[:, -1]
+    else:
+        signatures, group = np.unique(counts, axis=0, return_inverse=True)
     group = group.reshape(-1)
     mics, count = config.microphone_count, len(signatures)
     gram = np.zeros((mics, count, count))
@@ -246,8 +294,45 @@ def signal_gram(
         energy += np.einsum("mt,mt->m", measured, measured)
     weight = np.where((band == 0) | (2 * band == size), 1.0, 2.0) / size  # rfft's bins stand for two but DC, Nyquist
     omega = 2 * np.pi * band / size
-    data = SignalGram(signatures, gram, cross, energy, spectra, omega, weight)
+    data = SignalGram(signatures, gram, cross, energy, spectra, omega, weight, knot, knot_deg)
     return data, classes, nominal
+
+
+def departure_cosine(arrivals, scene: scenes.Scene, poses: np.ndarray, config: SonarConfig) -> np.ndarray:
+    """Per arrival, the cosine of the angle from the emitter's axis (the sensor's x) at which its
+    path left the emitter: its arrival direction reflected back through its faces, last first
+    (off a sphere or cylinder: towards the point it reflects at)."""
+    normals = np.asarray(scene.mesh.face_normals, dtype=np.float64)
+    to_world = poses[arrivals.pose_index, :3, :3]
+    leaving = -np.asarray(arrivals.direction, dtype=np.float64)  # the last leg's way, reversed below
+    for j in reversed(range(arrivals.faces.shape[1])):
+        face = arrivals.faces[:, j]
+        on = face >= 0
+        normal = np.einsum("nji,nj->ni", to_world[on], normals[face[on]])  # in the sensor frame
+        leaving[on] -= 2 * np.einsum("ni,ni->n", leaving[on], normal)[:, None] * normal
+    curved = (arrivals.order == 1) & np.all(arrivals.source_m == arrivals.point_m, axis=1)
+    leaving[curved] = arrivals.point_m[curved] - np.asarray(config.emitter_m)
+    return leaving[:, 0] / np.linalg.norm(leaving, axis=1)
+
+
+def _by_knot(arrivals, counts: np.ndarray, scene, poses, config: SonarConfig, knots: int):
+    """The arrivals taken back to an omnidirectional emitter and split between the two knots
+    around the angle they left at (each copy carrying its share), with their counts and knots, and
+    the knots' angles [deg]."""
+    cosine = np.clip(departure_cosine(arrivals, scene, poses, config), -1.0, 1.0)
+    angle = np.degrees(np.arccos(cosine))
+    air = config.atmosphere.speed_of_sound
+    nominal = piston_directivity(np.radians(angle), config.chirp.centre_frequency_hz, config.emitter_radius_m, air)
+    heard = np.abs(nominal) >= QUIET_DIRECTIVITY
+    arrivals, counts, angle = arrivals.select(heard), counts[heard], angle[heard]
+    arrivals.amplitude = arrivals.amplitude / nominal[heard]
+    step = 90.0 / knots
+    below = np.minimum(np.floor(angle / step).astype(int), knots - 1)
+    share = np.clip(angle / step - below, 0.0, 1.0)  # of the knot above
+    both = np.concatenate([np.arange(len(angle))] * 2)
+    split = arrivals.select(both)
+    split.amplitude = split.amplitude * np.concatenate([1.0 - share, share])
+    return split, counts[both], np.concatenate([below, below + 1]), np.arange(knots + 1) * step
 
 
 def _delay_band(config: SonarConfig) -> tuple[int, np.ndarray]:
@@ -262,14 +347,17 @@ def _delay_band(config: SonarConfig) -> tuple[int, np.ndarray]:
 
 
 def loss_and_gradient(theta: np.ndarray, data: SignalGram, fit_gains: bool, fit_delays: bool = False):
-    """The relative squared error and its gradient at theta = (log R per class, then log gain per
-    microphone where `fit_gains`, then delay per microphone [samples] where `fit_delays`)."""
-    classes, mics = data.signatures.shape[1], len(data.energy)
+    """The relative squared error and its gradient at theta = (log R per class, then the
+    directivity at each fitted knot where the data have knots, then log gain per microphone where
+    `fit_gains`, then delay per microphone [samples] where `fit_delays`)."""
+    classes, knots, mics = data.signatures.shape[1], data.fitted_knots, len(data.energy)
     log_r = theta[:classes]
-    log_g = theta[classes : classes + mics] if fit_gains else np.zeros(mics)
+    log_g = theta[classes + knots : classes + knots + mics] if fit_gains else np.zeros(mics)
     tau = theta[len(theta) - mics :] if fit_delays else None
     gains = np.exp(log_g)
-    scale = np.exp(data.signatures @ (0.5 * log_r))  # c_g (G,): the signature signals are at R = 1
+    base = np.exp(data.signatures @ (0.5 * log_r))  # the signature signals are at R = 1
+    at_knot = np.concatenate([[1.0], theta[classes : classes + knots]])[data.knot] if knots else 1.0
+    scale = base * at_knot  # c_g (G,)
     quad = np.einsum("g,mgh,h->m", scale, data.gram, scale)  # c' A_m c
     cross, slope = data.cross_at(tau) if fit_delays else (data.cross, None)
     lin = cross @ scale  # c' b_m
@@ -277,6 +365,8 @@ def loss_and_gradient(theta: np.ndarray, data: SignalGram, fit_gains: bool, fit_
     loss = (gains**2 * quad - 2 * gains * lin + data.energy).sum() / total
     d_scale = 2 * np.einsum("m,mgh,h->g", gains**2, data.gram, scale) - 2 * (gains[:, None] * cross).sum(axis=0)
     grad = [data.signatures.T @ (d_scale * scale) * 0.5 / total]
+    if knots:
+        grad.append(np.bincount(data.knot, weights=d_scale * base, minlength=knots + 1)[1:] / total)
     if fit_gains:
         grad.append((2 * gains**2 * quad - 2 * gains * lin) / total)
     if fit_delays:
@@ -303,6 +393,7 @@ def fit_surfaces(
     *,
     fit_gains: bool = True,
     fit_delays: bool = True,
+    directivity_knots: int = 0,
     absorption: bool = True,
     device=None,
     progress: bool = False,
@@ -316,19 +407,41 @@ def fit_surfaces(
     right; its materials' R the starting point, their scattering taken as known).
 
     Minimises the squared error between simulated and recorded signals, relative to the
-    recording's energy, by L-BFGS on log R (R within (0, 1]), log gain and delay. `absorption`: whether the
+    recording's energy, by L-BFGS on log R (R within (0, 1]), log gain and delay. With
+    `directivity_knots` > 0 the emitter's directivity too (module docstring), from the nominal
+    piston's. `absorption`: whether the
     recording's air absorbs (real air does; a simulation may have left it out)."""
     from scipy.optimize import minimize
 
+    if directivity_knots < 0:
+        raise ValueError(f"directivity_knots must be >= 0 (0: the nominal directivity), got {directivity_knots}")
     data, classes, nominal = signal_gram(
-        scene, poses, signals, config, tracer, absorption=absorption, device=device, progress=progress
+        scene,
+        poses,
+        signals,
+        config,
+        tracer,
+        absorption=absorption,
+        directivity_knots=directivity_knots,
+        device=device,
+        progress=progress,
     )
     mics, fs = config.microphone_count, config.chirp.sample_rate_hz
     reach = MAX_DELAY_S * fs
-    theta0 = [np.log(nominal), np.zeros(mics if fit_gains else 0)]
-    bounds = [(np.log(1e-4), 0.0)] * len(classes) + [(None, None)] * (mics if fit_gains else 0)
+    air, centre = config.atmosphere.speed_of_sound, config.chirp.centre_frequency_hz
+    piston = (
+        piston_directivity(np.radians(data.knot_deg), centre, config.emitter_radius_m, air)
+        if data.knot_deg is not None
+        else np.zeros(0)
+    )
+    theta0 = [np.log(nominal), piston[1:], np.zeros(mics if fit_gains else 0)]
+    bounds = [(np.log(1e-4), 0.0)] * len(classes) + [(-2.0, 2.0)] * data.fitted_knots
+    bounds += [(None, None)] * (mics if fit_gains else 0)
     if fit_delays:
-        theta0.append(_coarse_delays(data, np.exp(data.signatures @ (0.5 * np.log(nominal))), reach))
+        start = np.exp(data.signatures @ (0.5 * np.log(nominal)))
+        if data.fitted_knots:
+            start = start * piston[data.knot]
+        theta0.append(_coarse_delays(data, start, reach))
         bounds += [(-reach, reach)] * mics
     theta0 = np.concatenate(theta0)
     losses: list[float] = []
@@ -344,7 +457,13 @@ def fit_surfaces(
     done = minimize(step, theta0, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxfun": max_steps})
     bar.total = bar.n  # converged before the step budget: the bar ends full
     bar.close()
-    reflection = np.exp(done.x[: len(classes)])
-    gains_db = 20 / np.log(10) * done.x[len(classes) : len(classes) + mics] if fit_gains else np.zeros(mics)
+    k, knots = len(classes), data.fitted_knots
+    reflection = np.exp(done.x[:k])
+    gains_db = 20 / np.log(10) * done.x[k + knots : k + knots + mics] if fit_gains else np.zeros(mics)
     delays_s = done.x[len(done.x) - mics :] / fs if fit_delays else np.zeros(mics)
-    return SurfaceFit(classes, reflection, nominal, gains_db, delays_s, losses, len(data.signatures))
+    signatures = len(np.unique(data.signatures, axis=0))
+    fit = SurfaceFit(classes, reflection, nominal, gains_db, delays_s, losses, signatures)
+    if knots:
+        fit.directivity_deg, fit.directivity_nominal = data.knot_deg, piston
+        fit.directivity = np.concatenate([[1.0], done.x[k : k + knots]])
+    return fit

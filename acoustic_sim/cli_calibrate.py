@@ -31,6 +31,14 @@ def add_calibrate_parser(sub, builders) -> None:
     cal.add_argument("--no-gains", action="store_true", help="keep every microphone's gain at 0 dB")
     cal.add_argument("--no-delays", action="store_true", help="keep every microphone's delay at 0")
     cal.add_argument(
+        "--directivity-knots",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also fit the emitter's directivity, piecewise linear between N + 1 knots from its axis to 90 deg "
+        "(default 0: the nominal piston's)",
+    )
+    cal.add_argument(
         "--no-air-absorption",
         action="store_true",
         help="the recordings' air does not absorb (a simulation that left it out)",
@@ -85,6 +93,7 @@ def _calibrate_into(args, written: Path) -> str:
         tracer,
         fit_gains=not args.no_gains,
         fit_delays=not args.no_delays,
+        directivity_knots=args.directivity_knots,
         absorption=absorption,
         device=args.device,
         progress=True,
@@ -100,6 +109,12 @@ def _calibrate_into(args, written: Path) -> str:
         },
         "mic_gain_db": np.round(fit.mic_gain_db, 4).tolist(),
         "mic_delay_us": np.round(fit.mic_delay_s * 1e6, 5).tolist(),
+        "directivity": {
+            "angle_deg": fit.directivity_deg.tolist(),
+            "fitted": np.round(fit.directivity, 5).tolist(),
+            "nominal": np.round(fit.directivity_nominal, 5).tolist(),
+            "piston_radius_mm": round(fit.piston_radius_m(rig.sonar) * 1e3, 3) if len(fit.directivity) else None,
+        },
         "loss": fit.loss,
         "signatures": fit.signatures,
         "pings": len(poses),

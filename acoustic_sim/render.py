@@ -114,12 +114,14 @@ def render_examples(examples: list[tuple[str, np.ndarray, np.ndarray]], grid: Po
 
 def render_calibration(fit, energyscapes: list[tuple[str, np.ndarray]], grid: PolarGrid, out: str | Path) -> Path:
     """A calibration at a glance: the relative error at each step, each class's R before and after,
-    each microphone's fitted gain and delay, and one ping's energyscapes (recorded, simulated with
-    the nominal and the fitted values), in dB below the first one's peak."""
+    each microphone's fitted gain and delay, the emitter's directivity where it was fitted, and one
+    ping's energyscapes (recorded, simulated with the nominal and the fitted values), in dB below
+    the first one's peak."""
     out = Path(out)
     n = len(energyscapes)
-    fig = plt.figure(figsize=(5.5 * n, 8.6))
-    grid_spec = fig.add_gridspec(2, 3 * n)  # the top row's three panels over the bottom row's n
+    top = 4 if len(fit.directivity) else 3
+    fig = plt.figure(figsize=(5.5 * max(n, top * 0.8), 8.6))
+    grid_spec = fig.add_gridspec(2, top * n)  # the top row's panels over the bottom row's n
     loss = fig.add_subplot(grid_spec[0, :n])
     loss.semilogy(np.arange(1, len(fit.loss) + 1), fit.loss, marker=".")
     loss.set(xlabel="evaluation", ylabel="error energy / recording's", title="fit")
@@ -130,7 +132,7 @@ def render_calibration(fit, energyscapes: list[tuple[str, np.ndarray]], grid: Po
     bars.set_xticks(where, fit.classes, rotation=20)
     bars.set(ylabel="energy reflection R", ylim=(0, 1.05), title="surface classes")
     bars.legend(loc="upper right", fontsize=8)
-    mics = fig.add_subplot(grid_spec[0, 2 * n :])
+    mics = fig.add_subplot(grid_spec[0, 2 * n : 3 * n])
     index = np.arange(len(fit.mic_gain_db))
     mics.bar(index, fit.mic_gain_db, 0.8, color="tab:blue")
     mics.set(xlabel="microphone", title="microphones (fitted)")
@@ -138,9 +140,16 @@ def render_calibration(fit, energyscapes: list[tuple[str, np.ndarray]], grid: Po
     lags = mics.twinx()
     lags.plot(index, fit.mic_delay_s * 1e6, "o", color="tab:red", markersize=4)
     lags.set_ylabel("delay [us]", color="tab:red")
+    if len(fit.directivity):
+        beam = fig.add_subplot(grid_spec[0, 3 * n :])
+        beam.plot(fit.directivity_deg, fit.directivity_nominal, "o-", label="nominal piston (start)")
+        beam.plot(fit.directivity_deg, fit.directivity, "o-", label="fitted")
+        beam.axhline(0.0, color="0.6", linewidth=0.8)
+        beam.set(xlabel="angle from the emitter's axis [deg]", ylabel="pressure (1 on axis)", title="emitter")
+        beam.legend(loc="upper right", fontsize=8)
     peak = float(np.max(energyscapes[0][1]))  # one dB scale: the first image's peak
     for k, (title, image) in enumerate(energyscapes):
-        ax = fig.add_subplot(grid_spec[1, 3 * k : 3 * k + 3])
+        ax = fig.add_subplot(grid_spec[1, top * k : top * k + top])
         draw_energyscape(ax, np.asarray(image, dtype=np.float32), None, grid, title=title, peak=peak)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
