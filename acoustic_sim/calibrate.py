@@ -155,20 +155,27 @@ class SurfaceFit:
         return float(radii[((shapes - self.directivity) ** 2).sum(axis=1).argmin()])
 
 
-def load_recordings(path, pings: int | None = None, episode: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+def load_recordings(
+    path, pings: int | None = None, episode: int | None = None, poses_path=None
+) -> tuple[np.ndarray, np.ndarray]:
     """Poses (N, 4, 4) and microphone signals (N, mics, samples) float32 of recorded pings, from a
-    .npz holding `poses` and `signals`, or from a dataset folder (or one shard) made with
-    `generate --signals`: the frames of one `episode` (one room; required where the data hold
-    several). With `pings`, at most that many, evenly spaced."""
+    .npz holding `poses` and `signals`, a .npy of signals with a .npy of their poses (`poses_path`),
+    or a dataset folder (or one shard) made with `generate --signals`: the frames of one `episode`
+    (one room; required where the data hold several). With `pings`, at most that many, evenly
+    spaced."""
     path = Path(path)
+    if (path.suffix == ".npy") != (poses_path is not None):
+        raise ValueError(f"{path}: signals in a .npy need their poses in a .npy too (--poses), and only they do")
     if path.suffix == ".npz":
         poses, signals = _npz_recordings(path)
+    elif path.suffix == ".npy":
+        poses, signals = _checked_recordings(np.load(poses_path), np.load(path), f"{path} and {poses_path}")
     elif path.is_dir() or path.suffix == ".h5":
         poses, signals = _shard_recordings(path, episode)
     else:
         raise ValueError(
-            f"{path}: recordings come as a .npz with `poses` (N, 4, 4) and `signals` (N, mics, samples), or a "
-            "dataset folder (or shard) made with generate --signals"
+            f"{path}: recordings come as a .npz with `poses` (N, 4, 4) and `signals` (N, mics, samples), a .npy of "
+            "signals with a .npy of poses (--poses), or a dataset folder (or shard) made with generate --signals"
         )
     if pings is not None and pings < len(poses):
         if pings < 1:
@@ -183,10 +190,14 @@ def _npz_recordings(path) -> tuple[np.ndarray, np.ndarray]:
         missing = [k for k in ("poses", "signals") if k not in data]
         if missing:
             raise ValueError(f"{path} lacks {' and '.join(missing)}; it holds {', '.join(data.files) or 'nothing'}")
-        poses, signals = np.asarray(data["poses"], np.float64), np.asarray(data["signals"], np.float32)
+        return _checked_recordings(data["poses"], data["signals"], str(path))
+
+
+def _checked_recordings(poses, signals, where: str) -> tuple[np.ndarray, np.ndarray]:
+    poses, signals = np.asarray(poses, np.float64), np.asarray(signals, np.float32)
     if poses.ndim != 3 or poses.shape[1:] != (4, 4) or signals.ndim != 3 or len(signals) != len(poses):
         raise ValueError(
-            f"{path}: poses {poses.shape} and signals {signals.shape} must be (N, 4, 4) and (N, mics, samples)"
+            f"{where}: poses {poses.shape} and signals {signals.shape} must be (N, 4, 4) and (N, mics, samples)"
         )
     return poses, signals
 

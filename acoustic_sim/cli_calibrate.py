@@ -19,9 +19,10 @@ def add_calibrate_parser(sub, builders) -> None:
     cal = sub.add_parser("calibrate", formatter_class=HelpFormatter, **COMMANDS["calibrate"])
     cal.add_argument(
         "recordings",
-        help="a .npz with `poses` (N, 4, 4) and `signals` (N, mics, samples), or a dataset folder or shard made "
-        "with generate --signals",
+        help="a .npz with `poses` (N, 4, 4) and `signals` (N, mics, samples), a .npy of signals (with --poses), "
+        "or a dataset folder or shard made with generate --signals",
     )
+    cal.add_argument("--poses", help="of signals in a .npy: their sensor-to-world poses (N, 4, 4) in a .npy")
     cal.add_argument("--episode", type=int, help="of a dataset: the episode (one room) to fit to")
     add_scene_options(cal, builders, MESH_OPTIONS, default="box_room")
     cal.add_argument("--seed", type=int, default=0, help="seeds a builder's scene")
@@ -82,7 +83,7 @@ def _calibrate_into(args, written: Path) -> str:
         tracer = dataclasses.replace(tracer, max_bounces=args.max_bounces)
     if args.rays is not None:
         tracer = dataclasses.replace(tracer, ray_count=args.rays)
-    poses, signals = load_recordings(args.recordings, args.pings, args.episode)
+    poses, signals = load_recordings(args.recordings, args.pings, args.episode, args.poses)
     scene = scene_from_args(args)
     absorption = not args.no_air_absorption
     fit = fit_surfaces(

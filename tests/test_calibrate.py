@@ -12,7 +12,7 @@ from scipy.optimize import check_grad
 import acoustic_sim as sim
 import scenes
 from acoustic_sim.array import piston_directivity
-from acoustic_sim.calibrate import SignalGram, departure_cosine, fit_surfaces, loss_and_gradient
+from acoustic_sim.calibrate import SignalGram, departure_cosine, fit_surfaces, load_recordings, loss_and_gradient
 from acoustic_sim.engine.sonar import Sonar
 from scenes.surfaces import with_surfaces
 
@@ -337,3 +337,24 @@ def test_recordings_come_from_a_dataset_made_with_signals(tmp_path, device):
     for (path, episode), complaint in refusals.items():
         with pytest.raises(ValueError, match=complaint):
             load_recordings(path, episode=episode)
+
+
+def test_recordings_come_as_two_npy_files(tmp_path):
+    """Signals in one .npy and their poses in another are read as a .npz of both is; a .npy without
+    its poses, poses with a .npz, and pings that do not pair are refused, naming what is wrong."""
+    poses = np.stack([scenes.pose(1.0 + i, 2.0, 0.1 * i, 0.5) for i in range(3)])
+    signals = np.random.default_rng(0).normal(size=(3, 4, 100)).astype(np.float32)
+    np.save(tmp_path / "signals.npy", signals)
+    np.save(tmp_path / "poses.npy", poses)
+    np.savez(tmp_path / "both.npz", poses=poses, signals=signals)
+    got = load_recordings(tmp_path / "signals.npy", poses_path=tmp_path / "poses.npy")
+    want = load_recordings(tmp_path / "both.npz")
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="need their poses"):
+        load_recordings(tmp_path / "signals.npy")
+    with pytest.raises(ValueError, match="need their poses"):
+        load_recordings(tmp_path / "both.npz", poses_path=tmp_path / "poses.npy")
+    np.save(tmp_path / "two.npy", poses[:2])
+    with pytest.raises(ValueError, match=r"must be \(N, 4, 4\) and \(N, mics, samples\)"):
+        load_recordings(tmp_path / "signals.npy", poses_path=tmp_path / "two.npy")
