@@ -257,11 +257,19 @@ def test_the_command_writes_the_fit_and_its_picture(tmp_path, device, capsys):
 
 def test_a_suite_generates_in_the_fitted_physics(tmp_path):
     """A suite file's physics names a fit (`calibration`): its classes' R become the variant's
-    surfaces, R itself or a band of +-`calibration_spread` (capped at 1), drawn per episode;
-    a class given twice, a spread without a fit or a file that is no fit is refused by name."""
+    surfaces, R itself or a band of +-`calibration_spread` (capped at 1), drawn per episode; its
+    microphones' gains and delays become the simulated array's, and its emitter the nearest piston
+    (+-spread); a value given twice, a spread without a fit or a file that is no fit is refused by name."""
+    from acoustic_sim.datasets.episode import episode_sonar_config
     from acoustic_sim.datasets.suites import load_suite
 
-    fit = {"classes": {"walls": {"reflection": 0.8, "nominal": 0.97}, "floor": {"reflection": 0.95, "nominal": 0.9}}}
+    gains, delays_us = np.linspace(-1.0, 1.0, 32), np.linspace(-3.0, 3.0, 32)
+    fit = {
+        "classes": {"walls": {"reflection": 0.8, "nominal": 0.97}, "floor": {"reflection": 0.95, "nominal": 0.9}},
+        "mic_gain_db": gains.tolist(),
+        "mic_delay_us": delays_us.tolist(),
+        "directivity": {"angle_deg": [0, 45, 90], "fitted": [1, 0.6, 0.3], "piston_radius_mm": 3.5},
+    }
     (tmp_path / "fit.json").write_text(json.dumps(fit))
     suite = tmp_path / "mine.toml"
     suite.write_text('base = "tiny"\n[physics]\ncalibration = "fit.json"\ncalibration_spread = 0.1\n')
@@ -270,21 +278,33 @@ def test_a_suite_generates_in_the_fitted_physics(tmp_path):
         "walls": {"reflection": [pytest.approx(0.72), pytest.approx(0.88)]},
         "floor": {"reflection": [pytest.approx(0.855), 1.0]},
     }
+    assert physics.vary == {"sonar.emitter_radius_m": [pytest.approx(0.00315), pytest.approx(0.00385)]}
     drawn = physics.draw_surfaces(np.random.default_rng(0))
     assert 0.72 <= drawn["walls"]["reflection"] <= 0.88
+    array, _ = episode_sonar_config(physics, CONFIG, np.random.default_rng(0))
+    np.testing.assert_allclose(array.channel_gain(), 10 ** (gains / 20))
+    np.testing.assert_allclose(array.channel_delay_s(), delays_us * 1e-6)
+    assert physics.to_json()["mic_delay_s"] == pytest.approx(list(delays_us * 1e-6))
     suite.write_text('base = "tiny"\n[physics]\ncalibration = "fit.json"\n')
     (physics,) = load_suite(suite).variants.values()
     assert physics.surfaces["walls"]["reflection"] == [0.8, 0.8]
     refused = {
         "[physics]\ncalibration_spread = 0.1\n": "calibration_spread needs calibration",
         '[physics]\ncalibration = "fit.json"\nsurfaces = {walls = {reflection = [0.5, 0.6]}}\n': "both give walls",
+        '[physics]\ncalibration = "fit.json"\nmic_gain_db = [0.0]\n': "both give the microphones' gains",
+        '[physics]\ncalibration = "fit.json"\nvary = {"sonar.emitter_radius_m" = [0.001, 0.002]}\n': "emitter's radius",
         '[physics]\ncalibration = "mine.toml"\n': "is not a fit",
         '[physics]\ncalibration = "fit.json"\ncalibration_spread = 1.5\n': "a fraction of R",
+        "[physics]\nmic_gain_db = [0.0, 1.0]\nmic_delay_s = [0.0]\n": "one value per microphone each",
     }
     for text, complaint in refused.items():
         suite.write_text('base = "tiny"\n' + text)
         with pytest.raises(ValueError, match=complaint):
             load_suite(suite)
+    suite.write_text('base = "tiny"\n[physics]\nmic_gain_db = [0.0, 1.0]\n')
+    (physics,) = load_suite(suite).variants.values()
+    with pytest.raises(ValueError, match="gives 2 microphones, the sonar has 32"):
+        episode_sonar_config(physics, CONFIG, np.random.default_rng(0))
 
 
 @pytest.mark.parametrize(("snr_db", "tolerance"), [(None, 0.05), (20.0, 0.10)])

@@ -22,20 +22,23 @@ from .suites import episode_drive
 def episode_sonar_config(physics: Physics, nominal: SonarConfig, rng: np.random.Generator) -> tuple[SonarConfig, float]:
     """The simulated sensor of one episode and its SNR [dB]: the nominal sonar with air temperature
     and channel mismatch drawn from `rng` (always in the same order, so variants that differ
-    elsewhere draw the same values)."""
+    elsewhere draw the same values) around the physics' own gains and delays per microphone."""
     mics = nominal.microphone_count
     snr_db = float(rng.uniform(*physics.snr_db))
     temperature = float(rng.uniform(*physics.temperature_c))
     position = rng.normal(0.0, 1.0, (mics, 3)) * physics.mic_position_sigma_m
     gain = 10.0 ** (rng.normal(0.0, 1.0, mics) * physics.mic_gain_sigma_db / 20.0)
     delay = np.abs(rng.normal(0.0, 1.0, mics)) * physics.mic_delay_sigma_s
+    for name in ("mic_gain_db", "mic_delay_s"):
+        if len(getattr(physics, name)) not in (0, mics):
+            raise ValueError(f"Physics.{name} gives {len(getattr(physics, name))} microphones, the sonar has {mics}")
     mismatch = {}
     if physics.mic_position_sigma_m > 0:
         mismatch["microphones_m"] = tuple(map(tuple, np.asarray(nominal.microphones_m) + position))
-    if physics.mic_gain_sigma_db > 0:
-        mismatch["microphone_gain"] = tuple(gain)
-    if physics.mic_delay_sigma_s > 0:
-        mismatch["microphone_delay_s"] = tuple(delay)
+    if physics.mic_gain_sigma_db > 0 or physics.mic_gain_db:
+        mismatch["microphone_gain"] = tuple(gain * 10.0 ** (np.asarray(physics.mic_gain_db or 0.0) / 20.0))
+    if physics.mic_delay_sigma_s > 0 or physics.mic_delay_s:
+        mismatch["microphone_delay_s"] = tuple(delay + np.asarray(physics.mic_delay_s or 0.0))
     atmosphere = dataclasses.replace(nominal.atmosphere, temperature_c=temperature)
     config = dataclasses.replace(nominal, atmosphere=atmosphere, **mismatch)
     return config, snr_db

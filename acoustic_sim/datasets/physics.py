@@ -87,6 +87,8 @@ class Physics:
         temperature_c: Air temperature per episode [C]; the beamformer always assumes 343 m/s.
         mic_position_sigma_m, mic_gain_sigma_db, mic_delay_sigma_s: Channel mismatch of the
             simulated array per episode (the beamformer assumes the nominal array).
+        mic_gain_db, mic_delay_s: Each microphone's gain [dB] and extra delay [s] (a fit's,
+            `calibrate`): the simulated array's, around which the sigmas draw; empty: 0 dB, 0 s.
         vary: Rig fields drawn per episode, by dotted path under `sonar` or `tracer`, each as
             [low, high] (integers if both ends are), {"choice": [...]} or, for a sequence field,
             a list of those and fixed numbers: e.g. {"sonar.emitter_radius_m": [0.0, 0.02],
@@ -112,12 +114,21 @@ class Physics:
     mic_position_sigma_m: float = 0.0
     mic_gain_sigma_db: float = 0.0
     mic_delay_sigma_s: float = 0.0
+    mic_gain_db: tuple[float, ...] = ()
+    mic_delay_s: tuple[float, ...] = ()
     vary: dict = field(default_factory=dict)
     surfaces: dict = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "snr_db", _pair(self.snr_db, "snr_db"))
         object.__setattr__(self, "temperature_c", _pair(self.temperature_c, "temperature_c"))
+        for name in ("mic_gain_db", "mic_delay_s"):
+            value = getattr(self, name)
+            if np.ndim(value) != 1 or not all(_is_number(v) for v in value):
+                raise ValueError(f"Physics.{name} must be a list of numbers, one per microphone, got {value!r}")
+            object.__setattr__(self, name, tuple(float(v) for v in value))
+        if self.mic_gain_db and self.mic_delay_s and len(self.mic_gain_db) != len(self.mic_delay_s):
+            raise ValueError("Physics.mic_gain_db and mic_delay_s must give one value per microphone each")
         check_finite(self)
         self.tracer()  # refuses max_bounces outside 0..MAX_BOUNCES, ray_count < 1, edge_width_m < 0
         for name in ("sonar_noise", "lidar_noise"):
@@ -161,7 +172,7 @@ class Physics:
 
     def to_json(self) -> dict:
         out = dataclasses.asdict(self)
-        for name in ("vary", "surfaces"):  # left out when empty: shards of variants without them stay lean
+        for name in ("vary", "surfaces", "mic_gain_db", "mic_delay_s"):  # left out when empty: shards stay lean
             if not out[name]:
                 del out[name]
         return out

@@ -95,7 +95,9 @@ CALIBRATION_MAX_BYTES = 1_000_000  # a fit is a few kilobytes (a loss per step, 
 def _calibrated_surfaces(table: dict, path: Path, where: str) -> None:
     """A physics table's `calibration = "FIT.json"` (a file `calibrate` wrote; a relative path is
     beside the suite file) becomes its `surfaces`: each fitted class's reflection R, drawn per
-    episode from [R (1 - s), min(1, R (1 + s))] with `calibration_spread = s` (default 0: R itself)."""
+    episode from [R (1 - s), min(1, R (1 + s))] with `calibration_spread = s` (default 0: R itself);
+    its microphones' gains and delays (`mic_gain_db`, `mic_delay_s`); and where it fitted the
+    emitter's directivity, the closest piston's radius r, drawn from [r (1 - s), r (1 + s)] (`vary`)."""
     spread = table.pop("calibration_spread", None)
     if "calibration" not in table:
         if spread is not None:
@@ -111,12 +113,27 @@ def _calibrated_surfaces(table: dict, path: Path, where: str) -> None:
     fit_path = path.parent / name
     input_file(fit_path, what="calibration", max_bytes=CALIBRATION_MAX_BYTES, bound="a fit is a few kilobytes")
     try:
-        classes = json.loads(fit_path.read_text(encoding="utf-8"))["classes"]
-        fitted = {cls: float(values["reflection"]) for cls, values in classes.items()}
+        fit = json.loads(fit_path.read_text(encoding="utf-8"))
+        fitted = {cls: float(values["reflection"]) for cls, values in fit["classes"].items()}
+        channels = {"mic_gain_db": [float(v) for v in fit.get("mic_gain_db", [])]}
+        channels["mic_delay_s"] = [float(v) * 1e-6 for v in fit.get("mic_delay_us", [])]
+        radius_mm = (fit.get("directivity") or {}).get("piston_radius_mm")
+        radius = None if radius_mm is None else float(radius_mm) * 1e-3
     except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError):
         raise ValueError(
             f"{where}.calibration: {fit_path} is not a fit `calibrate` wrote (classes with reflection)"
         ) from None
+    for name, values in channels.items():
+        if values and name in table:
+            raise ValueError(f"{where}: {name} and calibration both give the microphones' {name.split('_')[1]}s")
+        if values:
+            table[name] = values
+    if radius is not None:
+        vary = table.setdefault("vary", {})
+        _check(vary, "a table", f"{where}.vary")
+        if "sonar.emitter_radius_m" in vary:
+            raise ValueError(f"{where}: vary.sonar.emitter_radius_m and calibration both give the emitter's radius")
+        vary["sonar.emitter_radius_m"] = [radius * (1 - spread), radius * (1 + spread)]
     surfaces = table.setdefault("surfaces", {})
     _check(surfaces, "a table of tables", f"{where}.surfaces")
     for cls, r in fitted.items():
