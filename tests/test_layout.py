@@ -138,7 +138,7 @@ MAY_IMPORT = {
     "render": {"base", "engine"},  # pictures of every stage's output
     "datasets": {"base", "engine", "render", "datasets"},
     "formats": {"base", "engine", "render", "datasets", "formats"},
-    "calibrate": {"base", "engine", "datasets"},  # the engine run backwards on recordings (a dataset its input)
+    "calibrate": {"base", "engine", "datasets", "calibrate"},  # the engine run backwards on recordings
     "cli": {"base", "engine", "render", "datasets", "formats", "calibrate", "cli"},
 }
 

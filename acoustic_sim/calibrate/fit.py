@@ -1,41 +1,9 @@
-"""Calibrate the simulator to recordings of a known room: the reflection coefficient of each surface
-class (walls, floor, ceiling, objects: `scenes.surfaces`) and the microphones' gains, fitted by
-gradient to recorded microphone signals.
-
-The paths are traced once, with the scene's own coefficients. A specular path off planes owes its
-amplitude to the faces it reflects off (`Arrivals.faces`): a factor sqrt(R (1 - s)) each. Each
-arrival is taken back to R = 1 on its faces (its amplitude over the product of their sqrt(R)), so
-that with the classes' R it scales by the product of R_k^(n_k / 2), n_k its reflections off class k.
-The arrivals with the same n (one *signature*) scale together, and a recording is linear in those
-scale factors. Each signature's signals are recorded once, and the squared error between simulated
-and recorded signals reduces to a small Gram matrix per microphone (`SignalGram`), so every step of
-the fit costs microseconds whatever the number of pings. A fit sets every material of a class to
-one R (`scenes.surfaces.with_surfaces`), as a suite's `surfaces` physics does.
-
-Each microphone's delay is fitted too: delaying a simulated signal leaves its Gram products as
-they are and turns its inner product with the recording into their cross-correlation at that lag,
-kept as a cross-spectrum over the call's band (`SignalGram.spectra`) and evaluated at any
-fractional lag, with its derivative, at each step. A coarse search over lags (the correlation of
-the nominal simulation with the recording, per microphone) starts each delay on the right cycle
-of the carrier.
-
-The emitter's directivity can be fitted as well (`directivity_knots`): its pressure at the call's
-centre frequency, piecewise linear over the angle from its axis between knots (1 on the axis, the
-knots' values fitted). Each arrival is taken back to an omnidirectional emitter (its amplitude over
-the nominal baffled piston's directivity towards the direction it left in, found by reflecting its
-arrival direction back through its faces) and shared between the two knots around that angle, so
-the recording stays linear in each (signature, knot) group's scale.
-
-What this fit leaves out (to come): scattered echoes (their faces are not recorded yet, so the
-tracer runs without them and a recording that holds them biases R upwards), and paths leaving the
-emitter backwards (the tracer's baffled emitter sends none).
-"""
+"""The fit: signature signals and their Gram products, the loss and its gradient, L-BFGS."""
 
 from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -43,13 +11,13 @@ from tqdm.auto import tqdm
 import scenes
 from scenes.surfaces import SURFACE_CLASSES, surface_classes, with_surfaces
 
-from .array import piston_directivity
-from .config import SonarConfig, TracerConfig
+from ..array import piston_directivity
+from ..config import SonarConfig, TracerConfig
+from .directivity import by_knot
 
 BLOCK_BYTES = 512e6  # the signature signals held at once (float64: signatures x pings x mics x samples)
 MAX_DELAY_S = 20e-6  # how far a microphone's fitted delay may go either way (9 samples at 450 kHz)
 BAND_FLOOR = 1e-3  # the call's band: frequencies within 60 dB of its spectrum's peak
-QUIET_DIRECTIVITY = 1e-3  # arrivals the nominal emitter sends less pressure than this are left out of a directivity fit
 
 
 @dataclass
@@ -155,79 +123,6 @@ class SurfaceFit:
         return float(radii[((shapes - self.directivity) ** 2).sum(axis=1).argmin()])
 
 
-def load_recordings(
-    path, pings: int | None = None, episode: int | None = None, poses_path=None
-) -> tuple[np.ndarray, np.ndarray]:
-    """Poses (N, 4, 4) and microphone signals (N, mics, samples) float32 of recorded pings, from a
-    .npz holding `poses` and `signals`, a .npy of signals with a .npy of their poses (`poses_path`),
-    or a dataset folder (or one shard) made with `generate --signals`: the frames of one `episode`
-    (one room; required where the data hold several). With `pings`, at most that many, evenly
-    spaced."""
-    path = Path(path)
-    if (path.suffix == ".npy") != (poses_path is not None):
-        raise ValueError(f"{path}: signals in a .npy need their poses in a .npy too (--poses), and only they do")
-    if path.suffix == ".npz":
-        poses, signals = _npz_recordings(path)
-    elif path.suffix == ".npy":
-        poses, signals = _checked_recordings(np.load(poses_path), np.load(path), f"{path} and {poses_path}")
-    elif path.is_dir() or path.suffix == ".h5":
-        poses, signals = _shard_recordings(path, episode)
-    else:
-        raise ValueError(
-            f"{path}: recordings come as a .npz with `poses` (N, 4, 4) and `signals` (N, mics, samples), a .npy of "
-            "signals with a .npy of poses (--poses), or a dataset folder (or shard) made with generate --signals"
-        )
-    if pings is not None and pings < len(poses):
-        if pings < 1:
-            raise ValueError(f"pings must be >= 1, got {pings}")
-        chosen = np.linspace(0, len(poses) - 1, pings).round().astype(int)
-        poses, signals = poses[chosen], signals[chosen]
-    return poses, signals
-
-
-def _npz_recordings(path) -> tuple[np.ndarray, np.ndarray]:
-    with np.load(path) as data:
-        missing = [k for k in ("poses", "signals") if k not in data]
-        if missing:
-            raise ValueError(f"{path} lacks {' and '.join(missing)}; it holds {', '.join(data.files) or 'nothing'}")
-        return _checked_recordings(data["poses"], data["signals"], str(path))
-
-
-def _checked_recordings(poses, signals, where: str) -> tuple[np.ndarray, np.ndarray]:
-    poses, signals = np.asarray(poses, np.float64), np.asarray(signals, np.float32)
-    if poses.ndim != 3 or poses.shape[1:] != (4, 4) or signals.ndim != 3 or len(signals) != len(poses):
-        raise ValueError(
-            f"{where}: poses {poses.shape} and signals {signals.shape} must be (N, 4, 4) and (N, mics, samples)"
-        )
-    return poses, signals
-
-
-def _shard_recordings(path, episode: int | None) -> tuple[np.ndarray, np.ndarray]:
-    """The poses and signals of one episode of a dataset folder or shard."""
-    import h5py
-
-    from .datasets.shards import dataset_shards
-
-    shards = dataset_shards(path) if path.is_dir() else [path]
-    found = []
-    for shard in shards:
-        with h5py.File(shard, "r") as f:
-            if "signals" not in f:
-                raise ValueError(f"{shard} holds no microphone signals: make the dataset with generate --signals")
-            episodes = f["episode"][()]
-            if episode is None and len(set(episodes.tolist()) | {e for e, *_ in found}) > 1:
-                listed = sorted(set(episodes.tolist()) | {e for e, *_ in found})
-                raise ValueError(f"{path} holds episodes {listed[:10]}: give one (--episode), one room a fit")
-            rows = episodes == (episodes[0] if episode is None else episode)
-            if rows.any():
-                found.append((int(episodes[rows][0]), f["pose"][rows], f["signals"][rows]))
-    if not found:
-        raise ValueError(f"{path} holds no frames of episode {episode}")
-    poses = np.concatenate([p for _, p, _ in found]).astype(np.float64)
-    signals = np.concatenate([s for _, _, s in found]).astype(np.float32)
-    return poses, signals
-
-
 def signal_gram(
     scene: scenes.Scene,
     poses: np.ndarray,
@@ -244,7 +139,7 @@ def signal_gram(
     `directivity_knots` > 0, by knot of the emitter's directivity, that many every 90 / knots degrees
     from the axis) and reduce the recorded `signals` (pings, mics, samples) against each group's
     signals; returns the Gram data, the surface classes the paths reflect off and their nominal R."""
-    from .engine.sonar import Sonar
+    from ..engine.sonar import Sonar
 
     poses = np.asarray(poses, dtype=np.float64)
     signals = np.asarray(signals, dtype=np.float32)
@@ -272,7 +167,7 @@ def signal_gram(
     counts = counts[:, seen]
     knot = knot_deg = None
     if directivity_knots > 0:
-        arrivals, counts, knot, knot_deg = _by_knot(arrivals, counts, scene, poses, config, directivity_knots)
+        arrivals, counts, knot, knot_deg = by_knot(arrivals, counts, scene, poses, config, directivity_knots)
         keys, group = np.unique(np.column_stack([counts, knot]), axis=0, return_inverse=True)
         signatures, knot = keys[:, :-1], keys[:, -1]
     else:
@@ -307,43 +202,6 @@ def signal_gram(
     omega = 2 * np.pi * band / size
     data = SignalGram(signatures, gram, cross, energy, spectra, omega, weight, knot, knot_deg)
     return data, classes, nominal
-
-
-def departure_cosine(arrivals, scene: scenes.Scene, poses: np.ndarray, config: SonarConfig) -> np.ndarray:
-    """Per arrival, the cosine of the angle from the emitter's axis (the sensor's x) at which its
-    path left the emitter: its arrival direction reflected back through its faces, last first
-    (off a sphere or cylinder: towards the point it reflects at)."""
-    normals = np.asarray(scene.mesh.face_normals, dtype=np.float64)
-    to_world = poses[arrivals.pose_index, :3, :3]
-    leaving = -np.asarray(arrivals.direction, dtype=np.float64)  # the last leg's way, reversed below
-    for j in reversed(range(arrivals.faces.shape[1])):
-        face = arrivals.faces[:, j]
-        on = face >= 0
-        normal = np.einsum("nji,nj->ni", to_world[on], normals[face[on]])  # in the sensor frame
-        leaving[on] -= 2 * np.einsum("ni,ni->n", leaving[on], normal)[:, None] * normal
-    curved = (arrivals.order == 1) & np.all(arrivals.source_m == arrivals.point_m, axis=1)
-    leaving[curved] = arrivals.point_m[curved] - np.asarray(config.emitter_m)
-    return leaving[:, 0] / np.linalg.norm(leaving, axis=1)
-
-
-def _by_knot(arrivals, counts: np.ndarray, scene, poses, config: SonarConfig, knots: int):
-    """The arrivals taken back to an omnidirectional emitter and split between the two knots
-    around the angle they left at (each copy carrying its share), with their counts and knots, and
-    the knots' angles [deg]."""
-    cosine = np.clip(departure_cosine(arrivals, scene, poses, config), -1.0, 1.0)
-    angle = np.degrees(np.arccos(cosine))
-    air = config.atmosphere.speed_of_sound
-    nominal = piston_directivity(np.radians(angle), config.chirp.centre_frequency_hz, config.emitter_radius_m, air)
-    heard = np.abs(nominal) >= QUIET_DIRECTIVITY
-    arrivals, counts, angle = arrivals.select(heard), counts[heard], angle[heard]
-    arrivals.amplitude = arrivals.amplitude / nominal[heard]
-    step = 90.0 / knots
-    below = np.minimum(np.floor(angle / step).astype(int), knots - 1)
-    share = np.clip(angle / step - below, 0.0, 1.0)  # of the knot above
-    both = np.concatenate([np.arange(len(angle))] * 2)
-    split = arrivals.select(both)
-    split.amplitude = split.amplitude * np.concatenate([1.0 - share, share])
-    return split, counts[both], np.concatenate([below, below + 1]), np.arange(knots + 1) * step
 
 
 def _delay_band(config: SonarConfig) -> tuple[int, np.ndarray]:

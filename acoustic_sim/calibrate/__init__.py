@@ -1,0 +1,46 @@
+"""Calibrate the simulator to recordings of a known room: the reflection coefficient of each surface
+class (walls, floor, ceiling, objects: `scenes.surfaces`) and the microphones' gains, fitted by
+gradient to recorded microphone signals.
+
+The paths are traced once, with the scene's own coefficients. A specular path off planes owes its
+amplitude to the faces it reflects off (`Arrivals.faces`): a factor sqrt(R (1 - s)) each. Each
+arrival is taken back to R = 1 on its faces (its amplitude over the product of their sqrt(R)), so
+that with the classes' R it scales by the product of R_k^(n_k / 2), n_k its reflections off class k.
+The arrivals with the same n (one *signature*) scale together, and a recording is linear in those
+scale factors. Each signature's signals are recorded once, and the squared error between simulated
+and recorded signals reduces to a small Gram matrix per microphone (`SignalGram`), so every step of
+the fit costs microseconds whatever the number of pings. A fit sets every material of a class to
+one R (`scenes.surfaces.with_surfaces`), as a suite's `surfaces` physics does.
+
+Each microphone's delay is fitted too: delaying a simulated signal leaves its Gram products as
+they are and turns its inner product with the recording into their cross-correlation at that lag,
+kept as a cross-spectrum over the call's band (`SignalGram.spectra`) and evaluated at any
+fractional lag, with its derivative, at each step. A coarse search over lags (the correlation of
+the nominal simulation with the recording, per microphone) starts each delay on the right cycle
+of the carrier.
+
+The emitter's directivity can be fitted as well (`directivity_knots`): its pressure at the call's
+centre frequency, piecewise linear over the angle from its axis between knots (1 on the axis, the
+knots' values fitted). Each arrival is taken back to an omnidirectional emitter (its amplitude over
+the nominal baffled piston's directivity towards the direction it left in, found by reflecting its
+arrival direction back through its faces) and shared between the two knots around that angle, so
+the recording stays linear in each (signature, knot) group's scale.
+
+What this fit leaves out (to come): scattered echoes (their faces are not recorded yet, so the
+tracer runs without them and a recording that holds them biases R upwards), and paths leaving the
+emitter backwards (the tracer's baffled emitter sends none).
+"""
+
+from .directivity import departure_cosine
+from .fit import SignalGram, SurfaceFit, fit_surfaces, loss_and_gradient, signal_gram
+from .recordings import load_recordings
+
+__all__ = [
+    "SignalGram",
+    "SurfaceFit",
+    "departure_cosine",
+    "fit_surfaces",
+    "load_recordings",
+    "loss_and_gradient",
+    "signal_gram",
+]
