@@ -25,10 +25,11 @@ HIDDEN_R = {
 }  # the scene's painted_wall 0.97, floor 0.95, ceiling_tile 0.60
 
 
+@pytest.mark.parametrize("knots", [0, 3])
 @pytest.mark.parametrize(("fit_gains", "fit_delays"), [(False, False), (True, False), (False, True), (True, True)])
-def test_the_gradient_is_the_losss(fit_gains, fit_delays):
-    """The analytic gradient against finite differences, R, gains and delays in every combination
-    (a wrong factor or sign in any part fails here)."""
+def test_the_gradient_is_the_losss(fit_gains, fit_delays, knots):
+    """The analytic gradient against finite differences, R, gains and delays in every combination,
+    with and without directivity knots (a wrong factor or sign in any part fails here)."""
     rng = np.random.default_rng(0)
     mics, groups, bins = 4, 5, 40
     basis = rng.normal(size=(mics, groups, 50))
@@ -40,8 +41,10 @@ def test_the_gradient_is_the_losss(fit_gains, fit_delays):
         spectra=rng.normal(size=(mics, groups, bins)) + 1j * rng.normal(size=(mics, groups, bins)),
         omega=np.linspace(0.3, 1.2, bins),
         weight=np.full(bins, 2.0 / 64),
+        knot=np.array([0, 1, 2, 3, 1]) if knots else None,
+        knot_deg=np.array([0.0, 30.0, 60.0, 90.0]) if knots else None,
     )
-    theta = [np.log([0.9, 0.7, 0.5]) + rng.normal(scale=0.2, size=3)]
+    theta = [np.log([0.9, 0.7, 0.5]) + rng.normal(scale=0.2, size=3), rng.uniform(0.2, 1.0, knots)]
     theta += [rng.normal(scale=0.1, size=mics)] if fit_gains else []
     theta += [rng.normal(scale=2.0, size=mics)] if fit_delays else []
     theta = np.concatenate(theta)
