@@ -184,7 +184,7 @@ def _report(summary: dict) -> int:
 def _generate_crossengine(args) -> int:
     from .formats.crossengine import elevations_of, generate_crossengine
 
-    own = {"--max-bounces": args.max_bounces, "--shards": args.shards, "--signals": args.signals}
+    own = {"--max-bounces": args.max_bounces, "--shards": args.shards}
     own |= {"--arrivals": args.arrivals, "--ray-address": args.ray_address, "--variants": args.variants}
     own["--ray-tasks-per-gpu"] = args.ray_tasks_per_gpu if args.ray_tasks_per_gpu != 1 else None
     if given := [k for k, v in own.items() if v not in (None, False)]:
@@ -198,6 +198,7 @@ def _generate_crossengine(args) -> int:
         progress=not args.quiet,
         rough=args.suite == "crossengine_rough",
         elevation_deg=elevations_of(args.set or (), args.suite),
+        keep_signals=args.signals,
     )
     return _report(summary)
 

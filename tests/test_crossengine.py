@@ -18,6 +18,7 @@ from acoustic_sim.formats.crossengine import (
     Room,
     draw_room,
     generate_crossengine,
+    plan_crossengine,
     planner_scene,
     record_ping,
     scan_floor_plan,
@@ -329,3 +330,29 @@ def test_the_set_beamforms_at_the_elevations_asked_and_nothing_else_changes(tmp_
         np.testing.assert_array_equal(f["energyscape"][:, 1], one["energyscape"][:, 0])
         assert not np.array_equal(f["energyscape"][:, 0], f["energyscape"][:, 1])
     assert main([*base, "--out", str(tmp_path / "x"), "--set", "tracer.max_bounces=2"]) == 2
+
+
+def test_the_set_keeps_its_recordings_for_calibrate(tmp_path, device):
+    """`--signals` stores each ping's microphone signals (float16, as generate's), whose energyscapes
+    are the set's, and `calibrate` reads them as one drive's recordings; the set's plan without
+    them is the one it always was."""
+    import h5py
+
+    from acoustic_sim.calibrate import load_recordings
+    from acoustic_sim.cli import main
+
+    base = ["generate", "--suite", "crossengine", "--frames", "2", "--device", device, "--quiet"]
+    assert main([*base, "--out", str(tmp_path / "kept"), "--signals"]) == 0
+    assert main([*base, "--out", str(tmp_path / "plain")]) == 0
+    shard = "shard-00000.h5"
+    with h5py.File(tmp_path / "kept" / shard) as kept, h5py.File(tmp_path / "plain" / shard) as plain:
+        signals = kept["signals"][:]
+        assert signals.shape == (2, 32, SonarConfig.ertis().record_samples) and "signals" not in plain
+        np.testing.assert_array_equal(kept["energyscape"][:], plain["energyscape"][:])
+        again = energyscape(signals.astype(np.float32), SonarConfig.ertis(), ProcessingConfig(), device=device)
+        peak = np.abs(plain["energyscape"][:]).max()
+        assert np.abs(again[:, None] - plain["energyscape"][:]).max() < 0.01 * peak  # float16 signals
+    poses, recorded = load_recordings(tmp_path / "kept", episode=0)
+    assert poses.shape == (2, 4, 4) and np.array_equal(recorded, signals.astype(np.float32))
+    plans = [json.loads((tmp_path / name / "plan.json").read_text())["plan_id"] for name in ("kept", "plain")]
+    assert plans[0] != plans[1] and plans[1] == plan_crossengine(tmp_path / "x", frames=2)[0].plan_id

@@ -245,6 +245,8 @@ class CrossEngineRenderer:
             "pose": drive.poses,
             "time": np.arange(episode.frames) * DT_S,
         }
+        if task.keep_signals:  # the recordings themselves, e.g. to calibrate our simulator to these rooms
+            arrays["signals"] = np.stack(signals)
         record = {"index": episode.index, "seed": episode.seed, "frames": episode.frames, "scenario": drive.room.plan}
         return arrays, record | asdict(drive.room) | (drive.rough.record() if drive.rough else {})
 
@@ -312,15 +314,18 @@ def plan_crossengine(
     episode_frames: int = EPISODE_FRAMES,
     rough: bool = False,
     elevation_deg: float | tuple[float, ...] = 0.0,
+    keep_signals: bool = False,
 ) -> list[ShardTask]:
     """The test set's shard tasks: one per drive of `episode_frames` frames (the last one shorter),
     drive i in a room of the floor-plan family i mod 5, each drive seeded from (`seed`, i); `rough`:
-    the rough-wall variant; `elevation_deg`: the beamformer's elevations (`ProcessingConfig`)."""
+    the rough-wall variant; `elevation_deg`: the beamformer's elevations (`ProcessingConfig`);
+    `keep_signals`: the microphone signals stored too."""
     if frames < 1 or episode_frames < 1:
         raise ValueError(f"frames and episode_frames must be >= 1, got {frames} and {episode_frames}")
     check_seed(seed, "seed")
     config = _settings(frames, seed, episode_frames, rough, elevation_deg)
-    run_id = plan_id(config | {"format_version": FORMAT_VERSION, "scenes_revision": scenes.REVISION})
+    kept = {"keep_signals": True} if keep_signals else {}  # only then: the plan id of a set without is unchanged
+    run_id = plan_id(config | kept | {"format_version": FORMAT_VERSION, "scenes_revision": scenes.REVISION})
     suite = {"name": SUITE_ROUGH if rough else SUITE, "config": config}
     tasks = []
     for i, start in enumerate(range(0, frames, episode_frames)):
@@ -331,7 +336,15 @@ def plan_crossengine(
         path = str(Path(out) / f"shard-{i:05d}.h5")
         tasks.append(
             ShardTask(
-                path=path, variant="", shard=i, plan_id=run_id, seed=seed, suite=suite, physics={}, episodes=(drive,)
+                path=path,
+                variant="",
+                shard=i,
+                plan_id=run_id,
+                seed=seed,
+                suite=suite,
+                physics={},
+                episodes=(drive,),
+                keep_signals=keep_signals,
             )
         )
     return tasks
@@ -348,13 +361,21 @@ def generate_crossengine(
     episode_frames: int = EPISODE_FRAMES,
     rough: bool = False,
     elevation_deg: float | tuple[float, ...] = 0.0,
+    keep_signals: bool = False,
 ) -> dict:
     """Write (or finish) the crossengine test set (`rough`: its rough-wall variant) in `out` with
     generate's machinery (`make_dataset`: plan.json, lock, resume, repair of damaged shards,
     manifest.json with its `use`, and the dataset card); returns the same summary as `generate`.
-    `elevation_deg`: the beamformer's elevations, one or an increasing sequence."""
+    `elevation_deg`: the beamformer's elevations, one or an increasing sequence; `keep_signals`: the
+    microphone signals stored too (what `calibrate` fits to)."""
     tasks = plan_crossengine(
-        out, frames=frames, seed=seed, episode_frames=episode_frames, rough=rough, elevation_deg=elevation_deg
+        out,
+        frames=frames,
+        seed=seed,
+        episode_frames=episode_frames,
+        rough=rough,
+        elevation_deg=elevation_deg,
+        keep_signals=keep_signals,
     )
     meta = {"suite": tasks[0].suite["name"], "frames": frames, "shards": len(tasks), "seed": seed}
     meta |= {"engine": tasks[0].suite["config"]["engine"], "use": USE}
