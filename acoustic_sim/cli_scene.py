@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 
 MESH_ONLY = ("up", "units", "materials")
+"""render's options that say how to read a --mesh file (cli_text.MESH_OPTIONS); None when not given."""
 
 
 def add_scene_options(parser, builders, mesh_options: dict, *, default: str = "office") -> None:
@@ -22,9 +23,6 @@ def add_scene_options(parser, builders, mesh_options: dict, *, default: str = "o
         metavar="KEY=VALUE",
         help="extra builder argument, e.g. clutter=high or size=[10,8,3] (repeatable)",
     )
-
-
-"""render's options that say how to read a --mesh file (cli_text.MESH_OPTIONS); None when not given."""
 
 
 def check_mesh_options(args) -> None:
