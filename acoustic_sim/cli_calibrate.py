@@ -137,9 +137,11 @@ def _calibrate_into(args, written: Path) -> str:
 
 def _before_and_after(scene, fit, pose, recorded, rig, tracer, absorption: bool, device) -> list:
     """One ping's energyscape as recorded and as simulated with the scene's own and the fitted
-    coefficients, gains and delays: (title, energyscape (R, A))."""
+    coefficients, gains and delays, each beamformed for the nominal array as the recording is:
+    (title, energyscape (R, A))."""
     import numpy as np
 
+    from .engine.beamform import energyscape
     from .engine.sonar import Sonar
 
     specular = dataclasses.replace(tracer, scattering=False)
@@ -150,4 +152,6 @@ def _before_and_after(scene, fit, pose, recorded, rig, tracer, absorption: bool,
     ):
         sonar = Sonar(array, specular, device=device)
         panels.append((title, sonar.record(sonar.trace(room, pose), pose_count=1, absorption=absorption)[0]))
-    return [(t, sonar.energyscape(np.asarray(s, np.float32)[None], rig.processing)[0]) for t, s in panels]
+    signals = np.stack([np.asarray(s, np.float32) for _, s in panels])  # one beamformer call for the three
+    images = energyscape(signals, rig.sonar, rig.processing, device=device)
+    return [(title, image) for (title, _), image in zip(panels, images, strict=True)]
