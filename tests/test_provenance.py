@@ -33,6 +33,8 @@ CHECKPOINT = ROOT / "learn" / "pretrained" / "polar_unet_k5.pt"
 # Planted paths are assembled, so that this file does not hold them itself.
 PLANTED = "/" + "/".join(("root", "w14", "runs", "seed0", "best.pt"))
 PLANTED_HOME = "/" + "/".join(("home", "someone", "repo", "data", "paper"))
+# Not machine paths, assembled too so that no scan of this file mistakes them for one.
+NOT_PLANTED = "../../" + "tmp/x and https://x.org/" + "root/a"
 
 
 def tree_report(root: Path) -> dict[str, list[str]]:
@@ -79,7 +81,7 @@ def test_tree_scan_fails_on_a_planted_path(tmp_path: Path):
     subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
     (tmp_path / "results").mkdir()
     (tmp_path / "results" / "metrics.json").write_text(json.dumps({"checkpoint": PLANTED, "data": "data/x"}))
-    (tmp_path / "notes.md").write_text(f"trained on `{PLANTED_HOME}`, see ../../tmp/x and https://x.org/root/a\n")
+    (tmp_path / "notes.md").write_text(f"trained on `{PLANTED_HOME}`, see {NOT_PLANTED}\n")
     (tmp_path / "clean.md").write_text(strip_machine_paths(f"copied from {PLANTED}")[0] + "\n")
     (tmp_path / "picture.png").write_bytes(b"\x89PNG\x00" + PLANTED.encode())
     subprocess.run(["git", "add", "."], cwd=tmp_path, check=True)
