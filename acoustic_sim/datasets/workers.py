@@ -27,6 +27,8 @@ from ..devices import cpu_cores, cuda_started, quiet_warp, resolve_device, warp_
 # A worker's work: (its tasks, read lazily; its device; on_frames(n)) -> seconds by part.
 Work = Callable[[Iterable, str, Callable[[int], None]], dict]
 START_ENV = "SONAR2LIDAR_WORKER_START"
+WAIT_ENV = "SONAR2LIDAR_CUDA_WAIT"  # how a worker's CUDA context waits for its GPU: spin (CUDA's default) or block
+CU_CTX_SCHED_BLOCKING_SYNC = 0x04
 READY_TIMEOUT_S = 300.0  # a worker not up by then is stuck (a spawned one imports in ~4 s)
 
 
@@ -170,10 +172,38 @@ def _serve(work: Work, device: str) -> dict:
     if _START == "fork" and wp.get_cuda_device_count() == 0:
         _refuse_a_poisoned_cuda()  # else "auto" would fall back to the CPU and "cuda" blame the driver
     device = resolve_device(device, _INDEX)
+    if device.startswith("cuda"):
+        _set_cuda_wait(int(device.partition(":")[2] or 0))
     wp.get_device(device)
     started = time.time() - _LAUNCHED
     _READY.put(device)
     return work(_tasks_until_abort(), device, _PROGRESS.put) | {"start-up": started}
+
+
+def cuda_wait() -> str:
+    """SONAR2LIDAR_CUDA_WAIT: "spin" (CUDA's default for a process of one context: its waiting
+    thread spins a core) or "block" (it sleeps until the GPU signals)."""
+    chosen = os.environ.get(WAIT_ENV, "spin")
+    if chosen not in ("spin", "block"):
+        raise ValueError(f"{WAIT_ENV}={chosen!r}: use spin or block")
+    return chosen
+
+
+def _set_cuda_wait(ordinal: int) -> None:
+    """Make this process's context on GPU `ordinal` wait as `cuda_wait()` says, before Warp
+    creates it: several workers share a GPU's time slices, so their threads wait often, and each
+    spinning wait holds a host core that the preparing and writing helpers need."""
+    if cuda_wait() == "spin":
+        return
+    import ctypes
+
+    cuda = ctypes.CDLL("libcuda.so.1")
+    flags, active = ctypes.c_uint(), ctypes.c_int()
+    code = cuda.cuInit(0) or cuda.cuDevicePrimaryCtxSetFlags(ordinal, CU_CTX_SCHED_BLOCKING_SYNC)
+    code = code or cuda.cuDevicePrimaryCtxGetState(ordinal, ctypes.byref(flags), ctypes.byref(active))
+    if code or not flags.value & CU_CTX_SCHED_BLOCKING_SYNC:
+        refused = f"error {code}, flags {flags.value}"
+        raise RuntimeError(f"{WAIT_ENV}=block: the CUDA driver refused ({refused}) on GPU {ordinal}")
 
 
 def _tasks_until_abort():
