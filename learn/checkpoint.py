@@ -20,7 +20,8 @@ from pathlib import Path
 import torch
 
 from .config import LearnConfig, from_record
-from .data import DataConfig, torch_device
+from .data import DataConfig
+from .devices import torch_device
 from .inputs import check_fits, regular_file
 from .models import LEVEL_SLICE, ModelConfig, build_model, check_model_size
 from .shardfile import READABLE_VERSIONS

@@ -20,6 +20,7 @@ from typing import Literal
 import numpy as np
 import torch
 
+from .devices import torch_device
 from .elevations import elevation_rows, level_index, missing_elevations, rows_to_hold
 from .inputs import check_fits, read_json
 from .odometry import relative
@@ -299,27 +300,6 @@ def normalise(energyscape: torch.Tensor, floor_db: float | torch.Tensor) -> torc
     peak = e.amax(dim=(-3, -2, -1), keepdim=True).clamp_min(1e-12)
     db = 20.0 * torch.log10((e / peak).clamp_min(10.0 ** (-floor_db / 20.0)))
     return 1.0 + db / floor_db
-
-
-def torch_device(name: str | torch.device) -> torch.device:
-    """The torch device `name` ("cpu", "cuda", "cuda:1", ...), refused with a clear message when this
-    machine cannot provide it (torch's own errors name a deserialiser or a driver call instead)."""
-    try:
-        device = torch.device(name)
-    except RuntimeError:
-        raise ValueError(f"device {name!r} is not a torch device: use cpu, cuda or cuda:i") from None
-    if device.type == "cuda":
-        count = torch.cuda.device_count() if torch.cuda.is_available() else 0
-        if count == 0:
-            built = f"CUDA {torch.version.cuda}" if torch.version.cuda else "no CUDA"
-            raise ValueError(
-                f"device {name!r}: no CUDA GPU is usable here (torch {torch.__version__}, {built}); use cpu"
-            )
-        if device.index is not None and device.index >= count:
-            raise ValueError(f"device {name!r}: this machine has {count} CUDA GPU(s), cuda:0..cuda:{count - 1}")
-    elif device.type != "cpu":
-        raise ValueError(f"device {name!r} is not supported: use cpu, cuda or cuda:i")
-    return device
 
 
 class Windows:

@@ -23,7 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from .data import DataConfig, normalise, torch_device
+from .data import DataConfig, normalise
+from .devices import torch_device
 from .models import ModelConfig, trained_elevations
 from .odometry import planar, relative
 from .scan import first_return_ranges

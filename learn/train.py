@@ -27,7 +27,8 @@ from tqdm.auto import tqdm
 
 from .augment import augmented_batch
 from .config import MONITORS, LearnConfig, TrainConfig, to_record, with_grid
-from .data import FORMAT_VERSION, Frames, Windows, load_frames, split_groups, torch_device, validation_split
+from .data import FORMAT_VERSION, Frames, Windows, load_frames, split_groups, validation_split
+from .devices import torch_device
 from .evaluate import calibrate_on_predictions, model_predictor, predict_batches, score_predictions
 from .inputs import regular_file
 from .models import build_model, parameter_count, run_model

@@ -141,7 +141,13 @@ def run_tasks(
         quiet_warp()
         device = str(wp.get_device(device))
         run = _Run(renderer, device, on_frames, *executors, depth=max(1, helpers if overlap else 1))
-        run.render(tasks)
+        # The device this run renders on is the current one while it does: whatever Warp does
+        # without naming a device (page-locked allocations, a mesh's tree) then stays on it. On
+        # two GPUs every worker of cuda:1 had also opened a context on cuda:0 (~0.5 GB there
+        # each), and its LiDAR took 26.5 s summed against 14.8 s with its own GPU current
+        # (benchmarks/results/multi_gpu/session30).
+        with wp.ScopedDevice(device):
+            run.render(tasks)
     finally:
         for executor in executors:
             executor.shutdown(wait=True, cancel_futures=True)
