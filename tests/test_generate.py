@@ -3,7 +3,9 @@ clear errors for foreign or broken files; windows never cross episodes."""
 
 import dataclasses
 import json
+import mmap
 import os
+import pickle
 import sys
 import threading
 import typing
@@ -16,8 +18,9 @@ import pytest
 
 import acoustic_sim.datasets.generate as gen
 import acoustic_sim.datasets.runner as runner
+import acoustic_sim.datasets.shared_frames as shared_frames
 import acoustic_sim.datasets.workers as workers
-from acoustic_sim.datasets.shards import FORMAT_VERSION, DatasetError, read_attrs
+from acoustic_sim.datasets.shards import FORMAT_VERSION, DatasetError, ShardFrames, read_attrs
 from acoustic_sim.datasets.suites import SUITES, Physics, load_suite
 from learn.data import window_starts
 
@@ -176,23 +179,75 @@ def test_helper_processes_prepare_and_write_the_same_shards(reference, tmp_path,
         return real_prepare(episode, *args)
 
     def write(path, frames, **kwargs):
+        mapped = all(in_shared_memory(a[0]) for a in (frames.energyscape, frames.lidar_image))
         with log.open("a") as f:
-            f.write(f"write {os.getpid()}\n")
+            f.write(f"write {os.getpid()} {mapped}\n")
         real_write(path, frames, **kwargs)
 
     monkeypatch.setattr(gen, "prepare_episode", prepare)
     monkeypatch.setattr(runner, "write_shard", write)
+    leftovers = set(Path(shared_frames.FOLDER).glob("sonar2lidar-*"))
     summary = generate(tmp_path / "out", device, helpers=2)
     who = [line.split() for line in log.read_text().splitlines()]
-    assert sorted(part for part, _ in who) == ["prepare"] * 3 + ["write"] * 2
-    here = [part for part, pid in who if pid == str(os.getpid())]
-    assert here == ["write"]  # the last shard
+    assert sorted(part for part, *_ in who) == ["prepare"] * 3 + ["write"] * 2
+    here = [(part, *rest) for part, pid, *rest in who if pid == str(os.getpid())]
+    assert here == [("write", "False")]  # the last shard, from this process's own arrays
+    assert [rest for part, pid, *rest in who if part == "write" and pid != str(os.getpid())] == [["True"]]
+    assert set(Path(shared_frames.FOLDER).glob("sonar2lidar-*")) == leftovers  # every file removed
     got, want = shard_arrays(tmp_path / "out"), shard_arrays(reference[0])
     assert got.keys() == want.keys()
     for key in want:
         np.testing.assert_array_equal(got[key], want[key], err_msg=key)
     parts = summary["seconds_by_part"]
     assert parts["prepare"] > 0 and parts["write"] > 0  # timed in the helpers, sent back
+
+
+def in_shared_memory(array: np.ndarray) -> bool:
+    """Whether `array` is a view into a memory map (a shard handed over by SharedFrames)."""
+    while array is not None and not isinstance(array, mmap.mmap):
+        array = array.obj if isinstance(array, memoryview) else getattr(array, "base", None)
+    return array is not None
+
+
+def test_shared_frames_round_trip_and_fall_back(tmp_path, monkeypatch):
+    """A shard's arrays come back equal from the shared file, which `open` removes (a write that
+    never opened it is cleaned up by `release`); with no room the caller is told to pickle."""
+    rng = np.random.default_rng(0)
+    frames = ShardFrames(
+        energyscape=[rng.random((3, 1, 5, 7)).astype(np.float16), rng.random((2, 1, 5, 7)).astype(np.float16)],
+        lidar_ranges=[rng.random((5, 11), dtype=np.float32)],
+        lidar_image=[rng.integers(0, 2, (5, 5, 7), dtype=np.uint8)],
+        pose=[np.tile(np.eye(4), (5, 1, 1))],
+        time=[np.arange(5.0)],
+        episode=[np.zeros(3, np.int64), np.ones(2, np.int64)],
+        scenario=[np.zeros(5, np.int64)],
+        arrivals=[{"frame": np.arange(4)}],
+    )
+    shared = shared_frames.SharedFrames.share(frames, folder=str(tmp_path))
+    assert shared is not None and Path(shared.path).exists()
+    back = pickle.loads(pickle.dumps(shared)).open()  # as a helper process gets it
+    assert not Path(shared.path).exists()
+    shared.release()  # after the helper opened it: nothing left to remove
+    for name in shared_frames.ARRAYS:
+        want = getattr(frames, name)
+        got = getattr(back, name)
+        if want:
+            assert len(got) == 1 and in_shared_memory(got[0])
+            np.testing.assert_array_equal(got[0], np.concatenate(want), err_msg=name)
+        else:
+            assert got == []
+    assert back.frame_count == 5 and back.arrivals[0]["frame"].tolist() == [0, 1, 2, 3]
+    unopened = shared_frames.SharedFrames.share(frames, folder=str(tmp_path))
+    unopened.release()
+    assert list(tmp_path.iterdir()) == []
+    assert shared_frames.SharedFrames.share(frames, folder=str(tmp_path / "absent")) is None
+
+    def full(fd, offset, size):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(shared_frames.os, "posix_fallocate", full)
+    assert shared_frames.SharedFrames.share(frames, folder=str(tmp_path)) is None
+    assert list(tmp_path.iterdir()) == []
 
 
 def test_helper_counts(monkeypatch):

@@ -29,6 +29,7 @@ from ..devices import quiet_warp
 from .manifest import About, shard_entry
 from .plan import Episode, ShardTask
 from .shards import ShardFrames, write_shard
+from .shared_frames import SharedFrames
 
 # Where a run's time goes: a worker process's start (launch to Warp and its device ready; a spawned
 # one also starts an interpreter and imports the package; 0 in this process), then run_tasks's parts.
@@ -127,7 +128,7 @@ def run_tasks(
     reports progress."""
     if not sys.platform.startswith("linux"):
         helpers = 0  # forked helpers and their death with the parent (prctl) are Linux's
-    executors = []
+    executors, run = [], None
     try:
         for _ in range(2):  # the preparer, the writer
             if not overlap:
@@ -151,6 +152,8 @@ def run_tasks(
     finally:
         for executor in executors:
             executor.shutdown(wait=True, cancel_futures=True)
+        if run is not None:
+            run.release_shared()
     return run.entries, run.seconds
 
 
@@ -171,7 +174,7 @@ class _Run:
         self.depth = depth
         self.seconds = dict.fromkeys(PARTS, 0.0)
         self.entries: list[dict] = []
-        self.writing: deque[Future] = deque()  # writes in flight, oldest first
+        self.writing: deque[tuple[Future, SharedFrames | None]] = deque()  # writes in flight, oldest first
 
     def render(self, tasks: Iterable[ShardTask]) -> None:
         jobs = ((task, episode) for task in tasks for episode in task.episodes)
@@ -215,10 +218,24 @@ class _Run:
         if shard is not None:
             if len(self.writing) >= self.depth:
                 self._wait_for_write()
-            self.writing.append(self.writer.submit(_write, self.renderer, shard, self.device))
+            shared = SharedFrames.share(shard.frames) if isinstance(self.writer, _Helpers) else None
+            if shared is not None:
+                shard = _Shard(shard.task, shared, shard.records)
+            self.writing.append((self.writer.submit(_write, self.renderer, shard, self.device), shared))
 
     def _wait_for_write(self) -> None:
-        self.entries.append(self._collect(self.writing.popleft(), "write"))
+        future, shared = self.writing.popleft()
+        try:
+            self.entries.append(self._collect(future, "write"))
+        finally:
+            if shared is not None:
+                shared.release()
+
+    def release_shared(self) -> None:
+        """Remove the shared memory of writes that never ran (a run stopped by an error)."""
+        for _, shared in self.writing:
+            if shared is not None:
+                shared.release()
 
     def _collect(self, future: Future, part: str):
         """A helper's result; the time its work took goes to `part`, the time blocked on it to "waiting"."""
@@ -238,6 +255,8 @@ def _prepare(renderer: Renderer, task: ShardTask, episode: Episode) -> tuple[Any
 
 def _write(renderer: Renderer, shard: _Shard, device: str) -> tuple[dict, float]:
     t0 = time.perf_counter()
+    if isinstance(shard.frames, SharedFrames):
+        shard = _Shard(shard.task, shard.frames.open(), shard.records)
     _write_shard(shard, _helper_renderer(renderer).shard_header(shard.task), device)
     return shard_entry(shard.task), time.perf_counter() - t0
 
@@ -301,7 +320,7 @@ class _Shard:
     """A shard being filled: its task, the frames of its episodes so far and their records."""
 
     task: ShardTask
-    frames: ShardFrames = field(default_factory=ShardFrames)
+    frames: ShardFrames | SharedFrames = field(default_factory=ShardFrames)  # shared: on its way to a writer
     records: list[dict] = field(default_factory=list)
 
     def add(self, episode: Episode, arrays: dict, record: dict) -> None:

@@ -90,7 +90,9 @@ def write_shard(
 
 
 def _write(tmp: Path | KeptErrorFile, frames: ShardFrames, *, attrs: dict, axes: tuple[np.ndarray, ...]) -> None:
-    cat = np.concatenate
+    def cat(parts: list[np.ndarray]) -> np.ndarray:  # one part (a shard from shared memory): no copy
+        return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
     energyscape = cat(frames.energyscape).astype(np.float16, copy=False)  # float16 from the sonar already
     if energyscape.ndim == 3:
         energyscape = energyscape[:, None]
