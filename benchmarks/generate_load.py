@@ -1,0 +1,279 @@
+"""Where generation's time goes on a machine of several GPUs: frames/s beside the host's CPU use and
+each GPU's utilisation over each run, for settings compared in rounds.
+
+    python benchmarks/generate_load.py --settings cuda:0/5,auto/10,auto/10/block,pair/5 --frames 75000 --out DIR
+
+A setting is DEVICE/WORKERS[/WAIT[/HELPERS]]: WAIT is how the workers' CUDA waits (spin, CUDA's
+default, or block: SONAR2LIDAR_CUDA_WAIT), HELPERS the host processes per worker (generate's choice
+if left out). DEVICE `pair` runs two `generate` commands at once, one on cuda:0 and one on cuda:1,
+with WORKERS each and half the frames each: whether two GPUs slow each other through the host
+rather than through one command's machinery. Each run is a fresh process, as a `generate` command
+is. Beside its frames/s: the share of the host's CPU time busy over the run (/proc/stat), each
+GPU's utilisation (nvidia-smi every 250 ms: the mean, the median, and the mean of the samples while
+the GPUs were in use), which processes hold a context on which GPU (6 s into the run), and with
+--spy, a py-spy recording of one more run of each named setting (`pip install py-spy`), summed by
+what the busy threads were doing. Writes DIR/generate_load.json and .md (and the raw samples beside them).
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import os
+import re
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from benchmarks.provenance import markdown as provenance_line  # noqa: E402
+from benchmarks.provenance import write_json  # noqa: E402
+
+CHILD = """
+import json, sys, time
+from pathlib import Path
+from acoustic_sim.datasets.generate import generate
+from acoustic_sim.datasets.suites import load_suite
+spec = json.loads(sys.argv[1])
+summary = generate(load_suite(spec["suite"]), Path(spec["out"]), frames=spec["frames"], device=spec["device"],
+                   workers=spec["workers"], progress=False, helpers=spec["helpers"])
+keep = ("frames", "seconds", "frames_per_s", "seconds_by_part", "devices", "helpers")
+print("RESULT " + json.dumps({k: summary.get(k) for k in keep}))
+"""
+PARTS_SHOWN = ("start-up", "prepare", "lidar", "sonar", "write")  # generate's seconds by part, summed
+# What a sampled thread was doing, by the first of these functions found in its stack.
+ACTIVITIES = (
+    ("checksum", "fletcher32"),
+    ("compress", "encode"),
+    ("write HDF5", "write_shard"),
+    ("prepare episodes", "prepare_episode"),
+    ("wait for the GPU", "synchronize_event"),
+    ("wait for the GPU", "synchronize_device"),
+    ("load kernels", "load_cuda"),
+    ("pickle", "dumps"),
+    ("unpickle", "loads"),
+    ("pipe", "_send_bytes"),
+    ("pipe", "_recv_bytes"),
+    ("render (host side)", "simulate_episode"),
+)
+
+
+def cpu_ticks() -> tuple[int, int]:
+    """(all, idle) jiffies of the machine so far; (0, 0) where /proc/stat is absent."""
+    try:
+        with open("/proc/stat") as f:
+            values = list(map(int, f.readline().split()[1:]))
+    except OSError:
+        return 0, 0
+    return sum(values), values[3] + values[4]
+
+
+def start_sampler(path: Path):
+    """nvidia-smi writing each GPU's utilisation every 250 ms to `path`; None without nvidia-smi."""
+    if shutil.which("nvidia-smi") is None:
+        return None
+    query = ["nvidia-smi", "--query-gpu=index,utilization.gpu", "--format=csv,noheader,nounits", "-lms", "250"]
+    return subprocess.Popen(query, stdout=path.open("w"), stderr=subprocess.DEVNULL)
+
+
+def utilisation(path: Path) -> dict:
+    """Per GPU: mean, median, and the mean over the samples taken while any GPU was in use."""
+    by_gpu: dict[int, list[int]] = collections.defaultdict(list)
+    for line in path.read_text().splitlines():
+        try:
+            gpu, value = (int(x) for x in line.split(","))
+        except ValueError:
+            continue
+        by_gpu[gpu].append(value)
+    if not by_gpu:
+        return {}
+    busy = [i for i, values in enumerate(zip(*by_gpu.values(), strict=False)) if max(values) > 0]
+    return {
+        gpu: {
+            "mean": statistics.fmean(values),
+            "median": statistics.median(values),
+            "in_use_mean": statistics.fmean([values[i] for i in busy]) if busy else 0.0,
+        }
+        for gpu, values in by_gpu.items()
+    }
+
+
+def contexts() -> str:
+    """Which process holds a context on which GPU, and how much memory (nvidia-smi's words)."""
+    if shutil.which("nvidia-smi") is None:
+        return ""
+    query = ["nvidia-smi", "--query-compute-apps=pid,gpu_bus_id,used_memory", "--format=csv,noheader"]
+    return subprocess.run(query, capture_output=True, text=True).stdout
+
+
+def launch(spec: dict, env: dict) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, "-c", CHILD, json.dumps(spec)],
+        cwd=ROOT,
+        env=env | {"PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+    )
+
+
+def result(child: subprocess.Popen) -> dict:
+    text = child.communicate()[0]
+    found = [json.loads(line[7:]) for line in text.splitlines() if line.startswith("RESULT ")]
+    if child.returncode or not found:
+        raise RuntimeError(f"a generate run failed (exit {child.returncode}):\n{text[-3000:]}")
+    return found[0]
+
+
+def run(setting: str, args, work: Path, out: Path, tag: str, spy: bool = False) -> dict:
+    """One run of `setting`, with the machine's load over it."""
+    device, workers, *rest = setting.split("/")
+    wait = rest[0] if rest else "spin"
+    helpers = int(rest[1]) if len(rest) > 1 else None
+    env = dict(os.environ, SONAR2LIDAR_CUDA_WAIT=wait)
+    spec = {"suite": args.suite, "frames": args.frames, "workers": int(workers), "helpers": helpers}
+    shutil.rmtree(work, ignore_errors=True)
+    sampler = start_sampler(out / f"utilisation_{tag}.csv")
+    t0, (all0, idle0) = time.perf_counter(), cpu_ticks()
+    pair = device == "pair"
+    halves = [("cuda:0", args.frames // 2), ("cuda:1", args.frames // 2)] if pair else [(device, args.frames)]
+    children = [launch(spec | {"device": d, "frames": n, "out": str(work / d)}, env) for d, n in halves]
+    recorder = None
+    if spy:
+        time.sleep(args.spy_delay)
+        command = ["py-spy", "record", "--subprocesses", "--nonblocking", "-r", "40", "-d", str(args.spy_seconds)]
+        command += ["-f", "raw", "-o", str(out / f"spy_{tag}.txt"), "-p", str(children[0].pid)]
+        recorder = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    time.sleep(min(6.0, args.frames / 20000))
+    held = contexts()
+    results = [result(child) for child in children]
+    all1, idle1 = cpu_ticks()
+    wall = time.perf_counter() - t0
+    if sampler is not None:
+        sampler.terminate()
+        sampler.wait()
+    if recorder is not None:
+        recorder.wait()
+    seconds = max(r["seconds"] for r in results)
+    frames = sum(r["frames"] for r in results)
+    parts = collections.Counter()
+    for r in results:
+        parts.update(r["seconds_by_part"])
+    return {
+        "setting": setting,
+        "frames": frames,
+        "seconds": seconds,
+        "frames_per_s": frames / seconds,
+        "each_frames_per_s": [r["frames_per_s"] for r in results],
+        "wall_s": wall,
+        "cpu_busy": 1 - (idle1 - idle0) / (all1 - all0) if all1 > all0 else None,
+        "gpus": utilisation(out / f"utilisation_{tag}.csv") if sampler is not None else {},
+        "contexts": held,
+        "seconds_by_part": dict(parts),
+        "helpers": results[0]["helpers"],
+        "devices": sorted({d for r in results for d in r["devices"]}),
+    }
+
+
+def spy_summary(path: Path) -> dict[str, float]:
+    """A py-spy raw recording (--subprocesses) summed by activity: the share of all samples of
+    busy threads (py-spy leaves idle ones out) whose stack holds each activity's function."""
+    text = re.sub(r'process (\d+):".*?"(?=;)', r"process \1", path.read_text(), flags=re.S)
+    counts, total = collections.Counter(), 0
+    for line in text.splitlines():
+        stack, _, n = line.rpartition(" ")
+        if not n.isdigit():
+            continue
+        functions = {frame.split(" (")[0] for frame in stack.split(";")}
+        activity = next((name for name, function in ACTIVITIES if function in functions), "other")
+        counts[activity] += int(n)
+        total += int(n)
+    return {name: count / total for name, count in counts.most_common()} if total else {}
+
+
+def markdown(res: dict) -> str:
+    lines = [
+        f"# Generation and the machine's load: `{res['suite']}`, {res['frames']:,} frames a run",
+        "",
+        f"On {res['device_name']} ({res['cpu_count']} cores); each setting once a round, {res['rounds']} rounds, "
+        "each run a fresh process. *CPU busy*: the share of all cores' time not idle over the whole run "
+        "(its start and end included); *GPU in use*: each GPU's mean utilisation over the samples while "
+        "any GPU was busy.",
+        "",
+        "| setting | round | frames/s | seconds | CPU busy | GPU in use (mean) | helpers | "
+        + " | ".join(PARTS_SHOWN)
+        + " |",
+        "|---|---|---|---|---|---|---|" + "---|" * len(PARTS_SHOWN),
+    ]
+    for row in res["rows"]:
+        gpus = ", ".join(f"{g}: {u['in_use_mean']:.0f} % ({u['mean']:.0f})" for g, u in row["gpus"].items()) or "-"
+        busy = f"{row['cpu_busy']:.2f}" if row["cpu_busy"] is not None else "-"
+        part = row["seconds_by_part"]
+        lines.append(
+            f"| {row['setting']} | {row['round']} | {row['frames_per_s']:,.0f} | {row['seconds']:.1f} | {busy} | "
+            f"{gpus} | {row['helpers']} | " + " | ".join(f"{part.get(k, 0):.1f}" for k in PARTS_SHOWN) + " |"
+        )
+    for setting, summary in res.get("spy", {}).items():
+        lines += ["", f"py-spy, `{setting}`: busy threads' samples by activity", ""]
+        lines += [f"- {name}: {share:.1%}" for name, share in summary.items()]
+    return "\n".join(lines) + "\n\n" + provenance_line(res["provenance"]) + "\n"
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--settings", required=True, help="DEVICE/WORKERS[/WAIT[/HELPERS]], comma-separated")
+    parser.add_argument("--suite", default="paper")
+    parser.add_argument("--frames", type=int, default=75000)
+    parser.add_argument("--rounds", type=int, default=2)
+    parser.add_argument("--spy", default="", help="settings to record once more under py-spy")
+    parser.add_argument("--spy-delay", type=float, default=6.0, help="seconds into the run before recording")
+    parser.add_argument("--spy-seconds", type=int, default=5)
+    parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "generate_load"))
+    args = parser.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    rows, spied = [], {}
+    with tempfile.TemporaryDirectory(prefix="generate_load") as folder:
+        work = Path(folder) / "data"
+        subprocess.run(  # fill the kernel cache first: no timed run compiles
+            [sys.executable, "-c", CHILD, json.dumps({"suite": args.suite, "frames": min(args.frames, 500),
+             "device": args.settings.split(",")[0].split("/")[0].replace("pair", "auto"), "workers": 1,
+             "helpers": 0, "out": str(work)})],
+            cwd=ROOT, capture_output=True, check=False,
+        )  # fmt: skip
+        for round_ in range(args.rounds):
+            for i, setting in enumerate(args.settings.split(",")):
+                row = run(setting, args, work, out, f"{round_}_{i}")
+                rows.append(row | {"round": round_})
+                print(f"round {round_} {setting}: {row['frames_per_s']:,.0f} frames/s, CPU busy {row['cpu_busy']}")
+        for i, setting in enumerate(filter(None, args.spy.split(","))):
+            run(setting, args, work, out, f"spy{i}", spy=True)
+            raw = out / f"spy_spy{i}.txt"
+            if raw.exists():  # its command lines name this machine's folders: summed, then removed
+                spied[setting] = spy_summary(raw)
+                raw.unlink()
+    res = {"suite": args.suite, "frames": args.frames, "rounds": args.rounds, "rows": rows, "spy": spied}
+    res |= {"cpu_count": os.cpu_count(), "device_name": _device_name()}
+    record = write_json(out / "generate_load.json", res, device="cuda" if shutil.which("nvidia-smi") else "cpu")
+    res["provenance"] = record["provenance"]
+    (out / "generate_load.md").write_text(markdown(res))
+    return res
+
+
+def _device_name() -> str:
+    if shutil.which("nvidia-smi") is None:
+        return "CPU"
+    names = subprocess.run(["nvidia-smi", "--query-gpu=name", "--format=csv,noheader"], capture_output=True, text=True)
+    listed = names.stdout.split("\n")
+    return f"{len([n for n in listed if n])} x {listed[0]}" if listed[0] else "GPUs"
+
+
+if __name__ == "__main__":
+    main()

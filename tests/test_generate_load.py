@@ -1,0 +1,41 @@
+"""benchmarks/generate_load.py: frames/s beside the machine's load, and its readers of nvidia-smi and py-spy."""
+
+import json
+import sys
+
+import pytest
+
+from benchmarks import generate_load
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/stat, as on the GPU hosts")
+def test_a_run_reports_its_rate_and_the_cpu_it_kept_busy(tmp_path):
+    res = generate_load.main(
+        ["--settings", "cpu/1/spin/0", "--suite", "tiny", "--frames", "24", "--rounds", "1", "--out", str(tmp_path)]
+    )
+    (row,) = res["rows"]
+    assert row["setting"] == "cpu/1/spin/0" and row["frames"] == 24 and row["helpers"] == 0
+    assert row["frames_per_s"] == pytest.approx(24 / row["seconds"]) and 0 < row["cpu_busy"] <= 1
+    assert row["seconds_by_part"]["sonar"] > 0 and row["devices"] == ["cpu"]
+    saved = json.loads((tmp_path / "generate_load.json").read_text())
+    assert saved["provenance"]["commit"] and "| cpu/1/spin/0 | 0 |" in (tmp_path / "generate_load.md").read_text()
+
+
+def test_utilisation_while_in_use_leaves_out_the_idle_start(tmp_path):
+    samples = tmp_path / "u.csv"
+    samples.write_text("0, 0\n1, 0\n0, 0\n1, 0\n0, 80\n1, 60\n0, 100\n1, 0\n[N/A]\n")
+    got = generate_load.utilisation(samples)
+    assert got[0] == {"mean": 45.0, "median": 40.0, "in_use_mean": 90.0}
+    assert got[1] == {"mean": 15.0, "median": 0.0, "in_use_mean": 30.0}
+
+
+def test_spy_summary_sums_busy_samples_by_activity(tmp_path):
+    raw = tmp_path / "spy.txt"
+    command = 'process 7:"python -c \nimport json; print("a;b")\n {"out": "x"}"'
+    raw.write_text(
+        f"{command};thread (0x1);_write (runner.py:1);encode (chunks.py:2);fletcher32 (chunks.py:3) 6\n"
+        f'{command};process 8:"python";thread (0x2);encode (chunks.py:2);compress (isal:1) 3\n'
+        f"{command};thread (0x3);_land (sonar.py:9);synchronize_event (context.py:1) 1\n"
+        f"{command};thread (0x4);select (selectors.py:1) 10\n"
+    )
+    assert generate_load.spy_summary(raw) == {"other": 0.5, "checksum": 0.3, "compress": 0.15, "wait for the GPU": 0.05}
