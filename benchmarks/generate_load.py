@@ -61,6 +61,7 @@ ACTIVITIES = (
     ("unpickle", "loads"),
     ("pipe", "_send_bytes"),
     ("pipe", "_recv_bytes"),
+    ("ship a shard", "_hand_to_writer"),
     ("render (host side)", "simulate_episode"),
 )
 
@@ -191,7 +192,7 @@ def spy_summary(path: Path) -> dict[str, float]:
         stack, _, n = line.rpartition(" ")
         if not n.isdigit():
             continue
-        functions = {frame.split(" (")[0] for frame in stack.split(";")}
+        functions = {frame.split(" (")[0].rsplit(".", 1)[-1] for frame in stack.split(";")}  # unqualified
         activity = next((name for name, function in ACTIVITIES if function in functions), "other")
         counts[activity] += int(n)
         total += int(n)

@@ -35,7 +35,14 @@ def test_spy_summary_sums_busy_samples_by_activity(tmp_path):
     raw.write_text(
         f"{command};thread (0x1);_write (runner.py:1);encode (chunks.py:2);fletcher32 (chunks.py:3) 6\n"
         f'{command};process 8:"python";thread (0x2);encode (chunks.py:2);compress (isal:1) 3\n'
-        f"{command};thread (0x3);_land (sonar.py:9);synchronize_event (context.py:1) 1\n"
-        f"{command};thread (0x4);select (selectors.py:1) 10\n"
+        f"{command};thread (0x3);BatchCopies._land (sonar.py:9);synchronize_event (context.py:1) 1\n"
+        f"{command};thread (0x4);Queue._feed (queues.py:1);ForkingPickler.dumps (reduction.py:1) 8\n"
+        f"{command};thread (0x5);select (selectors.py:1) 2\n"
     )
-    assert generate_load.spy_summary(raw) == {"other": 0.5, "checksum": 0.3, "compress": 0.15, "wait for the GPU": 0.05}
+    assert generate_load.spy_summary(raw) == {
+        "pickle": 0.4,
+        "checksum": 0.3,
+        "compress": 0.15,
+        "other": 0.1,
+        "wait for the GPU": 0.05,
+    }
