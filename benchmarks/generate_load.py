@@ -8,11 +8,12 @@ default, or block: SONAR2LIDAR_CUDA_WAIT), HELPERS the host processes per worker
 if left out). DEVICE `pair` runs two `generate` commands at once, one on cuda:0 and one on cuda:1,
 with WORKERS each and half the frames each: whether two GPUs slow each other through the host
 rather than through one command's machinery. Each run is a fresh process, as a `generate` command
-is. Beside its frames/s: the share of the host's CPU time busy over the run (/proc/stat), each
-GPU's utilisation (nvidia-smi every 250 ms: the mean, the median, and the mean of the samples while
-the GPUs were in use), which processes hold a context on which GPU (6 s into the run), and with
---spy, a py-spy recording of one more run of each named setting (`pip install py-spy`), summed by
-what the busy threads were doing. Writes DIR/generate_load.json and .md (and the raw samples beside them).
+is. Beside its frames/s: the share of the host's CPU time busy over the run (/proc/stat), the CPU
+time and page faults of the run's whole process tree (getrusage), each GPU's utilisation
+(nvidia-smi every 250 ms: the mean, the median, and the mean of the samples while the GPUs were in
+use), which processes hold a context on which GPU (6 s into the run), and with --spy, a py-spy
+recording of one more run of each named setting (`pip install py-spy`), summed by what the busy
+threads were doing. Writes DIR/generate_load.json and .md (and the raw samples beside them).
 """
 
 from __future__ import annotations
@@ -45,7 +46,11 @@ spec = json.loads(sys.argv[1])
 summary = generate(load_suite(spec["suite"]), Path(spec["out"]), frames=spec["frames"], device=spec["device"],
                    workers=spec["workers"], progress=False, helpers=spec["helpers"])
 keep = ("frames", "seconds", "frames_per_s", "seconds_by_part", "devices", "helpers")
-print("RESULT " + json.dumps({k: summary.get(k) for k in keep}))
+import resource
+used = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)]
+tree = {"user_s": sum(u.ru_utime for u in used), "system_s": sum(u.ru_stime for u in used),
+        "minor_faults": sum(u.ru_minflt for u in used)}  # this process and every process it waited for
+print("RESULT " + json.dumps({k: summary.get(k) for k in keep} | {"tree": tree}))
 """
 PARTS_SHOWN = ("start-up", "prepare", "lidar", "sonar", "write")  # generate's seconds by part, summed
 # What a sampled thread was doing, by the first of these functions found in its stack.
@@ -164,9 +169,10 @@ def run(setting: str, args, work: Path, out: Path, tag: str, spy: bool = False) 
         recorder.wait()
     seconds = max(r["seconds"] for r in results)
     frames = sum(r["frames"] for r in results)
-    parts = collections.Counter()
+    parts, tree = collections.Counter(), collections.Counter()
     for r in results:
         parts.update(r["seconds_by_part"])
+        tree.update(r["tree"])
     return {
         "setting": setting,
         "frames": frames,
@@ -178,6 +184,8 @@ def run(setting: str, args, work: Path, out: Path, tag: str, spy: bool = False) 
         "gpus": utilisation(out / f"utilisation_{tag}.csv") if sampler is not None else {},
         "contexts": held,
         "seconds_by_part": dict(parts),
+        "cpu_ms_per_frame": {k: 1e3 * tree[f"{k}_s"] / frames for k in ("user", "system")},
+        "minor_faults_per_frame": tree["minor_faults"] / frames,
         "helpers": results[0]["helpers"],
         "devices": sorted({d for r in results for d in r["devices"]}),
     }
@@ -205,20 +213,21 @@ def markdown(res: dict) -> str:
         "",
         f"On {res['device_name']} ({res['cpu_count']} cores); each setting once a round, {res['rounds']} rounds, "
         "each run a fresh process. *CPU busy*: the share of all cores' time not idle over the whole run "
-        "(its start and end included); *GPU in use*: each GPU's mean utilisation over the samples while "
+        "(its start and end included); *CPU ms a frame* and *page faults a frame*: the run's process tree's "
+        "own (getrusage), start-up included; *GPU in use*: each GPU's mean utilisation over the samples while "
         "any GPU was busy.",
         "",
-        "| setting | round | frames/s | seconds | CPU busy | GPU in use (mean) | helpers | "
-        + " | ".join(PARTS_SHOWN)
-        + " |",
-        "|---|---|---|---|---|---|---|" + "---|" * len(PARTS_SHOWN),
+        "| setting | round | frames/s | seconds | CPU busy | CPU ms a frame (user + system) | page faults a frame "
+        "| GPU in use (mean) | helpers | " + " | ".join(PARTS_SHOWN) + " |",
+        "|---|---|---|---|---|---|---|---|---|" + "---|" * len(PARTS_SHOWN),
     ]
     for row in res["rows"]:
         gpus = ", ".join(f"{g}: {u['in_use_mean']:.0f} % ({u['mean']:.0f})" for g, u in row["gpus"].items()) or "-"
         busy = f"{row['cpu_busy']:.2f}" if row["cpu_busy"] is not None else "-"
-        part = row["seconds_by_part"]
+        part, cpu = row["seconds_by_part"], row["cpu_ms_per_frame"]
         lines.append(
             f"| {row['setting']} | {row['round']} | {row['frames_per_s']:,.0f} | {row['seconds']:.1f} | {busy} | "
+            f"{cpu['user']:.2f} + {cpu['system']:.2f} | {row['minor_faults_per_frame']:.0f} | "
             f"{gpus} | {row['helpers']} | " + " | ".join(f"{part.get(k, 0):.1f}" for k in PARTS_SHOWN) + " |"
         )
     for setting, summary in res.get("spy", {}).items():

@@ -3,11 +3,14 @@
 # (default benchmarks/results/multi_gpu), working files under WORKDIR:
 #
 #   bash benchmarks/multi_gpu.sh gen   WORKDIR  # bench_generate: one GPU vs all (frames/s); one GPU's shards = all GPUs'
+#   bash benchmarks/multi_gpu.sh load  WORKDIR  # generate_load: one GPU vs all with CPU and GPU use, two commands
+#                                               # at once, blocking waits, py-spy (LOAD_FRAMES: sizes to run)
 #   bash benchmarks/multi_gpu.sh timeline WORKDIR  # worker_timeline: one run on one GPU and one on all, per worker
 #   bash benchmarks/multi_gpu.sh start WORKDIR  # start_costs: a worker's start step by step, 1..10 processes at once
 #   bash benchmarks/multi_gpu.sh ray   WORKDIR  # a local Ray cluster (ray start --head) writes one process's shards
 #   bash benchmarks/multi_gpu.sh ddp   WORKDIR  # bench_learn --ddp: windows/s on 1..N GPUs, efficiency
-#   bash benchmarks/multi_gpu.sh train WORKDIR  # one GPU at batch 16 vs N GPUs at 16/N each, seeds 0 and 1 (after gen)
+#   bash benchmarks/multi_gpu.sh train WORKDIR  # one GPU at batch 16 vs N GPUs at 16/N each, seeds 0 and 1 (after gen;
+#                                               # TRAIN_MODEL polar_unet or paper, TRAIN_WINDOWS a sub-epoch's)
 #   bash benchmarks/multi_gpu.sh all   WORKDIR  # the four above in that order
 #   bash benchmarks/multi_gpu.sh check WORKDIR  # on ONE GPU: --workers 2 --device auto gives the same shards,
 #                                               # torchrun's NCCL path at world size 1 trains as the plain run
@@ -40,6 +43,18 @@ gen() {
   python -m acoustic_sim generate "${GEN[@]}" --workers $((8 * GPUS)) --device auto --out "$W/all_gpus" |
     tee "$R/generate_${GPUS}_gpus.txt"
   python benchmarks/same_shards.py "$W/one_gpu" "$W/all_gpus" | tee "$R/generate_identical.txt"
+}
+
+load() {
+  stamp load
+  # where the second GPU's frames go: the host's CPU, each GPU's use, two commands at once (pair), py-spy
+  # where it is installed; at the bench's size and at four times it (a fixed start-up weighs less there)
+  local spy=$(command -v py-spy >/dev/null && echo "--spy auto/$((5 * GPUS))" || true)
+  for frames in ${LOAD_FRAMES:-75000 300000}; do
+    python benchmarks/generate_load.py --suite "${SUITE:-paper}" --frames "$frames" --rounds 2 $spy \
+      --settings "cuda:0/5,auto/$((5 * GPUS)),auto/$((5 * GPUS))/block,pair/5" --out "$R/generate_load_$frames"
+    spy=""
+  done
 }
 
 timeline() {
@@ -93,23 +108,25 @@ train() {
   stamp train
   [ -f "$W/one_gpu/manifest.json" ] || { echo "train needs the gen phase's $W/one_gpu" >&2; exit 2; }
   # one validation set for every run (--split-seed), so that the seed-to-seed spread is training noise
-  OPTS=(--data "$W/one_gpu" --model polar_unet --loss bce --lr 1e-3 --epochs "${EPOCHS:-8}" --patience 100 --split-seed 0
-    --max-train-windows 12000 --max-val-windows 2000 --device cuda --quiet --overwrite)
+  local model=${TRAIN_MODEL:-polar_unet}
+  OPTS=(--data "$W/one_gpu" --model "$model" --loss bce --lr 1e-3 --epochs "${EPOCHS:-8}" --patience 100 --split-seed 0
+    --max-train-windows "${TRAIN_WINDOWS:-12000}" --max-val-windows 2000 --device cuda --quiet --overwrite)
   ((GPUS >= 1 && 16 % GPUS == 0)) || { echo "train needs a GPU count that divides the global batch 16, got $GPUS" >&2; exit 2; }
   pids=() failed=0
   for seed in 0 1; do # one process on one GPU each, side by side
     CUDA_VISIBLE_DEVICES=$((seed % GPUS)) python -m learn train "${OPTS[@]}" --seed $seed --batch-size 16 \
-      --out "$W/runs/one_gpu_seed$seed" >"$R/train_one_gpu_seed$seed.log" 2>&1 &
+      --out "$W/runs/${model}_one_gpu_seed$seed" >"$R/train_${model}_one_gpu_seed$seed.log" 2>&1 &
     pids+=($!)
   done
   for pid in "${pids[@]}"; do wait "$pid" || failed=1; done # both finish before a failure stops the phase
-  ((failed == 0)) || { echo "a one-GPU run failed: $R/train_one_gpu_seed*.log" >&2; exit 1; }
+  ((failed == 0)) || { echo "a one-GPU run failed: $R/train_${model}_one_gpu_seed*.log" >&2; exit 1; }
   for seed in 0 1; do
     torchrun --standalone --nproc_per_node "$GPUS" -m learn train "${OPTS[@]}" --seed $seed \
-      --batch-size $((16 / GPUS)) --out "$W/runs/${GPUS}_gpus_seed$seed" >"$R/train_${GPUS}_gpus_seed$seed.log" 2>&1
+      --batch-size $((16 / GPUS)) --out "$W/runs/${model}_${GPUS}_gpus_seed$seed" >"$R/train_${model}_${GPUS}_gpus_seed$seed.log" 2>&1
   done
-  python benchmarks/same_global_batch.py "$W"/runs/one_gpu_seed{0,1} "$W/runs/${GPUS}_gpus_seed"{0,1} --out "$R"
-  for run in "$W"/runs/*; do # each run's own record beside the comparison
+  python benchmarks/same_global_batch.py "$W/runs/${model}_one_gpu_seed"{0,1} "$W/runs/${model}_${GPUS}_gpus_seed"{0,1} \
+    --out "$R/same_global_batch_$model"
+  for run in "$W"/runs/"$model"_*; do # each run's own record beside the comparison
     mkdir -p "$R/runs/${run##*/}" && cp "$run"/{config.json,history.csv,curves.png} "$R/runs/${run##*/}/"
   done
 }
@@ -135,6 +152,7 @@ PY
 
 case $phase in
 gen) gen ;;
+load) load ;;
 timeline) timeline ;;
 start) start_costs ;;
 ray) ray_cluster ;;
@@ -146,7 +164,7 @@ all) # each phase in its own shell: one that fails is reported and the next stil
   ;;
 check) check ;;
 *)
-  echo "usage: $0 gen|timeline|start|ray|ddp|train|all|check WORKDIR" >&2
+  echo "usage: $0 gen|load|timeline|start|ray|ddp|train|all|check WORKDIR" >&2
   exit 2
   ;;
 esac
