@@ -51,21 +51,24 @@ def test_fletcher32_from_plain_sums_equals_the_loop_over_blocks():
     assert 0 < carried < 300  # both ways were taken
 
 
-@pytest.mark.parametrize("dtype", [np.float16, np.uint8])
-def test_rows_written_in_threads_read_back_through_hdf5(tmp_path, dtype):
+@pytest.mark.parametrize(
+    ("dtype", "rows", "threads"), [(np.float16, 9, 3), (np.uint8, 9, 3), (np.float16, 70, 3), (np.uint8, 5, 1)]
+)
+def test_rows_written_in_threads_read_back_through_hdf5(tmp_path, dtype, rows, threads):
     """A shard-like dataset (shuffle, gzip 1, Fletcher-32, one chunk per frame) written with
-    `write_rows` in 3 threads reads back equal through h5py, which inflates, unshuffles and checks
-    every chunk's checksum; the stored chunks (deflated by ISA-L) are at most 5 % larger than
-    HDF5's own for the same data, and smaller than the raw rows."""
+    `write_rows` (in 3 threads a row or runs of 5 rows at a time, or in this one) reads back equal
+    through h5py, which inflates, unshuffles and checks every chunk's checksum, each row in its
+    place; the stored chunks (deflated by ISA-L) are at most 5 % larger than HDF5's own for the
+    same data, and smaller than the raw rows."""
     rng = np.random.default_rng(2)
-    array = (rng.random((9, 24, 18)) * (3.0 if dtype == np.float16 else 1.5)).astype(dtype)
+    array = (rng.random((rows, 24, 18)) * (3.0 if dtype == np.float16 else 1.5)).astype(dtype)
     with h5py.File(tmp_path / "f.h5", "w") as f:
         ours = f.create_dataset("ours", shape=array.shape, dtype=dtype, chunks=(1, 24, 18), **COMPRESSION)
-        write_rows(ours, array, threads=3)
+        write_rows(ours, array, threads=threads)
         theirs = f.create_dataset("theirs", data=array, chunks=(1, 24, 18), **COMPRESSION)
         sizes = [
             (len(ours.id.read_direct_chunk((i, 0, 0))[1]), len(theirs.id.read_direct_chunk((i, 0, 0))[1]))
-            for i in range(9)
+            for i in range(rows)
         ]
     with h5py.File(tmp_path / "f.h5", "r") as f:
         np.testing.assert_array_equal(f["ours"][()], array)
