@@ -422,8 +422,12 @@ def test_ray_actors_hold_a_share_of_a_gpu_and_render_every_shard_once(tmp_path, 
             def actor_class(cls):
                 def make(renderer, device):
                     made.append(device)
-                    me = len(made) - 1
-                    return SimpleNamespace(render=SimpleNamespace(remote=lambda task: (me, rendered.append(task))))
+
+                    def render(run):
+                        rendered.append(run)
+                        return sum(task.frame_count for task in run)  # the ref: what `get` returns
+
+                    return SimpleNamespace(render=SimpleNamespace(remote=render))
 
                 return SimpleNamespace(remote=make)
 
@@ -435,7 +439,7 @@ def test_ray_actors_hold_a_share_of_a_gpu_and_render_every_shard_once(tmp_path, 
 
         @staticmethod
         def get(ref):
-            return None
+            return ref
 
     monkeypatch.setitem(sys.modules, "ray", Recording)
     frames = []
@@ -444,10 +448,22 @@ def test_ray_actors_hold_a_share_of_a_gpu_and_render_every_shard_once(tmp_path, 
     gen._run_on_ray(tasks, gen.SuiteRenderer(), "local", gpu_share=1 / per_gpu if per_gpu else 0, bar=bar)
     assert asked.get("num_gpus", 0) == share and asked.get("num_cpus") == (None if share else 1)
     assert made == ["cuda:0" if share else "cpu"] * actors
-    assert sorted(t.frame_count for t in rendered) == list(range(1, 11)) and sum(frames) == 55
+    assert sorted(t.frame_count for run in rendered for t in run) == list(range(1, 11)) and sum(frames) == 55
+    assert [len(run) for run in rendered][: len(made)] == [gen.ray_run_length(10, actors)] * len(made)
     assert gen.ray_slots(Recording, 0.5, tasks=3) == 3  # never more actors than shards
     with pytest.raises(ValueError, match="needs a Ray address"):
         gen.make_dataset([], gen.SuiteRenderer(), tmp_path, plan_meta={}, ray_tasks_per_gpu=2)
+
+
+def test_ray_runs_shrink_as_the_work_runs_out():
+    """An actor gets about half of an even share of the shards left, so its rendering overlaps its
+    writing over several shards, at most MAX_RUN (its bar moves), and the last ones go one by one."""
+    assert [gen.ray_run_length(n, 4) for n in (1000, 64, 40, 16, 9, 8, 3, 1)] == [8, 8, 5, 2, 1, 1, 1, 1]
+    left, actors, runs = 100, 4, []
+    while left:
+        runs.append(gen.ray_run_length(left, actors))
+        left -= runs[-1]
+    assert runs[:5] == [8] * 5 and runs == sorted(runs, reverse=True) and runs[-8:] == [1] * 8
 
 
 def test_a_worker_takes_its_next_shard_only_during_the_last_episode_of_this_one(tmp_path, device, monkeypatch):

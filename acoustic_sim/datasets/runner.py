@@ -157,11 +157,6 @@ def run_tasks(
     return run.entries, run.seconds
 
 
-def run_task(task: ShardTask, renderer: Renderer, device=None, on_frames=None) -> dict:
-    """Render and write one shard; returns its manifest entry. `on_frames(n)` reports progress."""
-    return run_tasks([task], renderer, device, on_frames)[0][0]
-
-
 class _Run:
     """One process's pass over its tasks: it keeps `depth` episodes' preparations queued (taking
     the next episode when one starts rendering), renders each into the shard being filled, and
