@@ -24,7 +24,13 @@ def add_calibrate_parser(sub, builders) -> None:
     )
     cal.add_argument("--poses", help="of signals in a .npy: their sensor-to-world poses (N, 4, 4) in a .npy")
     cal.add_argument("--episode", type=int, help="of a dataset: the episode (one room) to fit to")
-    add_scene_options(cal, builders, MESH_OPTIONS, default="box_room")
+    add_scene_options(cal, builders, MESH_OPTIONS, default=None)
+    cal.add_argument(
+        "--scene-from-data",
+        action="store_true",
+        help="of a dataset: the room its episode's record describes (a suite's builder, or crossengine's floor "
+        "plan), instead of --scene (default: box_room), --svg or --mesh",
+    )
     cal.add_argument("--seed", type=int, default=0, help="seeds a builder's scene")
     cal.add_argument("--pings", type=int, help="fit to at most this many pings, evenly spaced (20-50 suffice)")
     cal.add_argument("--max-bounces", type=int, help="secondary reflections traced (default: tracer.max_bounces)")
@@ -64,6 +70,20 @@ def _calibrate(args) -> int:
     return 0
 
 
+def _scene(args):
+    """The room the recordings were made in: a dataset episode's own, or the scene options'."""
+    from .calibrate import recorded_scene
+
+    if not args.scene_from_data:
+        args.scene = args.scene or "box_room"
+        return scene_from_args(args)
+    options = ("scene", "svg", "mesh", "scene_arg", "up", "units", "materials")
+    given = [f"--{name.replace('_', '-')}" for name in options if getattr(args, name)]
+    if given:
+        raise ValueError(f"--scene-from-data takes the room from the data: drop {' and '.join(given)}")
+    return recorded_scene(args.recordings, args.episode)
+
+
 def _calibrate_into(args, written: Path) -> str:
     import numpy as np
 
@@ -84,7 +104,7 @@ def _calibrate_into(args, written: Path) -> str:
     if args.rays is not None:
         tracer = dataclasses.replace(tracer, ray_count=args.rays)
     poses, signals = load_recordings(args.recordings, args.pings, args.episode, args.poses)
-    scene = scene_from_args(args)
+    scene = _scene(args)
     absorption = not args.no_air_absorption
     fit = fit_surfaces(
         scene,

@@ -337,8 +337,8 @@ def test_recordings_come_from_a_dataset_made_with_signals(tmp_path, device):
     """A dataset folder made with --signals gives one episode's poses and signals (float32); a
     dataset of several episodes without --episode, one without signals, an episode it lacks and a
     file of another kind are refused naming what to do."""
-    from acoustic_sim.calibrate import load_recordings
-    from acoustic_sim.datasets.generate import generate
+    from acoustic_sim.calibrate import load_recordings, recorded_scene
+    from acoustic_sim.datasets.generate import generate, plan
     from acoustic_sim.datasets.suites import SUITES, Physics
 
     suite = dataclasses.replace(SUITES["tiny"], episode_frames=3, variants={"": Physics(ray_count=500)})
@@ -360,6 +360,17 @@ def test_recordings_come_from_a_dataset_made_with_signals(tmp_path, device):
     for (path, episode), complaint in refusals.items():
         with pytest.raises(ValueError, match=complaint):
             load_recordings(path, episode=episode)
+    # the room of an episode, from its record: the suite's builder with the episode's arguments
+    drawn = next(
+        e for task in plan(suite, tmp_path / "again", frames=6, shards=1) for e in task.episodes if e.index == second
+    )
+    room = recorded_scene(tmp_path / "with", episode=second)
+    want = scenes.BUILDERS[drawn.builder](**drawn.scene_params)
+    np.testing.assert_array_equal(room.mesh.vertices, want.mesh.vertices)
+    assert [m.name for m in room.materials] == [m.name for m in want.materials]
+    for episode, complaint in ((None, "give one \\(--episode\\)"), (10**6, "no record of episode")):
+        with pytest.raises(ValueError, match=complaint):
+            recorded_scene(tmp_path / "with", episode=episode)
 
 
 def test_recordings_come_as_two_npy_files(tmp_path):

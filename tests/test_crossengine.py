@@ -334,11 +334,12 @@ def test_the_set_beamforms_at_the_elevations_asked_and_nothing_else_changes(tmp_
 
 def test_the_set_keeps_its_recordings_for_calibrate(tmp_path, device):
     """`--signals` stores each ping's microphone signals (float16, as generate's), whose energyscapes
-    are the set's, and `calibrate` reads them as one drive's recordings; the set's plan without
-    them is the one it always was."""
+    are the set's, and `calibrate` reads them as one drive's recordings, in the room the episode's
+    record describes (`--scene-from-data`: our LiDAR in it reads the set's floor-plan ranges); the
+    set's plan without them is the one it always was."""
     import h5py
 
-    from acoustic_sim.calibrate import load_recordings
+    from acoustic_sim.calibrate import load_recordings, recorded_scene
     from acoustic_sim.cli import main
 
     base = ["generate", "--suite", "crossengine", "--frames", "2", "--device", device, "--quiet"]
@@ -354,5 +355,19 @@ def test_the_set_keeps_its_recordings_for_calibrate(tmp_path, device):
         assert np.abs(again[:, None] - plain["energyscape"][:]).max() < 0.01 * peak  # float16 signals
     poses, recorded = load_recordings(tmp_path / "kept", episode=0)
     assert poses.shape == (2, 4, 4) and np.array_equal(recorded, signals.astype(np.float32))
+    # the room its record describes is the one recorded: our LiDAR in it reads the set's floor-plan truth
+    room = recorded_scene(tmp_path / "kept", episode=0)
+    with h5py.File(tmp_path / "kept" / shard) as kept:
+        truth, record = kept["lidar/ranges"][:], json.loads(kept.attrs["episodes"])[0]
+    ranges = Lidar(LidarConfig.hokuyo_ust20lx(), device=device).scan(room, poses)
+    assert np.isfinite(truth).mean() > 0.5 and np.array_equal(np.isfinite(ranges), np.isfinite(truth))
+    np.testing.assert_allclose(ranges[np.isfinite(truth)], truth[np.isfinite(truth)], atol=2e-3)
+    assert room.mesh.bounds[1, 2] == pytest.approx(record["height_m"])  # floor to ceiling
+    out = tmp_path / "fit" / "fit.json"
+    argv = ["calibrate", str(tmp_path / "kept"), "--scene-from-data", "--rays", "3000", "--max-bounces", "1"]
+    assert main([*argv, "--no-delays", "--device", device, "--out", str(out)]) == 0
+    fit = json.loads(out.read_text())
+    assert {"walls", "floor"} <= set(fit["classes"]) and fit["pings"] == 2
+    assert main([*argv, "--scene", "office", "--device", device, "--out", str(tmp_path / "no.json")]) == 2
     plans = [json.loads((tmp_path / name / "plan.json").read_text())["plan_id"] for name in ("kept", "plain")]
     assert plans[0] != plans[1] and plans[1] == plan_crossengine(tmp_path / "x", frames=2)[0].plan_id

@@ -33,7 +33,7 @@ emitter backwards (the tracer's baffled emitter sends none).
 
 from .directivity import departure_cosine
 from .fit import SignalGram, SurfaceFit, fit_surfaces, loss_and_gradient, signal_gram
-from .recordings import load_recordings
+from .recordings import load_recordings, recorded_scene
 
 __all__ = [
     "SignalGram",
@@ -42,5 +42,6 @@ __all__ = [
     "fit_surfaces",
     "load_recordings",
     "loss_and_gradient",
+    "recorded_scene",
     "signal_gram",
 ]

@@ -1,5 +1,5 @@
 """Recorded pings for a calibration: poses and microphone signals from a .npz, two .npy files or a
-dataset made with `generate --signals`."""
+dataset made with `generate --signals`; and the room a dataset's episode was recorded in."""
 
 from __future__ import annotations
 
@@ -79,3 +79,35 @@ def _shard_recordings(path, episode: int | None) -> tuple[np.ndarray, np.ndarray
     poses = np.concatenate([p for _, p, _ in found]).astype(np.float64)
     signals = np.concatenate([s for _, _, s in found]).astype(np.float32)
     return poses, signals
+
+
+def recorded_scene(path, episode: int | None = None):
+    """The room of one episode (`--episode`; needed where the data hold several) of a dataset folder
+    or shard, from its episode record: our suites' builder and its arguments, or another engine's
+    floor plan (crossengine: its corners and height, open to the sky where its ceiling reflects
+    nothing). Built with the builders' own materials: what a fit starts from, never what the
+    recording holds."""
+    import scenes
+
+    from ..datasets.mesh_scenarios import MESH_BUILDER
+    from ..datasets.shards import dataset_shards, read_attrs
+
+    path = Path(path)
+    shards = dataset_shards(path) if path.is_dir() else [path]
+    records = [record for shard in shards for record in read_attrs(shard).get("episodes", [])]
+    indices = sorted({record.get("index") for record in records})
+    if episode is None and len(indices) > 1:
+        raise ValueError(f"{path} holds episodes {indices[:10]}: give one (--episode), one room a fit")
+    found = [r for r in records if episode is None or r.get("index") == episode]
+    if not found:
+        raise ValueError(f"{path} holds no record of episode {episode} (its episodes: {indices[:10]})")
+    record = found[0]
+    if record.get("builder") == MESH_BUILDER:
+        raise ValueError(f"{path}: episode {record['index']} was drawn in a mesh file's room: give it with --mesh")
+    if "builder" in record:
+        return scenes.BUILDERS[record["builder"]](**record["scene_params"])
+    if "corners" in record:  # another engine's extruded floor plan (formats.crossengine.Room)
+        ceiling = None if record["ceiling_reflection"] == 0 else "ceiling_tile"
+        corners, height = record["corners"], record["height_m"]
+        return scenes.polygon_room(record["plan"], corners=corners, height=height, ceiling=ceiling)
+    raise ValueError(f"{path}: episode {record.get('index')}'s record describes no room (no builder, no floor plan)")
