@@ -248,6 +248,12 @@ def test_shared_frames_round_trip_and_fall_back(tmp_path, monkeypatch):
     monkeypatch.setattr(shared_frames.os, "posix_fallocate", full)
     assert shared_frames.SharedFrames.share(frames, folder=str(tmp_path)) is None
     assert list(tmp_path.iterdir()) == []
+    # a rendering process killed after handing a shard over: its parent sweeps what it left
+    left = [tmp_path / f"sonar2lidar-{pid}-0-ab12cd34" for pid in (4242, 42, 424)]
+    for path in left:
+        path.write_bytes(b"x")
+    assert shared_frames.sweep([4242, 424], folder=str(tmp_path)) == 2
+    assert list(tmp_path.iterdir()) == [left[1]]
 
 
 def test_helper_counts(monkeypatch):

@@ -9,6 +9,7 @@ file of the memory file system (/dev/shm) that the helper maps; only its name an
 
 from __future__ import annotations
 
+import glob
 import itertools
 import mmap
 import os
@@ -21,6 +22,7 @@ from .shards import ShardFrames
 
 FOLDER = "/dev/shm"  # Linux's memory file system: pages shared by every process that maps the file
 ALIGN = 64  # each array starts on a cache line
+PREFIX = "sonar2lidar-"  # then the sending process's id: what `sweep` finds after it died
 ARRAYS = ("energyscape", "lidar_ranges", "lidar_image", "pose", "time", "episode", "scenario", "signals")
 _COUNT = itertools.count()
 
@@ -45,7 +47,7 @@ class SharedFrames:
         for name, array in joined.items():
             layout[name] = (size, array.dtype.str, array.shape)
             size += -(-array.nbytes // ALIGN) * ALIGN
-        path = os.path.join(folder, f"sonar2lidar-{os.getpid()}-{next(_COUNT)}-{secrets.token_hex(4)}")
+        path = os.path.join(folder, f"{PREFIX}{os.getpid()}-{next(_COUNT)}-{secrets.token_hex(4)}")
         try:
             fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
         except OSError:
@@ -81,3 +83,18 @@ class SharedFrames:
             os.unlink(self.path)
         except FileNotFoundError:
             pass
+
+
+def sweep(pids, folder: str = FOLDER) -> int:
+    """Remove the shared files that processes `pids` (rendering workers that have ended) left
+    behind: one killed between handing a shard over and its writer opening it leaves that shard's
+    file in memory until the machine restarts. Returns how many were removed."""
+    removed = 0
+    for pid in pids:
+        for name in glob.glob(os.path.join(glob.escape(folder), f"{PREFIX}{int(pid)}-*")):
+            try:
+                os.unlink(name)
+                removed += 1
+            except FileNotFoundError:
+                pass
+    return removed

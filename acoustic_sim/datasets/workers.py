@@ -23,6 +23,7 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 
 from ..devices import cpu_cores, cuda_started, quiet_warp, resolve_device, warp_voice
+from .shared_frames import sweep
 
 # A worker's work: (its tasks, read lazily; its device; on_frames(n)) -> seconds by part.
 Work = Callable[[Iterable, str, Callable[[int], None]], dict]
@@ -73,6 +74,7 @@ class LocalWorkers:
         except BaseException:
             self._pool.shutdown(wait=True, cancel_futures=True)
             raise
+        self._pids = list(getattr(self._pool, "_processes", None) or {})  # forked at once: all are known
 
     def wait_ready(self, timeout_s: float = READY_TIMEOUT_S) -> list[str]:
         """Each worker's device, once all are up; a worker's failure to start is raised here."""
@@ -124,10 +126,14 @@ class LocalWorkers:
                 process.terminate()
         self._end_tasks()
         self._pool.shutdown(wait=wait, cancel_futures=True)
+        if wait:
+            sweep(self._pids)
 
     def join(self) -> None:
-        """Wait until the worker processes of a closed pool have exited."""
+        """Wait until the worker processes of a closed pool have exited (and remove any shard a
+        killed one left in shared memory)."""
         self._pool.shutdown(wait=True)
+        sweep(self._pids)
 
     def _end_tasks(self) -> None:
         if not self._fed:
