@@ -20,7 +20,7 @@ def add_calibrate_parser(sub, builders) -> None:
     cal.add_argument(
         "recordings",
         help="a .npz with `poses` (N, 4, 4) and `signals` (N, mics, samples), a .npy of signals (with --poses), "
-        "or a dataset folder or shard made with generate --signals",
+        "a CHIRP file (.h5, with odometry), or a dataset folder or shard made with generate --signals",
     )
     cal.add_argument("--poses", help="of signals in a .npy: their sensor-to-world poses (N, 4, 4) in a .npy")
     cal.add_argument("--episode", type=int, help="of a dataset: the episode (one room) to fit to")
@@ -88,7 +88,7 @@ def _calibrate_into(args, written: Path) -> str:
     import numpy as np
 
     from . import __version__
-    from .calibrate import fit_surfaces, load_recordings
+    from .calibrate import fit_surfaces, load_recordings, recording_sonar
     from .config import SimConfig
     from .devices import check_device, quiet_warp
     from .render import render_calibration
@@ -103,7 +103,8 @@ def _calibrate_into(args, written: Path) -> str:
         tracer = dataclasses.replace(tracer, max_bounces=args.max_bounces)
     if args.rays is not None:
         tracer = dataclasses.replace(tracer, ray_count=args.rays)
-    poses, signals = load_recordings(args.recordings, args.pings, args.episode, args.poses)
+    poses, signals = load_recordings(args.recordings, args.pings, args.episode, args.poses, rig.sonar)
+    rig = dataclasses.replace(rig, sonar=recording_sonar(args.recordings, rig.sonar))  # a CHIRP file's own array
     scene = _scene(args)
     absorption = not args.no_air_absorption
     fit = fit_surfaces(

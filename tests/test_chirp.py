@@ -255,3 +255,41 @@ def test_import_warns_when_the_recorded_call_is_another(exported, tmp_path, devi
         assert (
             main(["import", str(other), "--format", "chirp", "--out", str(tmp_path / "rec"), "--device", device]) == 0
         )
+
+
+def test_calibrate_fits_to_a_chirp_files_pings(signals_dataset, exported, tmp_path, device):
+    """`calibrate` takes a CHIRP file as its recordings: every ping's signals and odometry pose as the
+    dataset exported them (or `--pings` of them, evenly spaced), the file's array as the sonar; the
+    command fits one drive's room from it; a file without odometry is refused."""
+    import json
+    import shutil
+
+    from acoustic_sim.calibrate import load_recordings, recorded_scene, recording_sonar
+    from acoustic_sim.config import SonarConfig
+
+    truth = read(signals_dataset, "signals", "pose")
+    poses, signals = load_recordings(exported)
+    np.testing.assert_array_equal(signals, truth["signals"].astype(np.float32))
+    np.testing.assert_allclose(poses, truth["pose"], atol=1e-12)
+    few_poses, few = load_recordings(exported, pings=3)
+    np.testing.assert_array_equal(few, signals[[0, 8, 15]])
+    np.testing.assert_array_equal(few_poses, poses[[0, 8, 15]])
+    sonar = recording_sonar(exported, SonarConfig.ertis())
+    assert sonar.microphones_m == SonarConfig.ertis().microphones_m and sonar.record_samples == signals.shape[2]
+    one_room = tmp_path / "one_room"  # the first drive alone (one room), as its own CHIRP file
+    one_room.mkdir()
+    first = sorted(signals_dataset.glob("shard-*.h5"))[0]
+    shutil.copy(first, one_room / first.name)
+    assert main(["export", str(one_room), "--format", "chirp", "--out", str(tmp_path / "room.h5")]) == 0
+    room = recorded_scene(one_room)
+    size = np.ptp(room.mesh.bounds, axis=0).round(6).tolist()
+    out = tmp_path / "fit" / "fit.json"
+    argv = ["calibrate", str(tmp_path / "room.h5"), "--scene", "box_room", "--scene-arg", f"size={size}"]
+    argv += ["--rays", "3000", "--max-bounces", "1", "--no-delays", "--device", device, "--out", str(out)]
+    assert main(argv) == 0
+    fit = json.loads(out.read_text())
+    assert fit["pings"] == 8 and "walls" in fit["classes"] and fit["loss"][-1] <= fit["loss"][0]
+    with h5py.File(tmp_path / "room.h5", "r+") as f:
+        del f["sensors/odometry_00"]
+    with pytest.raises(ValueError, match="no poses"):
+        load_recordings(tmp_path / "room.h5")

@@ -1,5 +1,6 @@
-"""Recorded pings for a calibration: poses and microphone signals from a .npz, two .npy files or a
-dataset made with `generate --signals`; and the room a dataset's episode was recorded in."""
+"""Recorded pings for a calibration: poses and microphone signals from a .npz, two .npy files, a
+CHIRP file or a dataset made with `generate --signals`; the sonar a CHIRP file was recorded with;
+and the room a dataset's episode was recorded in."""
 
 from __future__ import annotations
 
@@ -9,13 +10,14 @@ import numpy as np
 
 
 def load_recordings(
-    path, pings: int | None = None, episode: int | None = None, poses_path=None
+    path, pings: int | None = None, episode: int | None = None, poses_path=None, sonar=None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Poses (N, 4, 4) and microphone signals (N, mics, samples) float32 of recorded pings, from a
     .npz holding `poses` and `signals`, a .npy of signals with a .npy of their poses (`poses_path`),
-    or a dataset folder (or one shard) made with `generate --signals`: the frames of one `episode`
-    (one room; required where the data hold several). With `pings`, at most that many, evenly
-    spaced."""
+    a CHIRP file (its odometry's poses; its call's sample rate checked against `sonar`'s, the
+    eRTIS's by default), or a dataset folder (or one shard) made with `generate --signals`: the
+    frames of one `episode` (one room; required where the data hold several). With `pings`, at
+    most that many, evenly spaced."""
     path = Path(path)
     if (path.suffix == ".npy") != (poses_path is not None):
         raise ValueError(f"{path}: signals in a .npy need their poses in a .npy too (--poses), and only they do")
@@ -23,19 +25,55 @@ def load_recordings(
         poses, signals = _npz_recordings(path)
     elif path.suffix == ".npy":
         poses, signals = _checked_recordings(np.load(poses_path), np.load(path), f"{path} and {poses_path}")
+    elif path.suffix == ".h5" and is_chirp(path):
+        from ..config import SonarConfig
+        from ..formats.chirp import chirp_recordings
+
+        if pings is not None:
+            _evenly(1, pings)  # refuses a count below 1
+        return chirp_recordings(path, sonar or SonarConfig.ertis(), pings)[:2]
     elif path.is_dir() or path.suffix == ".h5":
         poses, signals = _shard_recordings(path, episode)
     else:
         raise ValueError(
             f"{path}: recordings come as a .npz with `poses` (N, 4, 4) and `signals` (N, mics, samples), a .npy of "
-            "signals with a .npy of poses (--poses), or a dataset folder (or shard) made with generate --signals"
+            "signals with a .npy of poses (--poses), a CHIRP file (.h5), or a dataset folder (or shard) made with "
+            "generate --signals"
         )
     if pings is not None and pings < len(poses):
-        if pings < 1:
-            raise ValueError(f"pings must be >= 1, got {pings}")
-        chosen = np.linspace(0, len(poses) - 1, pings).round().astype(int)
+        chosen = _evenly(len(poses), pings)
         poses, signals = poses[chosen], signals[chosen]
     return poses, signals
+
+
+def _evenly(count: int, pings: int) -> np.ndarray:
+    """`pings` of `count` indices, evenly spaced, first and last among them."""
+    if pings < 1:
+        raise ValueError(f"pings must be >= 1, got {pings}")
+    return np.linspace(0, count - 1, pings).round().astype(int)
+
+
+def is_chirp(path) -> bool:
+    """Whether `path` is an HDF5 file of the CHIRP format (not one of our shards)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as f:
+            kind = f.attrs.get("format")
+    except OSError:
+        return False
+    return (kind.decode() if isinstance(kind, bytes) else kind) == "chirp"
+
+
+def recording_sonar(path, sonar):
+    """The sonar the recordings at `path` were made with: a CHIRP file's own microphones and
+    record length (its pings carry them); `sonar` itself for every other kind."""
+    path = Path(path)
+    if path.suffix != ".h5" or not is_chirp(path):
+        return sonar
+    from ..formats.chirp import chirp_recordings
+
+    return chirp_recordings(path, sonar, pings=1)[2]
 
 
 def _npz_recordings(path) -> tuple[np.ndarray, np.ndarray]:

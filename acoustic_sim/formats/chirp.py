@@ -348,6 +348,37 @@ def _lidar_truth(
     return ranges, scanner.name
 
 
+def chirp_recordings(
+    path: str | Path, sonar: SonarConfig, pings: int | None = None
+) -> tuple[np.ndarray, np.ndarray, SonarConfig]:
+    """A CHIRP file's pings as `calibrate`'s recordings: their poses (N, 4, 4) in the odometry's
+    frame, their signals (N, microphones, samples) float32, and `sonar` with the file's microphone
+    positions and record length. With `pings` (>= 1), only that many, evenly spaced, are read.
+    Refused without odometry synced to the pings: a fit needs each ping's place in the room."""
+    path = Path(path)
+    chirp_input.check_file(path)
+    chirppy = _chirppy()
+    try:
+        data = chirppy.CHIRPDataset(path)
+    except (KeyError, ValueError, OSError) as err:
+        raise ValueError(f"{path}: the CHIRP reader cannot open it ({type(err).__name__}: {err})") from None
+    with data:
+        try:
+            acoustic, mics, _ = chirp_input.microphones(data, sonar.chirp.sample_rate_hz, path)
+            count = len(chirp_input.ping_stamps(acoustic, path))
+            recorded = _recorded_sonar(sonar, mics, acoustic.signals.shape[1], f"{path}: {acoustic.name}")
+            poses, source = chirp_input.recorded_poses(data, acoustic, count, path)
+            chosen = np.arange(count)
+            if pings is not None:
+                chosen = np.unique(np.linspace(0, count - 1, min(pings, count)).round().astype(int))
+            signals = np.asarray(acoustic.signals[chosen], dtype=np.float32).transpose(0, 2, 1)
+        except KeyError as err:
+            raise ValueError(f"{path}: the file lacks part of the CHIRP format ({err}); is it whole?") from None
+    if source.startswith("identity"):
+        raise ValueError(f"{path}: its pings have no poses ({source}); calibrate needs where each ping was made")
+    return poses[chosen], signals, recorded
+
+
 def import_chirp(
     path: str | Path,
     out: str | Path,
