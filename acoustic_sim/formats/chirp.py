@@ -348,6 +348,15 @@ def _lidar_truth(
     return ranges, scanner.name
 
 
+def _open(path: Path):
+    """The reference reader's dataset of a checked CHIRP file; its refusal named as ours."""
+    chirppy = _chirppy()
+    try:
+        return chirppy.CHIRPDataset(path)
+    except (KeyError, ValueError, OSError) as err:
+        raise ValueError(f"{path}: the CHIRP reader cannot open it ({type(err).__name__}: {err})") from None
+
+
 def chirp_recordings(
     path: str | Path, sonar: SonarConfig, pings: int | None = None
 ) -> tuple[np.ndarray, np.ndarray, SonarConfig]:
@@ -357,12 +366,7 @@ def chirp_recordings(
     Refused without odometry synced to the pings: a fit needs each ping's place in the room."""
     path = Path(path)
     chirp_input.check_file(path)
-    chirppy = _chirppy()
-    try:
-        data = chirppy.CHIRPDataset(path)
-    except (KeyError, ValueError, OSError) as err:
-        raise ValueError(f"{path}: the CHIRP reader cannot open it ({type(err).__name__}: {err})") from None
-    with data:
+    with _open(path) as data:
         try:
             acoustic, mics, _ = chirp_input.microphones(data, sonar.chirp.sample_rate_hz, path)
             count = len(chirp_input.ping_stamps(acoustic, path))
@@ -406,13 +410,8 @@ def import_chirp(
             unit = "metres" if option == "--plane-tolerance" else "seconds"
             raise ValueError(f"{option} {value}: give a number of {unit} >= 0 (inf: no limit)")
     _check_import(path, out, rig)
-    chirppy = _chirppy()
     planar = dataclasses.replace(rig.lidar, elevation_min_deg=0.0, elevation_max_deg=0.0, elevation_count=1)
-    try:
-        data = chirppy.CHIRPDataset(path)
-    except (KeyError, ValueError, OSError) as err:
-        raise ValueError(f"{path}: the CHIRP reader cannot open it ({type(err).__name__}: {err})") from None
-    with data:
+    with _open(path) as data:
         try:
             acoustic, mics, rate = chirp_input.microphones(data, rig.sonar.chirp.sample_rate_hz, path)
             chirp_input.check_room(
