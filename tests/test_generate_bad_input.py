@@ -1,6 +1,7 @@
 """`generate` and the simulator's CLI refuse bad output folders and names before they write
 anything, with one `error:` line (the trace only with --debug)."""
 
+import ctypes
 import dataclasses
 import subprocess
 import sys
@@ -72,3 +73,39 @@ def test_cpu_refused_by_a_warp_build_without_a_cpu_compiler(monkeypatch, tmp_pat
     with pytest.raises(ValueError, match="cannot compile CPU kernels"):
         generate(SUITES["tiny"], tmp_path / "out", frames=3, device="cpu", progress=False)
     assert not (tmp_path / "out").exists()
+
+
+def test_how_workers_wait_for_their_gpu_is_spin_or_block(monkeypatch):
+    """SONAR2LIDAR_CUDA_WAIT: CUDA's spinning default unless set; "block" asks the driver for
+    sleeping waits (and a driver that keeps its default is refused); anything else is refused
+    naming the two."""
+    from acoustic_sim.datasets import workers
+
+    monkeypatch.delenv(workers.WAIT_ENV, raising=False)
+    assert workers.cuda_wait() == "spin"
+    workers._set_cuda_wait(0)  # spin: the driver is not touched (none here)
+    monkeypatch.setenv(workers.WAIT_ENV, "sleep")
+    with pytest.raises(ValueError, match="use spin or block"):
+        workers.cuda_wait()
+
+    asked = []
+
+    class Driver:  # keeps its default flags whatever it is asked
+        def __init__(self, name):
+            assert name == "libcuda.so.1"
+
+        def cuInit(self, flags):
+            return 0
+
+        def cuDevicePrimaryCtxSetFlags(self, ordinal, flags):
+            asked.append((ordinal, flags))
+            return 0
+
+        def cuDevicePrimaryCtxGetState(self, ordinal, flags, active):
+            return 0
+
+    monkeypatch.setenv(workers.WAIT_ENV, "block")
+    monkeypatch.setattr(ctypes, "CDLL", Driver)
+    with pytest.raises(RuntimeError, match="refused"):
+        workers._set_cuda_wait(1)
+    assert asked == [(1, workers.CU_CTX_SCHED_BLOCKING_SYNC)]
