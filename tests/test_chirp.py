@@ -274,6 +274,8 @@ def test_calibrate_fits_to_a_chirp_files_pings(signals_dataset, exported, tmp_pa
     few_poses, few = load_recordings(exported, pings=3)
     np.testing.assert_array_equal(few, signals[[0, 8, 15]])
     np.testing.assert_array_equal(few_poses, poses[[0, 8, 15]])
+    with pytest.raises(ValueError, match="pings must be >= 1"):
+        load_recordings(exported, pings=0)
     sonar = recording_sonar(exported, SonarConfig.ertis())
     assert sonar.microphones_m == SonarConfig.ertis().microphones_m and sonar.record_samples == signals.shape[2]
     one_room = tmp_path / "one_room"  # the first drive alone (one room), as its own CHIRP file

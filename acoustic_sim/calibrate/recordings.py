@@ -19,6 +19,8 @@ def load_recordings(
     frames of one `episode` (one room; required where the data hold several). With `pings`, at
     most that many, evenly spaced."""
     path = Path(path)
+    if pings is not None and pings < 1:
+        raise ValueError(f"pings must be >= 1, got {pings}")
     if (path.suffix == ".npy") != (poses_path is not None):
         raise ValueError(f"{path}: signals in a .npy need their poses in a .npy too (--poses), and only they do")
     if path.suffix == ".npz":
@@ -29,8 +31,6 @@ def load_recordings(
         from ..config import SonarConfig
         from ..formats.chirp import chirp_recordings
 
-        if pings is not None:
-            _evenly(1, pings)  # refuses a count below 1
         return chirp_recordings(path, sonar or SonarConfig.ertis(), pings)[:2]
     elif path.is_dir() or path.suffix == ".h5":
         poses, signals = _shard_recordings(path, episode)
@@ -41,16 +41,9 @@ def load_recordings(
             "generate --signals"
         )
     if pings is not None and pings < len(poses):
-        chosen = _evenly(len(poses), pings)
+        chosen = np.linspace(0, len(poses) - 1, pings).round().astype(int)
         poses, signals = poses[chosen], signals[chosen]
     return poses, signals
-
-
-def _evenly(count: int, pings: int) -> np.ndarray:
-    """`pings` of `count` indices, evenly spaced, first and last among them."""
-    if pings < 1:
-        raise ValueError(f"pings must be >= 1, got {pings}")
-    return np.linspace(0, count - 1, pings).round().astype(int)
 
 
 def is_chirp(path) -> bool:

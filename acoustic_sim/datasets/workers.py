@@ -197,8 +197,10 @@ def cuda_wait() -> str:
 
 def _set_cuda_wait(ordinal: int) -> None:
     """Make this process's context on GPU `ordinal` wait as `cuda_wait()` says, before Warp
-    creates it: several workers share a GPU's time slices, so their threads wait often, and each
-    spinning wait holds a host core that the preparing and writing helpers need."""
+    creates it. Several workers share a GPU's time slices, so their threads wait often, and a
+    spinning wait holds a host core (8.5 % of the busy CPU time of 10 workers on two H100s); yet
+    sleeping measured no faster there (benchmarks/results/multi_gpu/session30), so CUDA's
+    default stays the default."""
     if cuda_wait() == "spin":
         return
     import ctypes
