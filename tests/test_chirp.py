@@ -276,6 +276,13 @@ def test_calibrate_fits_to_a_chirp_files_pings(signals_dataset, exported, tmp_pa
     np.testing.assert_array_equal(few_poses, poses[[0, 8, 15]])
     with pytest.raises(ValueError, match="pings must be >= 1"):
         load_recordings(exported, pings=0)
+    import clitools.limits
+
+    with pytest.MonkeyPatch.context() as patch:  # a file too long to read whole: told to take fewer pings
+        patch.setattr(clitools.limits, "available_memory_bytes", lambda: signals.nbytes)
+        with pytest.raises(ValueError, match="--pings N"):
+            load_recordings(exported)
+        assert len(load_recordings(exported, pings=4)[1]) == 4
     sonar = recording_sonar(exported, SonarConfig.ertis())
     assert sonar.microphones_m == SonarConfig.ertis().microphones_m and sonar.record_samples == signals.shape[2]
     one_room = tmp_path / "one_room"  # the first drive alone (one room), as its own CHIRP file

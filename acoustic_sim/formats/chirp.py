@@ -48,6 +48,7 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from clitools.limits import check_memory
 from clitools.outputs import KeptErrorFile, atomic_folder, atomic_output, check_output
 
 from ..config import ChirpConfig, LidarConfig, SonarConfig
@@ -375,6 +376,12 @@ def chirp_recordings(
             chosen = np.arange(count)
             if pings is not None:
                 chosen = np.unique(np.linspace(0, count - 1, min(pings, count)).round().astype(int))
+            _, samples, channels = acoustic.signals.shape
+            check_memory(  # read whole (as float32, then transposed): a file may hold hours of pings
+                2.0 * len(chosen) * samples * channels * 4,
+                what=f"{len(chosen):,} pings of {path.name}",
+                advice="fit to fewer of them (--pings N)",
+            )
             signals = np.asarray(acoustic.signals[chosen], dtype=np.float32).transpose(0, 2, 1)
         except KeyError as err:
             raise ValueError(f"{path}: the file lacks part of the CHIRP format ({err}); is it whole?") from None
