@@ -42,11 +42,13 @@ class SharedFrames:
         """The frames copied into a new shared-memory file, each list of arrays joined into one;
         None where there is no such file system or no room in it (the caller sends them pickled:
         touching pages a full tmpfs cannot provide would kill the process with SIGBUS)."""
-        joined = {name: np.concatenate(parts) for name in ARRAYS if (parts := getattr(frames, name))}
+        lists = {name: [np.asarray(p) for p in parts] for name in ARRAYS if (parts := getattr(frames, name))}
         layout, size = {}, 0
-        for name, array in joined.items():
-            layout[name] = (size, array.dtype.str, array.shape)
-            size += -(-array.nbytes // ALIGN) * ALIGN
+        for name, parts in lists.items():  # each list joined in place in the file: one copy, not two
+            dtype = np.result_type(*parts)
+            shape = (sum(len(p) for p in parts), *parts[0].shape[1:])
+            layout[name] = (size, dtype.str, shape)
+            size += -(-int(np.prod(shape)) * dtype.itemsize // ALIGN) * ALIGN
         path = os.path.join(folder, f"{PREFIX}{os.getpid()}-{next(_COUNT)}-{secrets.token_hex(4)}")
         try:
             fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o600)
@@ -55,9 +57,11 @@ class SharedFrames:
         try:
             os.posix_fallocate(fd, 0, max(size, 1))  # ENOSPC now, not SIGBUS later
             with mmap.mmap(fd, max(size, 1)) as memory:
-                for name, array in joined.items():
-                    offset, _, _ = layout[name]
-                    np.frombuffer(memory, np.uint8, array.nbytes, offset)[:] = array.reshape(-1).view(np.uint8)
+                for name, parts in lists.items():
+                    offset, dtype, shape = layout[name]
+                    view = np.frombuffer(memory, dtype, int(np.prod(shape)), offset).reshape(shape)
+                    np.concatenate(parts, out=view)
+                    del view  # the map closes only without views into it
         except OSError:
             os.unlink(path)
             return None
