@@ -152,21 +152,25 @@ def run(setting: str, args, work: Path, out: Path, tag: str, spy: bool = False) 
     halves = [("cuda:0", args.frames // 2), ("cuda:1", args.frames // 2)] if pair else [(device, args.frames)]
     children = [launch(spec | {"device": d, "frames": n, "out": str(work / d)}, env) for d, n in halves]
     recorder = None
-    if spy:
-        time.sleep(args.spy_delay)
-        command = ["py-spy", "record", "--subprocesses", "--nonblocking", "-r", "40", "-d", str(args.spy_seconds)]
-        command += ["-f", "raw", "-o", str(out / f"spy_{tag}.txt"), "-p", str(children[0].pid)]
-        recorder = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    time.sleep(min(6.0, args.frames / 20000))
-    held = contexts()
-    results = [result(child) for child in children]
-    all1, idle1 = cpu_ticks()
-    wall = time.perf_counter() - t0
-    if sampler is not None:
-        sampler.terminate()
-        sampler.wait()
-    if recorder is not None:
-        recorder.wait()
+    try:
+        if spy:
+            time.sleep(args.spy_delay)
+            command = ["py-spy", "record", "--subprocesses", "--nonblocking", "-r", "40", "-d", str(args.spy_seconds)]
+            command += ["-f", "raw", "-o", str(out / f"spy_{tag}.txt"), "-p", str(children[0].pid)]
+            recorder = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        time.sleep(min(6.0, args.frames / 20000))
+        held = contexts()
+        results = [result(child) for child in children]
+        all1, idle1 = cpu_ticks()
+        wall = time.perf_counter() - t0
+    finally:  # a failed run leaves no sampler or other generate behind
+        for process in [*children, sampler]:
+            if process is not None and process.poll() is None:
+                process.terminate()
+            if process is not None:
+                process.wait()
+        if recorder is not None:
+            recorder.wait()  # it ends with its --duration or its target, its recording written
     seconds = max(r["seconds"] for r in results)
     frames = sum(r["frames"] for r in results)
     parts, tree = collections.Counter(), collections.Counter()
