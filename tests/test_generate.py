@@ -408,8 +408,9 @@ def test_a_refused_ray_connection_names_token_authentication(tmp_path, monkeypat
 @pytest.mark.parametrize(("per_gpu", "share", "actors"), [(1, 1.0, 2), (4, 0.25, 8), (None, 0, 3)])
 def test_ray_actors_hold_a_share_of_a_gpu_and_render_every_shard_once(tmp_path, monkeypatch, per_gpu, share, actors):
     """`ray_tasks_per_gpu` n asks Ray for 1/n of a GPU per actor, so n share one, and the cluster's
-    GPUs / (1/n) actors render the shards, each on the GPU Ray shows it (its cuda:0), the next shard
-    to whichever is free (on CPUs: an actor per CPU). A fake Ray module stands in: CI has no Ray."""
+    GPUs / (1/n) actors render the shards, each on the GPU Ray shows it (its cuda:0), the next run of
+    shards to whichever is free (on CPUs: an actor per CPU); the run reports each actor's host and
+    GPU as they name them, not cuda:0. A fake Ray module stands in: CI has no Ray."""
     asked, rendered, made = {}, [], []
 
     class Recording:
@@ -428,10 +429,11 @@ def test_ray_actors_hold_a_share_of_a_gpu_and_render_every_shard_once(tmp_path, 
             def actor_class(cls):
                 def make(renderer, device):
                     made.append(device)
+                    where = f"10.0.0.{len(made) % 2} GPU {len(made) // 2}"  # the host and GPU Ray gave it
 
                     def render(run):
                         rendered.append(run)
-                        return sum(task.frame_count for task in run)  # the ref: what `get` returns
+                        return sum(task.frame_count for task in run), where  # the ref: what `get` returns
 
                     return SimpleNamespace(render=SimpleNamespace(remote=render))
 
@@ -451,11 +453,12 @@ def test_ray_actors_hold_a_share_of_a_gpu_and_render_every_shard_once(tmp_path, 
     frames = []
     bar = SimpleNamespace(update=frames.append)
     tasks = [SimpleNamespace(frame_count=i + 1) for i in range(10)]
-    gen._run_on_ray(tasks, gen.SuiteRenderer(), "local", gpu_share=1 / per_gpu if per_gpu else 0, bar=bar)
+    places = gen._run_on_ray(tasks, gen.SuiteRenderer(), "local", gpu_share=1 / per_gpu if per_gpu else 0, bar=bar)
     assert asked.get("num_gpus", 0) == share and asked.get("num_cpus") == (None if share else 1)
     assert made == ["cuda:0" if share else "cpu"] * actors
     assert sorted(t.frame_count for run in rendered for t in run) == list(range(1, 11)) and sum(frames) == 55
     assert [len(run) for run in rendered][: len(made)] == [gen.ray_run_length(10, actors)] * len(made)
+    assert places == sorted({f"10.0.0.{(i + 1) % 2} GPU {(i + 1) // 2}" for i in range(actors)})  # what it reports
     assert gen.ray_slots(Recording, 0.5, tasks=3) == 3  # never more actors than shards
     with pytest.raises(ValueError, match="needs a Ray address"):
         gen.make_dataset([], gen.SuiteRenderer(), tmp_path, plan_meta={}, ray_tasks_per_gpu=2)

@@ -294,7 +294,7 @@ def make_dataset(
             try:
                 if ray_address:
                     gpu_share = 1 / ray_tasks_per_gpu if devices[0].startswith("cuda") else 0
-                    _run_on_ray(todo, renderer, ray_address, gpu_share, bar)
+                    devices = _run_on_ray(todo, renderer, ray_address, gpu_share, bar) or devices
                     parts = {}  # not reported back by Ray tasks
                 elif pool:
                     # the card's plotting imports (~0.5 s) while the workers render, not after them
@@ -372,12 +372,20 @@ class ShardRenderer:
     threads (helper processes are not forked from a Ray worker, whose gRPC threads fork badly)."""
 
     def __init__(self, renderer: Renderer, device: str):
-        self.renderer, self.device = renderer, device
+        import socket
 
-    def render(self, tasks: list[ShardTask]) -> int:
-        """Render and write `tasks` in order; returns their frames."""
+        import ray
+
+        self.renderer, self.device = renderer, device
+        gpus = ray.get_gpu_ids() if device.startswith("cuda") else []  # as its host numbers them
+        host = socket.gethostname()
+        self.where = f"{host} GPU {','.join(map(str, gpus))}" if gpus else f"{host} CPU"
+
+    def render(self, tasks: list[ShardTask]) -> tuple[int, str]:
+        """Render and write `tasks` in order; returns their frames and where they were rendered
+        (the host and its GPU: each actor's own device is its cuda:0)."""
         run_tasks(tasks, self.renderer, self.device)
-        return sum(task.frame_count for task in tasks)
+        return sum(task.frame_count for task in tasks), self.where
 
 
 MAX_RUN = 8  # shards handed to a Ray actor at once: its bar moves at least every 8 shards
@@ -398,11 +406,12 @@ def ray_slots(ray, gpu_share: float, tasks: int) -> int:
     return max(1, min(tasks, int(slots + 1e-9)))
 
 
-def _run_on_ray(tasks: list[ShardTask], renderer: Renderer, address: str, gpu_share: float, bar) -> None:
+def _run_on_ray(tasks: list[ShardTask], renderer: Renderer, address: str, gpu_share: float, bar) -> list[str]:
     """The shard tasks rendered by ShardRenderer actors, each holding `gpu_share` of a GPU (1/n: n
     share one; 0: one CPU each), the next run of tasks (`ray_run_length`) handed to whichever actor
     finishes first. One shard a call made 1,110 frames/s on two H100s against 2,513 for local
-    workers (benchmarks/results/multi_gpu/session30): each call's write waited for its rendering."""
+    workers (benchmarks/results/multi_gpu/session30): each call's write waited for its rendering.
+    Returns where the shards were rendered (host and GPU of each actor that rendered some)."""
     ray = _ray()
     try:
         ray.init(address=address, ignore_reinit_error=True, log_to_driver=False)
@@ -417,12 +426,12 @@ def _run_on_ray(tasks: list[ShardTask], renderer: Renderer, address: str, gpu_sh
             "~/.ray/auth_token or RAY_AUTH_TOKEN)"
         ) from error
     if not tasks:
-        return
+        return []
     hold = {"num_gpus": gpu_share} if gpu_share else {"num_cpus": 1}
     actor = ray.remote(**hold, max_restarts=2, max_task_retries=2)(ShardRenderer)
     device = "cuda:0" if gpu_share else "cpu"  # Ray shows an actor only the GPU it holds: its cuda:0
     actors = [actor.remote(renderer, device) for _ in range(ray_slots(ray, gpu_share, len(tasks)))]
-    todo, pending = deque(tasks), {}
+    todo, pending, places = deque(tasks), {}, set()
 
     def hand(to) -> None:
         run = [todo.popleft() for _ in range(ray_run_length(len(todo), len(actors)))]
@@ -434,8 +443,10 @@ def _run_on_ray(tasks: list[ShardTask], renderer: Renderer, address: str, gpu_sh
     while pending:
         ready, _ = ray.wait(list(pending), num_returns=1)
         for ref in ready:
-            frames = ray.get(ref)  # a shard's error, raised here
+            frames, where = ray.get(ref)  # a shard's error, raised here
             to = pending.pop(ref)
             bar.update(frames)
+            places.add(where)
             if todo:
                 hand(to)
+    return sorted(places)
