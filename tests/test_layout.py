@@ -138,7 +138,8 @@ MAY_IMPORT = {
     "render": {"base", "engine"},  # pictures of every stage's output
     "datasets": {"base", "engine", "render", "datasets"},
     "formats": {"base", "engine", "render", "datasets", "formats"},
-    "calibrate": {"base", "engine", "datasets", "calibrate"},  # the engine run backwards on recordings
+    # the engine run backwards on recordings, read from our datasets or other formats (CHIRP)
+    "calibrate": {"base", "engine", "datasets", "formats", "calibrate"},
     "cli": {"base", "engine", "render", "datasets", "formats", "calibrate", "cli"},
 }
 

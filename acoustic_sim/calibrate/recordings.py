@@ -29,7 +29,7 @@ def load_recordings(
         poses, signals = _checked_recordings(np.load(poses_path), np.load(path), f"{path} and {poses_path}")
     elif path.suffix == ".h5" and is_chirp(path):
         from ..config import SonarConfig
-        from ..formats.chirp import chirp_recordings
+        from ..formats.chirp_input import chirp_recordings
 
         return chirp_recordings(path, sonar or SonarConfig.ertis(), pings)[:2]
     elif path.is_dir() or path.suffix == ".h5":
@@ -64,7 +64,7 @@ def recording_sonar(path, sonar):
     path = Path(path)
     if path.suffix != ".h5" or not is_chirp(path):
         return sonar
-    from ..formats.chirp import chirp_recordings
+    from ..formats.chirp_input import chirp_recordings
 
     return chirp_recordings(path, sonar, pings=1)[2]
 

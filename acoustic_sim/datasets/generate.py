@@ -364,12 +364,10 @@ def _ray():
 
 
 class ShardRenderer:
-    """A Ray actor: one process holding its share of one GPU (or one CPU) for the whole run, which
-    renders the runs of shard tasks it is handed one after another. Its Warp, CUDA context, kernel
-    modules and sensors stay warm between shards; a Ray task per shard started a fresh process each
-    time (Ray's default for GPU tasks), ~5 s before its first frame on an H100 host. Within a run of
-    shards the next episodes are prepared and the last shard written beside the rendering, by
-    threads (helper processes are not forked from a Ray worker, whose gRPC threads fork badly)."""
+    """A Ray actor: one process holding its share of one GPU (or one CPU) for the whole run, warm
+    between the runs of shards it is handed (a Ray task per shard started a fresh process each, ~5 s
+    on an H100 host). A run's next episodes are prepared and last shard written beside the
+    rendering by threads (helper processes are not forked from a Ray worker: gRPC forks badly)."""
 
     def __init__(self, renderer: Renderer, device: str):
         import socket

@@ -48,13 +48,11 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from clitools.limits import check_memory
 from clitools.outputs import KeptErrorFile, atomic_folder, atomic_output, check_output
 
 from ..config import ChirpConfig, LidarConfig, SonarConfig
 from ..datasets.shards import COMPRESSION, check_outside, finite_poses, one_run_shards
 from ..engine.lidar import lidar_image, ranges_to_points
-from ..extras import MissingExtra
 from . import chirp_input
 from .chirp_dataset import ImportedPings, write_card, write_manifest, write_shards
 from .mcap_export import frame_stamps
@@ -64,16 +62,6 @@ ACOUSTIC, TRANSMITTER, LIDAR, ODOMETRY = "acoustic_sensor_00", "acoustic_transmi
 PLANE_TOLERANCE_M = 0.05
 EPISODE_GAP_S = 0.5
 BLOCK = 64  # pings read and processed at once
-
-
-def _chirppy():
-    try:
-        import chirppy
-    except ImportError:
-        raise MissingExtra(
-            "reading CHIRP files needs the `chirp` extra (cosys-chirppy, CC BY-NC-SA): pip install -e '.[chirp]'"
-        ) from None
-    return chirppy
 
 
 # ---------------------------------------------------------------------------------------- export
@@ -279,23 +267,6 @@ def _check_import(path: Path, out: Path, rig) -> None:
     chirp_input.check_file(path)
 
 
-def _recorded_sonar(sonar: SonarConfig, mics: np.ndarray, samples: int, source: str) -> SonarConfig:
-    """The rig's sonar with the file's microphones, taken as nominal (no gains or delays), and
-    record length; ValueError naming `source` (file and sensor) when the sonar cannot be one."""
-    if samples < sonar.chirp.sample_count:
-        raise ValueError(
-            f"{source}: its pings hold {samples:,} samples, fewer than the call's {sonar.chirp.sample_count:,}; "
-            "give the recorded call with --set sonar.chirp.*"
-        )
-    mic_rows = tuple(tuple(float(v) for v in row) for row in mics)
-    try:
-        return dataclasses.replace(
-            sonar, microphones_m=mic_rows, microphone_gain=(), microphone_delay_s=(), record_samples=samples
-        )
-    except ValueError as err:  # e.g. microphones all at one point
-        raise ValueError(f"{source}: {err}") from None
-
-
 def _energyscapes(acoustic, sonar: SonarConfig, processing, path: Path, *, device) -> np.ndarray:
     """Our processing of every ping of the sensor, BLOCK pings at once: float16 (pings, E, R, A),
     E the elevations of `processing` (1 for one angle); signals it refuses (NaN, overflowing) are
@@ -349,47 +320,6 @@ def _lidar_truth(
     return ranges, scanner.name
 
 
-def _open(path: Path):
-    """The reference reader's dataset of a checked CHIRP file; its refusal named as ours."""
-    chirppy = _chirppy()
-    try:
-        return chirppy.CHIRPDataset(path)
-    except (KeyError, ValueError, OSError) as err:
-        raise ValueError(f"{path}: the CHIRP reader cannot open it ({type(err).__name__}: {err})") from None
-
-
-def chirp_recordings(
-    path: str | Path, sonar: SonarConfig, pings: int | None = None
-) -> tuple[np.ndarray, np.ndarray, SonarConfig]:
-    """A CHIRP file's pings as `calibrate`'s recordings: their poses (N, 4, 4) in the odometry's
-    frame, their signals (N, microphones, samples) float32, and `sonar` with the file's microphone
-    positions and record length. With `pings` (>= 1), only that many, evenly spaced, are read.
-    Refused without odometry synced to the pings: a fit needs each ping's place in the room."""
-    path = Path(path)
-    chirp_input.check_file(path)
-    with _open(path) as data:
-        try:
-            acoustic, mics, _ = chirp_input.microphones(data, sonar.chirp.sample_rate_hz, path)
-            count = len(chirp_input.ping_stamps(acoustic, path))
-            recorded = _recorded_sonar(sonar, mics, acoustic.signals.shape[1], f"{path}: {acoustic.name}")
-            poses, source = chirp_input.recorded_poses(data, acoustic, count, path)
-            chosen = np.arange(count)
-            if pings is not None:
-                chosen = np.unique(np.linspace(0, count - 1, min(pings, count)).round().astype(int))
-            _, samples, channels = acoustic.signals.shape
-            check_memory(  # read whole (as float32, then transposed): a file may hold hours of pings
-                2.0 * len(chosen) * samples * channels * 4,
-                what=f"{len(chosen):,} pings of {path.name}",
-                advice="fit to fewer of them (--pings N)",
-            )
-            signals = np.asarray(acoustic.signals[chosen], dtype=np.float32).transpose(0, 2, 1)
-        except KeyError as err:
-            raise ValueError(f"{path}: the file lacks part of the CHIRP format ({err}); is it whole?") from None
-    if source.startswith("identity"):
-        raise ValueError(f"{path}: its pings have no poses ({source}); calibrate needs where each ping was made")
-    return poses[chosen], signals, recorded
-
-
 def import_chirp(
     path: str | Path,
     out: str | Path,
@@ -418,7 +348,7 @@ def import_chirp(
             raise ValueError(f"{option} {value}: give a number of {unit} >= 0 (inf: no limit)")
     _check_import(path, out, rig)
     planar = dataclasses.replace(rig.lidar, elevation_min_deg=0.0, elevation_max_deg=0.0, elevation_count=1)
-    with _open(path) as data:
+    with chirp_input.open_chirp(path) as data:
         try:
             acoustic, mics, rate = chirp_input.microphones(data, rig.sonar.chirp.sample_rate_hz, path)
             chirp_input.check_room(
@@ -426,7 +356,7 @@ def import_chirp(
             )
             _warn_if_other_call(data, rig.sonar.chirp, path)
             stamps = chirp_input.ping_stamps(acoustic, path)
-            sonar = _recorded_sonar(rig.sonar, mics, acoustic.signals.shape[1], f"{path}: {acoustic.name}")
+            sonar = chirp_input.recorded_sonar(rig.sonar, mics, acoustic.signals.shape[1], f"{path}: {acoustic.name}")
             energy = _energyscapes(acoustic, sonar, rig.processing, path, device=device)
             ranges, lidar_name = _lidar_truth(data, acoustic, planar, len(stamps), plane_tolerance_m, path)
             poses, pose_source = chirp_input.recorded_poses(data, acoustic, len(stamps), path)

@@ -1,4 +1,6 @@
-"""What a CHIRP file must be before `chirp.import_chirp` reads its pings.
+"""What a CHIRP file must be before `chirp.import_chirp` or `calibrate` reads its pings, and how
+they are read: the reference reader (`open_chirp`, the `chirp` extra), the file's array as our
+sonar (`recorded_sonar`) and its pings as a calibration's recordings (`chirp_recordings`).
 
 A recording comes from elsewhere, so nothing in it is taken on trust: the file is a regular one
 (a FIFO would never end) and holds its own data (an HDF5 external link, external or virtual
@@ -12,6 +14,7 @@ than pings is named), and odometry gives finite poses (`recorded_poses`).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -20,7 +23,9 @@ import numpy as np
 
 from clitools.limits import check_fits, check_memory, free_disk_bytes, input_file
 
+from ..config import SonarConfig
 from ..datasets.plan import frame_bytes
+from ..extras import MissingExtra
 
 MOST_OBJECTS = 100_000  # groups and datasets a recording may hold (one per sensor stream: tens)
 MOST_CALIBRATION_VALUES = 1_000_000  # a calibration dataset (transforms, positions) is read whole on opening
@@ -224,3 +229,71 @@ def recorded_poses(data, acoustic, count: int, path: Path) -> tuple[np.ndarray, 
         base[:3, 3] = position
         poses[i] = base @ mount
     return poses, f"{odometry.name} (base_link in its odom frame)"
+
+
+def chirppy():
+    try:
+        import chirppy
+    except ImportError:
+        raise MissingExtra(
+            "reading CHIRP files needs the `chirp` extra (cosys-chirppy, CC BY-NC-SA): pip install -e '.[chirp]'"
+        ) from None
+    return chirppy
+
+
+def recorded_sonar(sonar: SonarConfig, mics: np.ndarray, samples: int, source: str) -> SonarConfig:
+    """The rig's sonar with the file's microphones, taken as nominal (no gains or delays), and
+    record length; ValueError naming `source` (file and sensor) when the sonar cannot be one."""
+    if samples < sonar.chirp.sample_count:
+        raise ValueError(
+            f"{source}: its pings hold {samples:,} samples, fewer than the call's {sonar.chirp.sample_count:,}; "
+            "give the recorded call with --set sonar.chirp.*"
+        )
+    mic_rows = tuple(tuple(float(v) for v in row) for row in mics)
+    try:
+        return dataclasses.replace(
+            sonar, microphones_m=mic_rows, microphone_gain=(), microphone_delay_s=(), record_samples=samples
+        )
+    except ValueError as err:  # e.g. microphones all at one point
+        raise ValueError(f"{source}: {err}") from None
+
+
+def open_chirp(path: Path):
+    """The reference reader's dataset of a checked CHIRP file; its refusal named as ours."""
+    reader = chirppy()
+    try:
+        return reader.CHIRPDataset(path)
+    except (KeyError, ValueError, OSError) as err:
+        raise ValueError(f"{path}: the CHIRP reader cannot open it ({type(err).__name__}: {err})") from None
+
+
+def chirp_recordings(
+    path: str | Path, sonar: SonarConfig, pings: int | None = None
+) -> tuple[np.ndarray, np.ndarray, SonarConfig]:
+    """A CHIRP file's pings as `calibrate`'s recordings: their poses (N, 4, 4) in the odometry's
+    frame, their signals (N, microphones, samples) float32, and `sonar` with the file's microphone
+    positions and record length. With `pings` (>= 1), only that many, evenly spaced, are read.
+    Refused without odometry synced to the pings: a fit needs each ping's place in the room."""
+    path = Path(path)
+    check_file(path)
+    with open_chirp(path) as data:
+        try:
+            acoustic, mics, _ = microphones(data, sonar.chirp.sample_rate_hz, path)
+            count = len(ping_stamps(acoustic, path))
+            recorded = recorded_sonar(sonar, mics, acoustic.signals.shape[1], f"{path}: {acoustic.name}")
+            poses, source = recorded_poses(data, acoustic, count, path)
+            chosen = np.arange(count)
+            if pings is not None:
+                chosen = np.unique(np.linspace(0, count - 1, min(pings, count)).round().astype(int))
+            _, samples, channels = acoustic.signals.shape
+            check_memory(  # read whole (as float32, then transposed): a file may hold hours of pings
+                2.0 * len(chosen) * samples * channels * 4,
+                what=f"{len(chosen):,} pings of {path.name}",
+                advice="fit to fewer of them (--pings N)",
+            )
+            signals = np.asarray(acoustic.signals[chosen], dtype=np.float32).transpose(0, 2, 1)
+        except KeyError as err:
+            raise ValueError(f"{path}: the file lacks part of the CHIRP format ({err}); is it whole?") from None
+    if source.startswith("identity"):
+        raise ValueError(f"{path}: its pings have no poses ({source}); calibrate needs where each ping was made")
+    return poses[chosen], signals, recorded
