@@ -88,7 +88,7 @@ def _calibrate_into(args, written: Path) -> str:
     import numpy as np
 
     from . import __version__
-    from .calibrate import fit_surfaces, load_recordings, recording_sonar
+    from .calibrate import fit_surfaces, recordings_and_sonar
     from .config import SimConfig
     from .devices import check_device, quiet_warp
     from .render import render_calibration
@@ -103,8 +103,8 @@ def _calibrate_into(args, written: Path) -> str:
         tracer = dataclasses.replace(tracer, max_bounces=args.max_bounces)
     if args.rays is not None:
         tracer = dataclasses.replace(tracer, ray_count=args.rays)
-    poses, signals = load_recordings(args.recordings, args.pings, args.episode, args.poses, rig.sonar)
-    rig = dataclasses.replace(rig, sonar=recording_sonar(args.recordings, rig.sonar))  # a CHIRP file's own array
+    poses, signals, sonar = recordings_and_sonar(args.recordings, args.pings, args.episode, args.poses, rig.sonar)
+    rig = dataclasses.replace(rig, sonar=sonar)  # a CHIRP file's own array
     scene = _scene(args)
     absorption = not args.no_air_absorption
     fit = fit_surfaces(

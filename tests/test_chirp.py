@@ -264,7 +264,7 @@ def test_calibrate_fits_to_a_chirp_files_pings(signals_dataset, exported, tmp_pa
     import json
     import shutil
 
-    from acoustic_sim.calibrate import load_recordings, recorded_scene, recording_sonar
+    from acoustic_sim.calibrate import load_recordings, recorded_scene, recordings_and_sonar
     from acoustic_sim.config import SonarConfig
 
     truth = read(signals_dataset, "signals", "pose")
@@ -283,7 +283,7 @@ def test_calibrate_fits_to_a_chirp_files_pings(signals_dataset, exported, tmp_pa
         with pytest.raises(ValueError, match="--pings N"):
             load_recordings(exported)
         assert len(load_recordings(exported, pings=4)[1]) == 4
-    sonar = recording_sonar(exported, SonarConfig.ertis())
+    *_, sonar = recordings_and_sonar(exported, pings=1, sonar=SonarConfig.ertis())
     assert sonar.microphones_m == SonarConfig.ertis().microphones_m and sonar.record_samples == signals.shape[2]
     one_room = tmp_path / "one_room"  # the first drive alone (one room), as its own CHIRP file
     one_room.mkdir()

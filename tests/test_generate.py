@@ -1,11 +1,11 @@
 """Dataset generation: shards readable with plain h5py, resumable after a kill, deterministic,
 clear errors for foreign or broken files; windows never cross episodes."""
 
+import copy
 import dataclasses
 import json
 import mmap
 import os
-import pickle
 import sys
 import threading
 import typing
@@ -225,7 +225,7 @@ def test_shared_frames_round_trip_and_fall_back(tmp_path, monkeypatch):
     )
     shared = shared_frames.SharedFrames.share(frames, folder=str(tmp_path))
     assert shared is not None and Path(shared.path).exists()
-    back = pickle.loads(pickle.dumps(shared)).open()  # as a helper process gets it
+    back = copy.deepcopy(shared).open()  # a copy, as a helper process gets it: no map travels
     assert not Path(shared.path).exists()
     shared.release()  # after the helper opened it: nothing left to remove
     for name in shared_frames.ARRAYS:

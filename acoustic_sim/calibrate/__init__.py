@@ -33,7 +33,7 @@ emitter backwards (the tracer's baffled emitter sends none).
 
 from .directivity import departure_cosine
 from .fit import SignalGram, SurfaceFit, fit_surfaces, loss_and_gradient, signal_gram
-from .recordings import load_recordings, recorded_scene, recording_sonar
+from .recordings import load_recordings, recorded_scene, recordings_and_sonar
 
 __all__ = [
     "SignalGram",
@@ -43,6 +43,6 @@ __all__ = [
     "load_recordings",
     "loss_and_gradient",
     "recorded_scene",
-    "recording_sonar",
+    "recordings_and_sonar",
     "signal_gram",
 ]

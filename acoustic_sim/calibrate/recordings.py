@@ -5,8 +5,12 @@ and the room a dataset's episode was recorded in."""
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from ..config import SonarConfig
 
 
 def load_recordings(
@@ -18,6 +22,15 @@ def load_recordings(
     eRTIS's by default), or a dataset folder (or one shard) made with `generate --signals`: the
     frames of one `episode` (one room; required where the data hold several). With `pings`, at
     most that many, evenly spaced."""
+    return recordings_and_sonar(path, pings, episode, poses_path, sonar)[:2]
+
+
+def recordings_and_sonar(
+    path, pings: int | None = None, episode: int | None = None, poses_path=None, sonar=None
+) -> tuple[np.ndarray, np.ndarray, SonarConfig | None]:
+    """`load_recordings`'s poses and signals, and the sonar they were recorded with: a CHIRP file's
+    own microphones and record length (its pings carry them), else `sonar` itself; one read of
+    the file for all three."""
     path = Path(path)
     if pings is not None and pings < 1:
         raise ValueError(f"pings must be >= 1, got {pings}")
@@ -31,7 +44,7 @@ def load_recordings(
         from ..config import SonarConfig
         from ..formats.chirp_input import chirp_recordings
 
-        return chirp_recordings(path, sonar or SonarConfig.ertis(), pings)[:2]
+        return chirp_recordings(path, sonar or SonarConfig.ertis(), pings)
     elif path.is_dir() or path.suffix == ".h5":
         poses, signals = _shard_recordings(path, episode)
     else:
@@ -43,7 +56,7 @@ def load_recordings(
     if pings is not None and pings < len(poses):
         chosen = np.linspace(0, len(poses) - 1, pings).round().astype(int)
         poses, signals = poses[chosen], signals[chosen]
-    return poses, signals
+    return poses, signals, sonar
 
 
 def is_chirp(path) -> bool:
@@ -56,17 +69,6 @@ def is_chirp(path) -> bool:
     except OSError:
         return False
     return (kind.decode() if isinstance(kind, bytes) else kind) == "chirp"
-
-
-def recording_sonar(path, sonar):
-    """The sonar the recordings at `path` were made with: a CHIRP file's own microphones and
-    record length (its pings carry them); `sonar` itself for every other kind."""
-    path = Path(path)
-    if path.suffix != ".h5" or not is_chirp(path):
-        return sonar
-    from ..formats.chirp_input import chirp_recordings
-
-    return chirp_recordings(path, sonar, pings=1)[2]
 
 
 def _npz_recordings(path) -> tuple[np.ndarray, np.ndarray]:
