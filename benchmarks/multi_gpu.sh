@@ -4,7 +4,8 @@
 #
 #   bash benchmarks/multi_gpu.sh gen   WORKDIR  # bench_generate: one GPU vs all (frames/s); one GPU's shards = all GPUs'
 #   bash benchmarks/multi_gpu.sh load  WORKDIR  # generate_load: one GPU vs all with CPU and GPU use, two commands
-#                                               # at once, blocking waits, py-spy (LOAD_FRAMES: sizes to run)
+#                                               # at once, blocking waits, py-spy (LOAD_FRAMES: sizes to run,
+#                                               # LOAD_SETTINGS, LOAD_SPY=0)
 #   bash benchmarks/multi_gpu.sh timeline WORKDIR  # worker_timeline: one run on one GPU and one on all, per worker
 #   bash benchmarks/multi_gpu.sh start WORKDIR  # start_costs: a worker's start step by step, 1..10 processes at once
 #   bash benchmarks/multi_gpu.sh ray   WORKDIR  # a local Ray cluster (ray start --head) writes one process's shards
@@ -49,10 +50,11 @@ load() {
   stamp load
   # where the second GPU's frames go: the host's CPU, each GPU's use, two commands at once (pair), py-spy
   # where it is installed; at the bench's size and at four times it (a fixed start-up weighs less there)
-  local spy=$(command -v py-spy >/dev/null && echo "--spy auto/$((5 * GPUS))" || true)
+  # (LOAD_SETTINGS: generate_load's settings; LOAD_SPY=0: no py-spy run)
+  local spy=$(command -v py-spy >/dev/null && [ "${LOAD_SPY:-1}" = 1 ] && echo "--spy auto/$((5 * GPUS))" || true)
   for frames in ${LOAD_FRAMES:-75000 300000}; do
     python benchmarks/generate_load.py --suite "${SUITE:-paper}" --frames "$frames" --rounds 2 $spy \
-      --settings "cuda:0/5,auto/$((5 * GPUS)),auto/$((5 * GPUS))/block,pair/5" --out "$R/generate_load_$frames"
+      --settings "${LOAD_SETTINGS:-cuda:0/5,auto/$((5 * GPUS)),auto/$((5 * GPUS))/block,pair/5}" --out "$R/generate_load_$frames"
     spy=""
   done
 }
