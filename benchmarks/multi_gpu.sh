@@ -111,7 +111,8 @@ train() {
   [ -f "$W/one_gpu/manifest.json" ] || { echo "train needs the gen phase's $W/one_gpu" >&2; exit 2; }
   # one validation set for every run (--split-seed), so that the seed-to-seed spread is training noise
   local model=${TRAIN_MODEL:-polar_unet}
-  OPTS=(--data "$W/one_gpu" --model "$model" --loss bce --lr 1e-3 --epochs "${EPOCHS:-8}" --patience 100 --split-seed 0
+  local loss=$([ "$model" = paper ] && echo mse || echo bce) # the paper network outputs ranges, not logits
+  OPTS=(--data "$W/one_gpu" --model "$model" --loss "$loss" --lr 1e-3 --epochs "${EPOCHS:-8}" --patience 100 --split-seed 0
     --max-train-windows "${TRAIN_WINDOWS:-12000}" --max-val-windows 2000 --device cuda --quiet --overwrite)
   ((GPUS >= 1 && 16 % GPUS == 0)) || { echo "train needs a GPU count that divides the global batch 16, got $GPUS" >&2; exit 2; }
   pids=() failed=0
