@@ -46,6 +46,13 @@ def add_calibrate_parser(sub, builders) -> None:
         "(default 0: the nominal piston's)",
     )
     cal.add_argument(
+        "--scattering",
+        action="store_true",
+        help="also fit each surface class's scattering coefficient s, tracing scattered arrivals (diffuse rain and "
+        "edge bands) beside the specular paths: slower, and needed where the room scatters (the scene's s > 0 is "
+        "the start; a class with s = 0 keeps it)",
+    )
+    cal.add_argument(
         "--no-air-absorption",
         action="store_true",
         help="the recordings' air does not absorb (a simulation that left it out)",
@@ -116,6 +123,7 @@ def _calibrate_into(args, written: Path) -> str:
         fit_gains=not args.no_gains,
         fit_delays=not args.no_delays,
         directivity_knots=args.directivity_knots,
+        fit_scattering=args.scattering,
         absorption=absorption,
         device=args.device,
         progress=True,
@@ -125,10 +133,7 @@ def _calibrate_into(args, written: Path) -> str:
     render_calibration(fit, panels, rig.processing.grid, written.with_suffix(".png"))
     options = {k: v for k, v in vars(args).items() if not callable(v)}
     record = {
-        "classes": {
-            name: {"reflection": float(r), "nominal": float(r0)}
-            for name, r, r0 in zip(fit.classes, fit.reflection, fit.nominal, strict=True)
-        },
+        "classes": _classes_record(fit),
         "mic_gain_db": np.round(fit.mic_gain_db, 4).tolist(),
         "mic_delay_us": np.round(fit.mic_delay_s * 1e6, 5).tolist(),
         "directivity": {
@@ -150,10 +155,32 @@ def _calibrate_into(args, written: Path) -> str:
     fitted = ", ".join(
         f"{n} {r:.3f} (was {r0:.3f})" for n, r, r0 in zip(fit.classes, fit.reflection, fit.nominal, strict=True)
     )
+    scattering = ", ".join(
+        f"{n} {s:.3f} (was {s0:.3f})"
+        for n, s, s0, on in zip(
+            fit.classes, fit.scattering, fit.scattering_nominal, fit.scattering_fitted, strict=False
+        )
+        if on
+    )
+    fitted += f"; s {scattering}" if scattering else ""
     return (
         f"{len(poses)} pings, {fit.signatures} signatures: R {fitted}; relative error {fit.loss[0]:.3g} -> "
         f"{fit.loss[-1]:.3g}; wrote {args.out} and its picture in {time.perf_counter() - t0:.1f} s"
     )
+
+
+def _classes_record(fit) -> dict:
+    """Per fitted class its R and where it started, and its s and start where s was fitted."""
+    record = {
+        name: {"reflection": float(r), "nominal": float(r0)}
+        for name, r, r0 in zip(fit.classes, fit.reflection, fit.nominal, strict=True)
+    }
+    for name, s, s0, on in zip(
+        fit.classes, fit.scattering, fit.scattering_nominal, fit.scattering_fitted, strict=False
+    ):
+        if on:
+            record[name] |= {"scattering": float(s), "scattering_nominal": float(s0)}
+    return record
 
 
 def _before_and_after(scene, fit, pose, recorded, rig, tracer, absorption: bool, device) -> list:
@@ -165,7 +192,7 @@ def _before_and_after(scene, fit, pose, recorded, rig, tracer, absorption: bool,
     from .engine.beamform import energyscape
     from .engine.sonar import Sonar
 
-    specular = dataclasses.replace(tracer, scattering=False)
+    specular = dataclasses.replace(tracer, scattering=bool(fit.scattering_fitted.any()))  # as the fit traced
     panels = [("recorded", recorded)]
     for title, room, array in (
         ("simulated, nominal", scene, rig.sonar),

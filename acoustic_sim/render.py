@@ -113,10 +113,10 @@ def render_examples(examples: list[tuple[str, np.ndarray, np.ndarray]], grid: Po
 
 
 def render_calibration(fit, energyscapes: list[tuple[str, np.ndarray]], grid: PolarGrid, out: str | Path) -> Path:
-    """A calibration at a glance: the relative error at each step, each class's R before and after,
-    each microphone's fitted gain and delay, the emitter's directivity where it was fitted, and one
-    ping's energyscapes (recorded, simulated with the nominal and the fitted values), in dB below
-    the first one's peak."""
+    """A calibration at a glance: the relative error at each step, each class's R (and where fitted
+    its s) before and after, each microphone's fitted gain and delay, the emitter's directivity
+    where it was fitted, and one ping's energyscapes (recorded, simulated with the nominal and the
+    fitted values), in dB below the first one's peak."""
     out = Path(out)
     n = len(energyscapes)
     top = 4 if len(fit.directivity) else 3
@@ -127,10 +127,17 @@ def render_calibration(fit, energyscapes: list[tuple[str, np.ndarray]], grid: Po
     loss.set(xlabel="evaluation", ylabel="error energy / recording's", title="fit")
     bars = fig.add_subplot(grid_spec[0, n : 2 * n])
     where = np.arange(len(fit.classes))
-    bars.bar(where - 0.2, fit.nominal, 0.4, label="scene (start)")
-    bars.bar(where + 0.2, fit.reflection, 0.4, label="fitted")
+    shown = [("R", fit.nominal, fit.reflection, None)]
+    if fit.scattering_fitted.any():  # s beside R, hatched, where it was fitted
+        shown.append(("s", fit.scattering_nominal, np.where(fit.scattering_fitted, fit.scattering, np.nan), "//"))
+    width = 0.8 / (2 * len(shown))
+    for j, (name, start, fitted, hatch) in enumerate(shown):
+        left = where - 0.4 + 2 * j * width + width / 2
+        bars.bar(left, start, width, color="tab:blue", hatch=hatch, label=f"{name}: scene (start)")
+        bars.bar(left + width, fitted, width, color="tab:orange", hatch=hatch, label=f"{name}: fitted")
     bars.set_xticks(where, fit.classes, rotation=20)
-    bars.set(ylabel="energy reflection R", ylim=(0, 1.05), title="surface classes")
+    ylabel = "energy reflection R" + (", scattering s (hatched)" if len(shown) > 1 else "")
+    bars.set(ylabel=ylabel, ylim=(0, 1.05), title="surface classes")
     bars.legend(loc="upper right", fontsize=8)
     mics = fig.add_subplot(grid_spec[0, 2 * n : 3 * n])
     index = np.arange(len(fit.mic_gain_db))

@@ -13,6 +13,7 @@ import acoustic_sim as sim
 import scenes
 from acoustic_sim.array import piston_directivity
 from acoustic_sim.calibrate import SignalGram, departure_cosine, fit_surfaces, load_recordings, loss_and_gradient
+from acoustic_sim.engine.paths import KIND_SCATTERED
 from acoustic_sim.engine.sonar import Sonar
 from scenes.surfaces import with_surfaces
 
@@ -25,11 +26,13 @@ HIDDEN_R = {
 }  # the scene's painted_wall 0.97, floor 0.95, ceiling_tile 0.60
 
 
+@pytest.mark.parametrize("scattering", [False, True])
 @pytest.mark.parametrize("knots", [0, 3])
 @pytest.mark.parametrize(("fit_gains", "fit_delays"), [(False, False), (True, False), (False, True), (True, True)])
-def test_the_gradient_is_the_losss(fit_gains, fit_delays, knots):
+def test_the_gradient_is_the_losss(fit_gains, fit_delays, knots, scattering):
     """The analytic gradient against finite differences, R, gains and delays in every combination,
-    with and without directivity knots (a wrong factor or sign in any part fails here)."""
+    with and without directivity knots and fitted scattering coefficients (a wrong factor or sign
+    in any part fails here)."""
     rng = np.random.default_rng(0)
     mics, groups, bins = 4, 5, 40
     basis = rng.normal(size=(mics, groups, 50))
@@ -44,7 +47,11 @@ def test_the_gradient_is_the_losss(fit_gains, fit_delays, knots):
         knot=np.array([0, 1, 2, 3, 1]) if knots else None,
         knot_deg=np.array([0.0, 30.0, 60.0, 90.0]) if knots else None,
     )
-    theta = [np.log([0.9, 0.7, 0.5]) + rng.normal(scale=0.2, size=3), rng.uniform(0.2, 1.0, knots)]
+    if scattering:  # two of the three classes scatter
+        data.kept, data.scattered = rng.integers(0, 3, size=(groups, 2)), rng.integers(0, 2, size=(groups, 2))
+        data.scattering_class = np.array([0, 2])
+    theta = [np.log([0.9, 0.7, 0.5]) + rng.normal(scale=0.2, size=3), rng.uniform(0.1, 0.6, 2 if scattering else 0)]
+    theta += [rng.uniform(0.2, 1.0, knots)]
     theta += [rng.normal(scale=0.1, size=mics)] if fit_gains else []
     theta += [rng.normal(scale=2.0, size=mics)] if fit_delays else []
     theta = np.concatenate(theta)
@@ -104,6 +111,95 @@ def test_without_delays_the_gains_come_out_wrong(room_and_recording, device):
     room, poses, (gains_db, _), clean, _ = room_and_recording
     fit = fit_surfaces(room, poses, clean, CONFIG, TRACER, device=device, fit_delays=False)
     assert np.abs(fit.mic_gain_db - gains_db).max() > 1.0 and not fit.mic_delay_s.any()
+
+
+HIDDEN_SCATTERING = {  # the scene's: painted_wall (0.97, 0.05), floor (0.95, 0.10), ceiling_tile (0.60, 0.30)
+    "walls": {"reflection": 0.80, "scattering": 0.25},
+    "floor": {"reflection": 0.62, "scattering": 0.40},
+    "ceiling": {"reflection": 0.45, "scattering": 0.15},
+}
+SCATTERING_TRACER = sim.TracerConfig(max_bounces=1, ray_count=2000)  # scattered arrivals on, edge bands too
+
+
+def test_scattered_arrivals_owe_their_amplitude_to_their_recorded_faces(device):
+    """Traced with their faces recorded, every scattered arrival (diffuse and off the box's edge
+    bands) changes with the materials exactly as its faces say: sqrt(R (1 - s)) per reflection,
+    sqrt(R s) for the face that scattered, sqrt(R) at an edge band. Two material sets, the same
+    rays: the amplitude ratios match the factors (a face recorded wrong, an edge not marked or a
+    class swapped breaks it), and recording the faces changes no amplitude."""
+    from scenes.surfaces import SURFACE_CLASSES, surface_classes
+
+    room = scenes.box_room((6.0, 4.0, 3.0), wall="painted_wall", floor="floor", ceiling="ceiling_tile")
+    other = {"walls": {"reflection": 0.7, "scattering": 0.4}, "floor": {"reflection": 0.5, "scattering": 0.05}}
+    other["ceiling"] = {"reflection": 0.9, "scattering": 0.3}
+    poses = np.stack([scenes.pose(2.0, 1.5, 0.3, 1.0), scenes.pose(4.0, 2.5, 2.0, 0.6)])
+    tracer = sim.TracerConfig(max_bounces=2, ray_count=1000)
+    sonar = Sonar(CONFIG, tracer, device=device, scattered_faces=True)
+    first, second = (
+        sonar.trace(with_surfaces(room, HIDDEN_SCATTERING), poses),
+        sonar.trace(with_surfaces(room, other), poses),
+    )
+    scattered = first.kind == KIND_SCATTERED
+    assert len(first) == len(second) and scattered.sum() > 1000 and 0 < first.edge.sum() < scattered.sum()
+    assert (first.faces[scattered, 0] >= 0).all() and ((first.faces >= 0).sum(axis=1) == first.order).all()
+
+    def scale(acoustics):
+        r = np.log([acoustics[c]["reflection"] for c in SURFACE_CLASSES[:3]])
+        s = np.array([acoustics[c]["scattering"] for c in SURFACE_CLASSES[:3]])
+        reflections, kept, scatterings = (n[:, :3] for n in first.surface_factors(surface_classes(room), 4))
+        return np.exp(0.5 * (reflections @ r + kept @ np.log1p(-s) + scatterings @ np.log(s)))
+
+    np.testing.assert_allclose(second.amplitude / first.amplitude, scale(other) / scale(HIDDEN_SCATTERING), rtol=1e-5)
+    plain = Sonar(CONFIG, tracer, device=device).trace(with_surfaces(room, HIDDEN_SCATTERING), poses)
+    np.testing.assert_array_equal(plain.amplitude, first.amplitude)
+    assert (plain.faces[plain.kind == KIND_SCATTERED] == -1).all()  # not recorded unless asked
+
+
+@pytest.fixture(scope="module")
+def scattering_recordings(device):
+    """The 6 x 4 x 3 m room with every class's R and s hidden, 10 poses, recorded with scattered
+    arrivals (diffuse and edge bands), clean and at 20 dB SNR."""
+    room = scenes.box_room((6.0, 4.0, 3.0), wall="painted_wall", floor="floor", ceiling="ceiling_tile")
+    rng = np.random.default_rng(3)
+    xy, yaw, z = (
+        rng.uniform([1.0, 1.0], [5.0, 3.0], size=(10, 2)),
+        rng.uniform(-np.pi, np.pi, 10),
+        rng.uniform(0.4, 2.0, 10),
+    )
+    poses = np.stack([scenes.pose(x, y, a, h) for (x, y), a, h in zip(xy, yaw, z, strict=True)])
+    sonar = Sonar(CONFIG, SCATTERING_TRACER, device=device)
+    arrivals = sonar.trace(with_surfaces(room, HIDDEN_SCATTERING), poses)
+    clean = sonar.record(arrivals, pose_count=len(poses))
+    noisy = sonar.record(arrivals, pose_count=len(poses), noise="gaussian", snr_db=20.0, seed=1)
+    return room, poses, clean, noisy
+
+
+@pytest.mark.parametrize(("kind", "tolerance"), [("clean", 0.05), ("noisy", 0.10)])
+def test_hidden_scattering_coefficients_are_recovered(scattering_recordings, device, kind, tolerance):
+    """R and s of each class within 5 % without noise and 10 % at 20 dB SNR, starting from the
+    scene's own (R 17-35 % off, s off by a factor 2-5); the fit's scene and JSON-ready surfaces
+    carry both."""
+    room, poses, clean, noisy = scattering_recordings
+    signals = clean if kind == "clean" else noisy
+    fit = fit_surfaces(room, poses, signals, CONFIG, SCATTERING_TRACER, fit_scattering=True, device=device)
+    assert fit.scattering_fitted.all()
+    for name, r, s in zip(fit.classes, fit.reflection, fit.scattering, strict=True):
+        assert abs(r / HIDDEN_SCATTERING[name]["reflection"] - 1) < tolerance, (name, r)
+        assert abs(s / HIDDEN_SCATTERING[name]["scattering"] - 1) < tolerance, (name, s)
+    assert fit.surfaces()["floor"] == {"reflection": fit.reflection[1], "scattering": fit.scattering[1]}
+    assert np.abs(fit.mic_gain_db).max() < 0.5
+
+
+def test_with_scattering_frozen_the_reflections_come_out_wrong(scattering_recordings, device):
+    """The same clean recordings fitted with the scene's s held and no scattered arrivals traced
+    (the specular fit): R misses by more than 10 % for some class, so the scattering fit is what
+    the test above checks."""
+    room, poses, clean, _ = scattering_recordings
+    fit = fit_surfaces(room, poses, clean, CONFIG, SCATTERING_TRACER, fit_gains=False, fit_delays=False, device=device)
+    misses = [abs(r / HIDDEN_SCATTERING[n]["reflection"] - 1) for n, r in zip(fit.classes, fit.reflection, strict=True)]
+    assert max(misses) > 0.10 and not len(fit.scattering)
+    with pytest.raises(ValueError, match="scattering and the emitter's directivity together"):
+        fit_surfaces(room, poses, clean, CONFIG, SCATTERING_TRACER, fit_scattering=True, directivity_knots=2)
 
 
 @pytest.mark.parametrize("where", ["box_room", "office"])
@@ -258,6 +354,26 @@ def test_the_command_writes_the_fit_and_its_picture(tmp_path, device, capsys):
     assert "must be (N, 4, 4) and (N, mics, samples)" in capsys.readouterr().err
 
 
+def test_the_command_fits_scattering(scattering_recordings, tmp_path, device, capsys):
+    """`calibrate --scattering` on recordings of a room that scatters: the JSON gives each class's
+    fitted s beside its start, R and s within 5 % of the hidden ones, and the line printed says s."""
+    from acoustic_sim.cli import main
+
+    _, poses, clean, _ = scattering_recordings
+    np.savez(tmp_path / "rec.npz", poses=poses, signals=clean)
+    out = tmp_path / "fit.json"
+    argv = ["calibrate", str(tmp_path / "rec.npz"), "--scene", "box_room", "--scene-arg", "size=[6.0, 4.0, 3.0]"]
+    argv += ["--scene-arg", "floor=floor", "--scene-arg", "ceiling=ceiling_tile", "--scattering"]
+    argv += ["--max-bounces", str(SCATTERING_TRACER.max_bounces), "--rays", str(SCATTERING_TRACER.ray_count)]
+    assert main([*argv, "--no-gains", "--no-delays", "--device", device, "--out", str(out)]) == 0
+    fit = json.loads(out.read_text())
+    for name, hidden in HIDDEN_SCATTERING.items():
+        for key, value in hidden.items():
+            assert fit["classes"][name][key] == pytest.approx(value, rel=0.05), (name, key)
+    assert fit["classes"]["walls"]["scattering_nominal"] == scenes.material("painted_wall").acoustic_scattering
+    assert "; s walls 0.25" in capsys.readouterr().out
+
+
 def test_a_suite_generates_in_the_fitted_physics(tmp_path):
     """A suite file's physics names a fit (`calibration`): its classes' R become the variant's
     surfaces, R itself or a band of +-`calibration_spread` (capped at 1), drawn per episode; its
@@ -268,7 +384,7 @@ def test_a_suite_generates_in_the_fitted_physics(tmp_path):
 
     gains, delays_us = np.linspace(-1.0, 1.0, 32), np.linspace(-3.0, 3.0, 32)
     fit = {
-        "classes": {"walls": {"reflection": 0.8, "nominal": 0.97}, "floor": {"reflection": 0.95, "nominal": 0.9}},
+        "classes": {"walls": {"reflection": 0.8, "nominal": 0.97, "scattering": 0.2}, "floor": {"reflection": 0.95}},
         "mic_gain_db": gains.tolist(),
         "mic_delay_us": delays_us.tolist(),
         "directivity": {"angle_deg": [0, 45, 90], "fitted": [1, 0.6, 0.3], "piston_radius_mm": 3.5},
@@ -278,7 +394,10 @@ def test_a_suite_generates_in_the_fitted_physics(tmp_path):
     suite.write_text('base = "tiny"\n[physics]\ncalibration = "fit.json"\ncalibration_spread = 0.1\n')
     (physics,) = load_suite(suite).variants.values()
     assert physics.surfaces == {
-        "walls": {"reflection": [pytest.approx(0.72), pytest.approx(0.88)]},
+        "walls": {
+            "reflection": [pytest.approx(0.72), pytest.approx(0.88)],
+            "scattering": [pytest.approx(0.18), pytest.approx(0.22)],
+        },
         "floor": {"reflection": [pytest.approx(0.855), 1.0]},
     }
     assert physics.vary == {"sonar.emitter_radius_m": [pytest.approx(0.00315), pytest.approx(0.00385)]}

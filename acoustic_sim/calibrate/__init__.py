@@ -26,9 +26,17 @@ the nominal baffled piston's directivity towards the direction it left in, found
 arrival direction back through its faces) and shared between the two knots around that angle, so
 the recording stays linear in each (signature, knot) group's scale.
 
-What this fit leaves out (to come): scattered echoes (their faces are not recorded yet, so the
-tracer runs without them and a recording that holds them biases R upwards), and paths leaving the
-emitter backwards (the tracer's baffled emitter sends none).
+Scattering coefficients can be fitted too (`fit_scattering`): the paths then include the scattered
+arrivals, traced with the faces each ray met (`PathTracer(scattered_faces=True)`). A scattered
+arrival owes sqrt(R (1 - s)) to each face its ray reflected off before and sqrt(R s) to the face
+that scattered it (sqrt(R) where an edge band scattered all it reflected), so a signature also
+counts, per class, the factors of (1 - s) and of s, and the recording stays linear in each
+signature's scale. Without it the specular fit takes s as known, and a recording whose scattered
+echoes it leaves out pulls R away from the truth.
+
+What this fit leaves out: paths leaving the emitter backwards (the tracer's baffled emitter sends
+none), and the directivity and scattering fitted together (a scattered arrival's departure angle
+is its ray's, not recorded).
 """
 
 from .directivity import departure_cosine

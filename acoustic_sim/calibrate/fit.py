@@ -34,11 +34,17 @@ class SignalGram:
     With a fitted directivity a group is a (signature, knot) pair: `knot` (G,) the knot its
     arrivals share (0 on the axis, pinned to 1), its scale c_g times that knot's value.
 
+    With fitted scattering, a signature also counts per scattering class the reflections that keep
+    their specular share (`kept`, a factor sqrt(1 - s) each) and the scatterings (`scattered`,
+    sqrt(s) each): c_g = prod_k R_k^(n_k / 2) (1 - s_k)^(kept_k / 2) s_k^(scattered_k / 2).
+
     Attributes:
         signatures: Reflections off each fitted class per signature, int (G, K).
         gram, cross, energy: (M, G, G), (M, G), (M,), float64.
         spectra, omega, weight: (M, G, F) complex128, (F,), (F,); None where not kept.
         knot, knot_deg: (G,) int and the knots' angles from the emitter axis [deg]; None without.
+        kept, scattered: (G, S) int for the S classes whose scattering is fitted; None without.
+        scattering_class: (S,) those classes, as indices into the fit's classes; None without.
     """
 
     signatures: np.ndarray
@@ -50,11 +56,19 @@ class SignalGram:
     weight: np.ndarray | None = None
     knot: np.ndarray | None = None
     knot_deg: np.ndarray | None = None
+    kept: np.ndarray | None = None
+    scattered: np.ndarray | None = None
+    scattering_class: np.ndarray | None = None
 
     @property
     def fitted_knots(self) -> int:
         """The knots whose values are fitted (every one but the axis')."""
         return 0 if self.knot_deg is None else len(self.knot_deg) - 1
+
+    @property
+    def fitted_scattering(self) -> int:
+        """The classes whose scattering coefficient is fitted."""
+        return 0 if self.kept is None else self.kept.shape[1]
 
     def cross_at(self, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Inner products of the signature signals delayed by tau (M,) samples with the recording,
@@ -80,6 +94,10 @@ class SurfaceFit:
             where the directivity was not fitted.
         loss: The relative squared error (error energy over the recording's) at each step.
         signatures: How many signatures (groups of arrivals scaling together) the fit saw.
+        scattering, scattering_nominal: Per class the fitted energy scattering coefficient s and
+            where it started (the class's faces' mean); empty where scattering was not fitted,
+            and nominal wherever no scattered arrival came off the class.
+        scattering_fitted: Per class whether its s was fitted (bool); empty without.
     """
 
     classes: tuple[str, ...]
@@ -92,10 +110,18 @@ class SurfaceFit:
     directivity_deg: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     directivity: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     directivity_nominal: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    scattering: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    scattering_nominal: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+    scattering_fitted: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=bool))
 
     def surfaces(self) -> dict[str, dict[str, float]]:
-        """The fit as acoustics per surface class, e.g. {"walls": {"reflection": 0.8}}."""
-        return {name: {"reflection": float(r)} for name, r in zip(self.classes, self.reflection, strict=True)}
+        """The fit as acoustics per surface class, e.g. {"walls": {"reflection": 0.8, "scattering": 0.1}}
+        (scattering where it was fitted)."""
+        found = {name: {"reflection": float(r)} for name, r in zip(self.classes, self.reflection, strict=True)}
+        for name, s, fitted in zip(self.classes, self.scattering, self.scattering_fitted, strict=False):
+            if fitted:
+                found[name]["scattering"] = float(s)
+        return found
 
     def scene(self, scene: scenes.Scene) -> scenes.Scene:
         """`scene` with every material of a fitted class reflecting the fitted R."""
@@ -132,13 +158,15 @@ def signal_gram(
     *,
     absorption: bool = True,
     directivity_knots: int = 0,
+    scattering: bool = False,
     device=None,
     progress: bool = False,
-) -> tuple[SignalGram, tuple[str, ...], np.ndarray]:
-    """Trace `poses` in `scene` once (specular paths), group the arrivals by signature (and, with
-    `directivity_knots` > 0, by knot of the emitter's directivity, that many every 90 / knots degrees
-    from the axis) and reduce the recorded `signals` (pings, mics, samples) against each group's
-    signals; returns the Gram data, the surface classes the paths reflect off and their nominal R."""
+) -> tuple[SignalGram, tuple[str, ...], np.ndarray, np.ndarray]:
+    """Trace `poses` in `scene` once (specular paths, and with `scattering` the scattered ones
+    too), group the arrivals by signature (and, with `directivity_knots` > 0, by knot of the
+    emitter's directivity, that many every 90 / knots degrees from the axis) and reduce the
+    recorded `signals` (pings, mics, samples) against each group's signals; returns the Gram data,
+    the surface classes the paths reflect off, their nominal R and their nominal s."""
     from ..engine.sonar import Sonar
 
     poses = np.asarray(poses, dtype=np.float64)
@@ -150,28 +178,39 @@ def signal_gram(
         )
     if not np.isfinite(signals).all():
         raise ValueError("signals hold non-finite samples")
-    tracer = dataclasses.replace(tracer or TracerConfig(), scattering=False)
-    sonar = Sonar(config, tracer, device=device)
+    if scattering and directivity_knots > 0:
+        raise ValueError("fitting scattering and the emitter's directivity together is not supported yet: choose one")
+    tracer = dataclasses.replace(tracer or TracerConfig(), scattering=scattering)
+    sonar = Sonar(config, tracer, device=device, scattered_faces=scattering)
     arrivals = sonar.trace(scene, poses)
     face_class = surface_classes(scene)
-    face_r = scene.material_table("acoustic_reflection")
-    reflecting = arrivals.faces >= 0
-    # Each arrival at R = 1 on its faces: its amplitude over the product of their sqrt(R).
-    arrivals.amplitude = arrivals.amplitude / np.prod(
-        np.sqrt(np.where(reflecting, face_r[arrivals.faces], 1.0)), axis=1
-    )
-    counts = arrivals.surface_counts(face_class, len(SURFACE_CLASSES))
-    seen = counts.sum(axis=0) > 0
+    face_r, face_s = scene.material_table("acoustic_reflection"), scene.material_table("acoustic_scattering")
+    reflected, kept, scattered = arrivals.face_roles()
+    faces = np.maximum(arrivals.faces, 0)
+    factor = np.where(reflected, np.sqrt(face_r[faces]), 1.0)
+    by_class = arrivals.surface_factors(face_class, len(SURFACE_CLASSES))
+    seen = by_class[0].sum(axis=0) > 0
     classes = tuple(np.array(SURFACE_CLASSES)[seen])
     nominal = np.array([face_r[face_class == k].mean() for k in np.nonzero(seen)[0]])
-    counts = counts[:, seen]
+    nominal_s = np.array([face_s[face_class == k].mean() for k in np.nonzero(seen)[0]])
+    # s is fitted for the classes that scattered an arrival; elsewhere (1 - s) stays in the amplitude.
+    scatters = by_class[2][:, seen].sum(axis=0) > 0
+    if scatters.any():
+        fitted = np.isin(face_class[faces], np.nonzero(seen)[0][scatters])
+        factor *= np.where(kept & fitted, np.sqrt(1.0 - face_s[faces]), 1.0)
+        factor *= np.where(scattered & fitted, np.sqrt(face_s[faces]), 1.0)
+    # Each arrival at R = 1 (and s's factors at 1) on its faces: its amplitude over their product.
+    arrivals.amplitude = arrivals.amplitude / np.prod(factor, axis=1)
+    counts = by_class[0][:, seen]
+    shares = np.column_stack([by_class[1][:, seen][:, scatters], by_class[2][:, seen][:, scatters]])
     knot = knot_deg = None
     if directivity_knots > 0:
         arrivals, counts, knot, knot_deg = by_knot(arrivals, counts, scene, poses, config, directivity_knots)
         keys, group = np.unique(np.column_stack([counts, knot]), axis=0, return_inverse=True)
-        signatures, knot = keys[:, :-1], keys[:, -1]
+        signatures, knot = keys[:, : counts.shape[1]], keys[:, -1]
     else:
-        signatures, group = np.unique(counts, axis=0, return_inverse=True)
+        keys, group = np.unique(np.column_stack([counts, shares]), axis=0, return_inverse=True)
+        signatures, shares = keys[:, : counts.shape[1]], keys[:, counts.shape[1] :]
     group = group.reshape(-1)
     mics, count = config.microphone_count, len(signatures)
     gram = np.zeros((mics, count, count))
@@ -186,12 +225,17 @@ def signal_gram(
         mine = (arrivals.pose_index >= first) & (arrivals.pose_index < last)
         block = np.zeros((count, mics, (last - first) * config.record_samples))
         heard = np.fft.rfft(signals[first:last].astype(np.float64), n=size, axis=-1)[..., band]  # (pings, mics, F)
+        # Every group's pings in one call, each (group, ping) a ping of its own; those with no arrival
+        # stay silent unrecorded (most groups are heard in a few pings only).
+        chosen = arrivals.select(mine)
+        pings = last - first
+        heard_in, chosen.pose_index = np.unique(group[mine] * pings + chosen.pose_index - first, return_inverse=True)
+        recorded = np.zeros((count * pings, mics, config.record_samples), dtype=np.float32)
+        recorded[heard_in] = sonar.record(chosen, pose_count=len(heard_in), absorption=absorption)
+        recorded = recorded.reshape(count, pings, mics, -1)  # (G, pings, mics, samples)
         for g in range(count):
-            chosen = arrivals.select(mine & (group == g))
-            chosen.pose_index = chosen.pose_index - first
-            recorded = sonar.record(chosen, pose_count=last - first, absorption=absorption)  # (pings, mics, samples)
-            block[g] = recorded.transpose(1, 0, 2).reshape(mics, -1)
-            made = np.fft.rfft(recorded.astype(np.float64), n=size, axis=-1)[..., band]
+            block[g] = recorded[g].transpose(1, 0, 2).reshape(mics, -1)
+            made = np.fft.rfft(recorded[g].astype(np.float64), n=size, axis=-1)[..., band]
             spectra[:, g] += np.einsum("pmf,pmf->mf", made.conj(), heard)
         measured = signals[first:last].transpose(1, 0, 2).reshape(mics, -1).astype(np.float64)
         by_mic = block.transpose(1, 0, 2)  # (mics, G, samples)
@@ -201,7 +245,10 @@ def signal_gram(
     weight = np.where((band == 0) | (2 * band == size), 1.0, 2.0) / size  # rfft's bins stand for two but DC, Nyquist
     omega = 2 * np.pi * band / size
     data = SignalGram(signatures, gram, cross, energy, spectra, omega, weight, knot, knot_deg)
-    return data, classes, nominal
+    if scatters.any():
+        data.kept, data.scattered = np.split(shares, 2, axis=1)
+        data.scattering_class = np.nonzero(scatters)[0]
+    return data, classes, nominal, nominal_s
 
 
 def _delay_band(config: SonarConfig) -> tuple[int, np.ndarray]:
@@ -216,16 +263,20 @@ def _delay_band(config: SonarConfig) -> tuple[int, np.ndarray]:
 
 
 def loss_and_gradient(theta: np.ndarray, data: SignalGram, fit_gains: bool, fit_delays: bool = False):
-    """The relative squared error and its gradient at theta = (log R per class, then the
-    directivity at each fitted knot where the data have knots, then log gain per microphone where
-    `fit_gains`, then delay per microphone [samples] where `fit_delays`)."""
-    classes, knots, mics = data.signatures.shape[1], data.fitted_knots, len(data.energy)
+    """The relative squared error and its gradient at theta = (log R per class, then s per class
+    whose scattering is fitted where the data have such classes, then the directivity at each
+    fitted knot where the data have knots, then log gain per microphone where `fit_gains`, then
+    delay per microphone [samples] where `fit_delays`)."""
+    classes, scattering = data.signatures.shape[1], data.fitted_scattering
+    knots, mics = data.fitted_knots, len(data.energy)
     log_r = theta[:classes]
-    log_g = theta[classes + knots : classes + knots + mics] if fit_gains else np.zeros(mics)
+    s = theta[classes : classes + scattering]
+    first_knot = classes + scattering
+    log_g = theta[first_knot + knots : first_knot + knots + mics] if fit_gains else np.zeros(mics)
     tau = theta[len(theta) - mics :] if fit_delays else None
     gains = np.exp(log_g)
-    base = np.exp(data.signatures @ (0.5 * log_r))  # the signature signals are at R = 1
-    at_knot = np.concatenate([[1.0], theta[classes : classes + knots]])[data.knot] if knots else 1.0
+    base = _signature_scale(data, log_r, s)
+    at_knot = np.concatenate([[1.0], theta[first_knot : first_knot + knots]])[data.knot] if knots else 1.0
     scale = base * at_knot  # c_g (G,)
     quad = np.einsum("g,mgh,h->m", scale, data.gram, scale)  # c' A_m c
     cross, slope = data.cross_at(tau) if fit_delays else (data.cross, None)
@@ -234,6 +285,9 @@ def loss_and_gradient(theta: np.ndarray, data: SignalGram, fit_gains: bool, fit_
     loss = (gains**2 * quad - 2 * gains * lin + data.energy).sum() / total
     d_scale = 2 * np.einsum("m,mgh,h->g", gains**2, data.gram, scale) - 2 * (gains[:, None] * cross).sum(axis=0)
     grad = [data.signatures.T @ (d_scale * scale) * 0.5 / total]
+    if scattering:  # d log c_g / d s_k = (scattered_gk / s_k - kept_gk / (1 - s_k)) / 2
+        per_s = data.scattered / s - data.kept / (1.0 - s)
+        grad.append(per_s.T @ (d_scale * scale) * 0.5 / total)
     if knots:
         grad.append(np.bincount(data.knot, weights=d_scale * base, minlength=knots + 1)[1:] / total)
     if fit_gains:
@@ -241,6 +295,15 @@ def loss_and_gradient(theta: np.ndarray, data: SignalGram, fit_gains: bool, fit_
     if fit_delays:
         grad.append(-2 * gains * (slope @ scale) / total)
     return loss, np.concatenate(grad)
+
+
+def _signature_scale(data: SignalGram, log_r: np.ndarray, s: np.ndarray) -> np.ndarray:
+    """Each signature's scale at these log R and s (the signature signals are at R = 1 and s's
+    factors 1), (G,)."""
+    exponent = data.signatures @ (0.5 * log_r)
+    if data.fitted_scattering:
+        exponent = exponent + data.kept @ (0.5 * np.log1p(-s)) + data.scattered @ (0.5 * np.log(s))
+    return np.exp(exponent)
 
 
 def _coarse_delays(data: SignalGram, scale: np.ndarray, reach: float) -> np.ndarray:
@@ -263,6 +326,7 @@ def fit_surfaces(
     fit_gains: bool = True,
     fit_delays: bool = True,
     directivity_knots: int = 0,
+    fit_scattering: bool = False,
     absorption: bool = True,
     device=None,
     progress: bool = False,
@@ -273,18 +337,22 @@ def fit_surfaces(
     `fit_gains`, each microphone's gain and, with `fit_delays`, its delay (within +-MAX_DELAY_S) to
     recorded `signals` (pings, mics, samples) made at `poses`
     (sensor-to-world (N, 4, 4)) by a sonar `config` in the room `scene` describes (its geometry
-    right; its materials' R the starting point, their scattering taken as known).
+    right; its materials' R the starting point, their scattering taken as known unless
+    `fit_scattering`).
 
     Minimises the squared error between simulated and recorded signals, relative to the
     recording's energy, by L-BFGS on log R (R within (0, 1]), log gain and delay. With
     `directivity_knots` > 0 the emitter's directivity too (module docstring), from the nominal
-    piston's. `absorption`: whether the
-    recording's air absorbs (real air does; a simulation may have left it out)."""
+    piston's. With `fit_scattering` the paths include scattered arrivals (`tracer`'s rays rain
+    them) and each class's energy scattering coefficient s is fitted too, from its faces' mean;
+    a class whose materials scatter nothing (s = 0) sends no scattered arrival to fit it by and
+    keeps its s. `absorption`: whether the recording's air absorbs (real air does; a simulation
+    may have left it out)."""
     from scipy.optimize import minimize
 
     if directivity_knots < 0:
         raise ValueError(f"directivity_knots must be >= 0 (0: the nominal directivity), got {directivity_knots}")
-    data, classes, nominal = signal_gram(
+    data, classes, nominal, nominal_s = signal_gram(
         scene,
         poses,
         signals,
@@ -292,9 +360,11 @@ def fit_surfaces(
         tracer,
         absorption=absorption,
         directivity_knots=directivity_knots,
+        scattering=fit_scattering,
         device=device,
         progress=progress,
     )
+    s0 = nominal_s[data.scattering_class] if data.fitted_scattering else np.zeros(0)
     mics, fs = config.microphone_count, config.chirp.sample_rate_hz
     reach = MAX_DELAY_S * fs
     air, centre = config.atmosphere.speed_of_sound, config.chirp.centre_frequency_hz
@@ -303,11 +373,11 @@ def fit_surfaces(
         if data.knot_deg is not None
         else np.zeros(0)
     )
-    theta0 = [np.log(nominal), piston[1:], np.zeros(mics if fit_gains else 0)]
-    bounds = [(np.log(1e-4), 0.0)] * len(classes) + [(-2.0, 2.0)] * data.fitted_knots
-    bounds += [(None, None)] * (mics if fit_gains else 0)
+    theta0 = [np.log(nominal), s0, piston[1:], np.zeros(mics if fit_gains else 0)]
+    bounds = [(np.log(1e-4), 0.0)] * len(classes) + [(1e-4, 1.0 - 1e-4)] * len(s0)
+    bounds += [(-2.0, 2.0)] * data.fitted_knots + [(None, None)] * (mics if fit_gains else 0)
     if fit_delays:
-        start = np.exp(data.signatures @ (0.5 * np.log(nominal)))
+        start = _signature_scale(data, np.log(nominal), s0)
         if data.fitted_knots:
             start = start * piston[data.knot]
         theta0.append(_coarse_delays(data, start, reach))
@@ -326,13 +396,19 @@ def fit_surfaces(
     done = minimize(step, theta0, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxfun": max_steps})
     bar.total = bar.n  # converged before the step budget: the bar ends full
     bar.close()
-    k, knots = len(classes), data.fitted_knots
+    k, knots, first_knot = len(classes), data.fitted_knots, len(classes) + len(s0)
     reflection = np.exp(done.x[:k])
-    gains_db = 20 / np.log(10) * done.x[k + knots : k + knots + mics] if fit_gains else np.zeros(mics)
+    gains_db = 20 / np.log(10) * done.x[first_knot + knots : first_knot + knots + mics] if fit_gains else np.zeros(mics)
     delays_s = done.x[len(done.x) - mics :] / fs if fit_delays else np.zeros(mics)
     signatures = len(np.unique(data.signatures, axis=0))
     fit = SurfaceFit(classes, reflection, nominal, gains_db, delays_s, losses, signatures)
     if knots:
         fit.directivity_deg, fit.directivity_nominal = data.knot_deg, piston
-        fit.directivity = np.concatenate([[1.0], done.x[k : k + knots]])
+        fit.directivity = np.concatenate([[1.0], done.x[first_knot : first_knot + knots]])
+    if fit_scattering:
+        fit.scattering, fit.scattering_nominal = nominal_s.copy(), nominal_s
+        fit.scattering_fitted = np.zeros(k, dtype=bool)
+        if data.fitted_scattering:
+            fit.scattering[data.scattering_class] = done.x[k:first_knot]
+            fit.scattering_fitted[data.scattering_class] = True
     return fit

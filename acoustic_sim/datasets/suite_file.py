@@ -94,10 +94,11 @@ CALIBRATION_MAX_BYTES = 1_000_000  # a fit is a few kilobytes (a loss per step, 
 
 def _calibrated_surfaces(table: dict, path: Path, where: str) -> None:
     """A physics table's `calibration = "FIT.json"` (a file `calibrate` wrote; a relative path is
-    beside the suite file) becomes its `surfaces`: each fitted class's reflection R, drawn per
-    episode from [R (1 - s), min(1, R (1 + s))] with `calibration_spread = s` (default 0: R itself);
+    beside the suite file) becomes its `surfaces`: each fitted class's reflection R (and scattering,
+    where fitted), drawn per episode from [R (1 - f), min(1, R (1 + f))] with `calibration_spread = f`
+    (default 0: R itself);
     its microphones' gains and delays (`mic_gain_db`, `mic_delay_s`); and where it fitted the
-    emitter's directivity, the closest piston's radius r, drawn from [r (1 - s), r (1 + s)] (`vary`)."""
+    emitter's directivity, the closest piston's radius r, drawn from [r (1 - f), r (1 + f)] (`vary`)."""
     spread = table.pop("calibration_spread", None)
     if "calibration" not in table:
         if spread is not None:
@@ -109,12 +110,17 @@ def _calibrated_surfaces(table: dict, path: Path, where: str) -> None:
         spread = 0.0
     _check(spread, "a number", f"{where}.calibration_spread")
     if not 0 <= spread < 1:
-        raise ValueError(f"{where}.calibration_spread: a fraction of R in [0, 1), got {spread}")
+        raise ValueError(f"{where}.calibration_spread: a fraction of R (and s) in [0, 1), got {spread}")
     fit_path = path.parent / name
     input_file(fit_path, what="calibration", max_bytes=CALIBRATION_MAX_BYTES, bound="a fit is a few kilobytes")
     try:
         fit = json.loads(fit_path.read_text(encoding="utf-8"))
-        fitted = {cls: float(values["reflection"]) for cls, values in fit["classes"].items()}
+        fitted = {
+            cls: {k: float(values[k]) for k in ("reflection", "scattering") if k in values}
+            for cls, values in fit["classes"].items()
+        }
+        if any("reflection" not in values for values in fitted.values()):
+            raise KeyError("reflection")
         channels = {"mic_gain_db": [float(v) for v in fit.get("mic_gain_db", [])]}
         channels["mic_delay_s"] = [float(v) * 1e-6 for v in fit.get("mic_delay_us", [])]
         radius_mm = (fit.get("directivity") or {}).get("piston_radius_mm")
@@ -136,10 +142,11 @@ def _calibrated_surfaces(table: dict, path: Path, where: str) -> None:
         vary["sonar.emitter_radius_m"] = [radius * (1 - spread), radius * (1 + spread)]
     surfaces = table.setdefault("surfaces", {})
     _check(surfaces, "a table of tables", f"{where}.surfaces")
-    for cls, r in fitted.items():
-        if "reflection" in surfaces.get(cls, {}):
-            raise ValueError(f"{where}: surfaces.{cls}.reflection and calibration both give {cls}' reflection")
-        surfaces.setdefault(cls, {})["reflection"] = [r * (1 - spread), min(1.0, r * (1 + spread))]
+    for cls, values in fitted.items():
+        for key, value in values.items():
+            if key in surfaces.get(cls, {}):
+                raise ValueError(f"{where}: surfaces.{cls}.{key} and calibration both give {cls}' {key}")
+            surfaces.setdefault(cls, {})[key] = [value * (1 - spread), min(1.0, value * (1 + spread))]
 
 
 def _check(value, kind: str, where: str) -> None:

@@ -38,11 +38,15 @@ class Arrivals:
             where the path last turned (delays: the path before it plus |source - mic|), (n, 3).
         length_m: Path length [m], (n,).
         point_m: Where the echo last reflected or scattered, sensor frame [m], (n, 3).
-        faces: The faces a specular path reflects off, in order, int32 (n, MAX_ORDER), -1 after
-            its last: off planes, each reflection's face; off a sphere or cylinder, the face whose
-            material it reflects with; all -1 for scattered echoes (their faces are not recorded).
-            What the amplitude owes to each surface: a factor sqrt(R (1 - s)) per entry, R and s
-            of that face (`surface_counts`). None where the arrivals were not traced here.
+        faces: The faces a path meets, in order, int32 (n, MAX_ORDER), -1 after its last: off
+            planes, each reflection's face; off a sphere or cylinder, the face whose material it
+            reflects with; for a scattered echo the faces its ray reflected off and last the one
+            that scattered it, where the tracer recorded them (`PathTracer(scattered_faces=True)`),
+            else all -1. What the amplitude owes to each surface (`surface_factors`): sqrt(R (1 - s))
+            per reflection, R and s of that face; sqrt(R s) for the face that scattered, sqrt(R)
+            where an edge band scattered (`edge`). None where the arrivals were not traced here.
+        edge: Whether an edge band scattered the echo (it scatters all it reflects), bool (n,);
+            False for specular echoes and wherever the faces were not recorded.
     """
 
     pose_index: np.ndarray
@@ -55,6 +59,7 @@ class Arrivals:
     length_m: np.ndarray
     point_m: np.ndarray
     faces: np.ndarray | None = None
+    edge: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.delay_s)
@@ -63,16 +68,40 @@ class Arrivals:
         return Arrivals(**{k: None if v is None else v[mask] for k, v in self.__dict__.items()})
 
     def surface_counts(self, face_surface: np.ndarray, surfaces: int) -> np.ndarray:
-        """How often each arrival's path reflects off each surface class, int64 (n, surfaces):
-        `face_surface` gives every face's class (e.g. `Scene.face_material`). Zero rows for
-        arrivals whose faces are not recorded (see `faces`)."""
+        """How often each arrival's path meets each surface class, int64 (n, surfaces): `face_surface`
+        gives every face's class (e.g. `Scene.face_material`). Zero rows for arrivals whose faces
+        are not recorded (see `faces`)."""
         if self.faces is None:
             raise ValueError("these arrivals carry no faces (trace them with PathTracer or Sonar.trace)")
-        face_surface = np.asarray(face_surface)
-        hit = self.faces >= 0
-        rows = np.nonzero(hit)[0]
+        return self._counts(face_surface, surfaces, self.faces >= 0)
+
+    def surface_factors(self, face_surface: np.ndarray, surfaces: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """What each arrival's amplitude owes to each surface class, as powers of square roots:
+        (reflections, kept, scattered), int64 (n, surfaces) each, so that the amplitude scales
+        as prod_k sqrt(R_k)^reflections sqrt(1 - s_k)^kept sqrt(s_k)^scattered. A specular
+        reflection counts in the first two, a scattering face in the first and (but at an edge
+        band, which scatters all) the third."""
+        reflected, kept, scattered = self.face_roles()
+        return tuple(self._counts(face_surface, surfaces, which) for which in (reflected, kept, scattered))
+
+    def face_roles(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Which entries of `faces` reflect (every face met), keep their specular share (all but a
+        scattered echo's last) and scatter (that last, where no edge band scattered it): bool
+        (n, MAX_ORDER) each."""
+        if self.faces is None:
+            raise ValueError("these arrivals carry no faces (trace them with PathTracer or Sonar.trace)")
+        reflected = self.faces >= 0
+        last = np.zeros_like(reflected)
+        scattering = np.nonzero(self.kind == KIND_SCATTERED)[0]
+        last[scattering, np.maximum(reflected[scattering].sum(axis=1) - 1, 0)] = reflected[scattering].any(axis=1)
+        edge = np.zeros(len(self), dtype=bool) if self.edge is None else self.edge
+        return reflected, reflected & ~last, last & ~edge[:, None]
+
+    def _counts(self, face_surface: np.ndarray, surfaces: int, which: np.ndarray) -> np.ndarray:
+        """Per arrival, how many of its faces where `which` (n, MAX_ORDER) belong to each class."""
+        rows = np.nonzero(which)[0]
         counts = np.zeros((len(self), surfaces), dtype=np.int64)
-        np.add.at(counts, (rows, face_surface[self.faces[hit]]), 1)
+        np.add.at(counts, (rows, np.asarray(face_surface)[self.faces[which]]), 1)
         return counts
 
     def for_pose(self, i: int) -> Arrivals:
@@ -96,12 +125,13 @@ class TraceBuffers:
     image_rank: wp.array  # (pings, size) int32 lowest sequence rank per image source
     specular: SpecularEchoes
     scattered: PointEchoes
+    hit_faces: wp.array  # (pings, rays, MAX_ORDER) int32 each hit's face; no rays unless faces are recorded
     curved: PointEchoes  # (pings, curved surfaces) echoes off spheres and cylinders
     host_checks: tuple[wp.array, wp.array, wp.array]  # errors, behind, overflow (page-locked on GPUs)
 
     @property
     def echoes(self) -> TracedEchoes:
-        return TracedEchoes(self.specular, self.scattered, self.curved, self.ray_queries)
+        return TracedEchoes(self.specular, self.scattered, self.curved, self.ray_queries, self.hit_faces)
 
 
 @dataclass
@@ -120,6 +150,7 @@ class PointEchoes(EchoBuffer):
     path before it): scattered arrivals, and specular ones off curved surfaces."""
 
     order: wp.array = None
+    ray: wp.array = None  # scattered: each slot's ray, -(ray + 1) off an edge band; no slots unless recorded
 
 
 @dataclass
@@ -128,6 +159,7 @@ class TracedEchoes:
     scattered: PointEchoes
     curved: PointEchoes  # first-order specular echoes off curved surfaces, one slot per surface
     ray_queries: wp.array  # (pings,) BVH ray queries made per ping, all stages
+    hit_faces: wp.array | None = None  # see TraceBuffers
 
     @property
     def pose_count(self) -> int:
@@ -161,15 +193,28 @@ class TracedEchoes:
                 faces=faces,
             )
         ]
+        parts[0].edge = np.zeros(len(length), dtype=bool)
         for echoes, kind in ((self.scattered, KIND_SCATTERED), (self.curved, KIND_SPECULAR)):
             if echoes.slots:
                 found, slot = _point_arrivals(echoes, kind, speed_of_sound)
                 found.faces = np.full((len(found), faces.shape[1]), -1, dtype=np.int32)
+                found.edge = np.zeros(len(found), dtype=bool)
                 if echoes is self.curved and curved_faces is not None:  # a curved echo's slot is its surface
                     found.faces[:, 0] = curved_faces[slot]
+                if echoes is self.scattered and echoes.ray.shape[1]:
+                    self._scattered_faces(found, slot)
                 parts.append(found)
         found = concatenate(parts)
         return found.select(np.lexsort((found.order, found.delay_s, found.kind, found.pose_index)))
+
+    def _scattered_faces(self, found: Arrivals, slot: np.ndarray) -> None:
+        """Fill scattered arrivals' faces (the ray's hits up to the one that scattered) and edge flags."""
+        code = self.scattered.ray.numpy()[found.pose_index, slot]
+        found.edge = code < 0
+        ray = np.where(found.edge, -code - 1, code)
+        faces = self.hit_faces.numpy()[found.pose_index, ray]
+        faces[np.arange(faces.shape[1])[None, :] >= found.order[:, None]] = -1
+        found.faces = faces
 
 
 def _point_arrivals(echoes: PointEchoes, kind: int, speed_of_sound: float) -> tuple[Arrivals, np.ndarray]:

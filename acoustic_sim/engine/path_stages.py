@@ -129,6 +129,8 @@ class BatchStages:
                 rows(scattered.amplitude),
                 rows(scattered.order),
                 rows(b.ray_queries),
+                rows(b.hit_faces),
+                rows(scattered.ray),
             ],
             block_dim=RAY_BLOCK_DIM,
         )

@@ -95,12 +95,24 @@ class PathTracer:
         device: Warp device.
         cpu_threads: On the CPU, a batch's pings are traced in this many threads (default: every
             core this process may use); Warp runs each CPU launch on one core.
+        scattered_faces: Record the faces of each scattered arrival's path (`Arrivals.faces`,
+            `Arrivals.edge`), as calibration needs: a face per hit of every ray is kept on the
+            device (4 B x rays x orders a ping).
     """
 
-    def __init__(self, sonar: SonarConfig, config: TracerConfig, *, device=None, cpu_threads: int | None = None):
+    def __init__(
+        self,
+        sonar: SonarConfig,
+        config: TracerConfig,
+        *,
+        device=None,
+        cpu_threads: int | None = None,
+        scattered_faces: bool = False,
+    ):
         if cpu_threads is not None and cpu_threads < 1:
             raise ValueError(f"cpu_threads must be >= 1, got {cpu_threads}")
         self.cpu_threads = cpu_threads or cpu_cores()
+        self.scattered_faces = scattered_faces and config.scattering
         self.sonar = sonar
         self.config = config
         self.edge_width_m = config.edge_width_for(sonar)
@@ -207,6 +219,7 @@ class PathTracer:
                     return buffers
         tracer = self.config
         capacity = tracer.ray_count * (tracer.max_bounces + 1) if tracer.scattering else 0
+        recorded = self.scattered_faces  # else empty: the kernel writes no faces
         pinned = self.device.is_cuda  # host copies the GPU writes behind its work
         with wp.ScopedDevice(self.device):
             planes = wp.empty((n, size, kernels.MAX_ORDER), dtype=wp.int32)
@@ -235,7 +248,9 @@ class PathTracer:
                     amplitude=wp.empty((n, capacity), dtype=float),
                     count=wp.empty(n, dtype=wp.int32),
                     order=wp.empty((n, capacity), dtype=wp.int32),
+                    ray=wp.empty((n, capacity if recorded else 0), dtype=wp.int32),
                 ),
+                hit_faces=wp.empty((n, tracer.ray_count if recorded else 0, kernels.MAX_ORDER), dtype=wp.int32),
                 curved=PointEchoes(  # every slot counts; the kernel writes each
                     source=wp.empty((n, surfaces), dtype=wp.vec3),
                     extra_length=wp.empty((n, surfaces), dtype=float),

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import functools
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -11,7 +12,7 @@ import warp as wp
 
 from ..air import air_absorption_db_per_m
 from ..config import NOISE_CODES, NOISE_KINDS
-from ..devices import device_calls, warp_device
+from ..devices import cpu_cores, device_calls, warp_device
 from .kernels import signals as kernels
 
 # Fractional-delay filter of a recorded echo: the fewest taps (of DELAY_TAPS_CHOICES) whose
@@ -356,10 +357,23 @@ def record(
         raise ValueError(f"arrivals refer to pose {arrivals.pose_index.max()}, but pose_count is {count}")
     device = warp_device(device)
     rec = recorder(config, absorption, str(device))
-    signals = rec(
-        [echo_buffer(arrivals, count, device)], count, noise=noise, snr_db=snr_db, seeds=ping_seeds(seed, range(count))
-    )
-    return signals.numpy().copy()
+
+    def pings(first: int, last: int) -> np.ndarray:
+        mine = arrivals
+        if (first, last) != (0, count):
+            mine = arrivals.select((arrivals.pose_index >= first) & (arrivals.pose_index < last))
+            mine.pose_index = mine.pose_index - first
+        seeds = ping_seeds(seed, range(first, last))  # ping i's noise from (seed, i), however the pings are split
+        signals = rec([echo_buffer(mine, last - first, device)], last - first, noise=noise, snr_db=snr_db, seeds=seeds)
+        return signals.numpy().copy()
+
+    # Warp runs a CPU launch on one core: there the pings are recorded in slices, in threads.
+    threads = min(cpu_cores(), count) if device.is_cpu else 1
+    if threads == 1:
+        return pings(0, count)
+    edges = np.linspace(0, count, threads + 1).round().astype(int).tolist()
+    with ThreadPoolExecutor(threads) as pool:
+        return np.concatenate(list(pool.map(pings, edges[:-1], edges[1:])))
 
 
 PDM_BIT_ORDERS = ("lsb", "msb")

@@ -41,6 +41,7 @@ class Sonar:
         cpu_threads: On the CPU, the pings of a batch are traced, recorded and beamformed in this
             many threads (default: every core this process may use); Warp runs each CPU launch
             on one core.
+        scattered_faces: Record the faces of scattered arrivals' paths (see `PathTracer`).
         **tracer_settings: TracerConfig fields to change, e.g. `max_bounces=1`, `ray_count=5000`.
     """
 
@@ -51,11 +52,14 @@ class Sonar:
         *,
         device=None,
         cpu_threads: int | None = None,
+        scattered_faces: bool = False,
         **tracer_settings,
     ):
         self.config = config
         tracer = dataclasses.replace(tracer or TracerConfig(), **tracer_settings)
-        self.tracer = PathTracer(config, tracer, device=device, cpu_threads=cpu_threads)
+        self.tracer = PathTracer(
+            config, tracer, device=device, cpu_threads=cpu_threads, scattered_faces=scattered_faces
+        )
         self.cpu_threads = self.tracer.cpu_threads
         self.device = self.tracer.device
 

@@ -38,10 +38,13 @@ def scattered_hit(
     extra_out: wp.array2d[float],
     amplitude_out: wp.array2d[float],
     order_out: wp.array2d[wp.int32],
+    ray_code: int,
+    ray_out: wp.array2d[wp.int32],
 ) -> int:
     """Diffuse rain: the Lambert-scattered share of a hit that reaches the receiver unoccluded,
     appended to the ping's echoes (hit point in the sensor frame, path before it, amplitude) at
-    slot count_inout[p], which it increments. Returns the number of ray queries made (0 or 1)."""
+    slot count_inout[p], which it increments; `ray_code` goes to ray_out[p, slot] where ray_out
+    has slots (it has none unless faces are recorded). Returns the number of ray queries made (0 or 1)."""
     if energy <= 0.0:
         return 0
     front = -normal * wp.sign(wp.dot(incoming, normal))  # normal on the side the ray came from
@@ -61,6 +64,8 @@ def scattered_hit(
         extra_out[p, slot] = travelled
         amplitude_out[p, slot] = wp.sqrt(energy * cosine / (wp.pi * distance * distance))
         order_out[p, slot] = order
+        if slot < ray_out.shape[1]:
+            ray_out[p, slot] = ray_code
     return 1
 
 
@@ -107,6 +112,10 @@ def discover_sequences(
     scatter_amplitude_out: wp.array2d[float],
     scatter_order_out: wp.array2d[wp.int32],
     ray_queries_out: wp.array[wp.int32],
+    # out where they have room (calibration; empty otherwise): the face of each hit of each ray, and per
+    # scattered arrival its ray, -(ray + 1) where an edge band scattered it
+    hit_faces_out: wp.array3d[wp.int32],
+    scatter_ray_out: wp.array2d[wp.int32],
 ):
     """One thread per (pose, ray); launch with dim=pose_count * ray_count.
 
@@ -120,7 +129,9 @@ def discover_sequences(
     the receiver (sensor origin) along an unoccluded shadow ray and appends it to the pose's
     scattered arrivals: hit point (world), path length, energy at the receiver, order. Within
     `edge_width` of a sharp edge a face scatters everything it reflects: edges and corners echo.
-    Adds the number of BVH ray queries made to `ray_queries_out[pose]` (for benchmarks).
+    Adds the number of BVH ray queries made to `ray_queries_out[pose]` (for benchmarks). Where
+    `hit_faces_out` has a row per ray, each hit's face goes to hit_faces_out[pose, ray, order - 1]
+    and each scattered arrival's ray to `scatter_ray_out`: what the arrival owes to which faces.
     """
     tid = wp.tid()
     ray_count = ray_dirs.shape[0]
@@ -144,9 +155,13 @@ def discover_sequences(
         if not q.result:
             break
         travelled = travelled + q.t
+        if r < hit_faces_out.shape[1]:
+            hit_faces_out[p, r, k] = q.face
         scattering = face_scattering[q.face]
+        ray_code = r
         if near_sharp_edge(face_sharp_edges[q.face], face_altitudes[q.face], q.u, q.v, edge_width):
             scattering = 1.0
+            ray_code = -(r + 1)
         if scatter != 0:
             queries += scattered_hit(
                 mesh,
@@ -165,6 +180,8 @@ def discover_sequences(
                 scatter_extra_out,
                 scatter_amplitude_out,
                 scatter_order_out,
+                ray_code,
+                scatter_ray_out,
             )
         energy = energy * face_reflection[q.face] * (1.0 - scattering)
         plane = face_plane[q.face]
