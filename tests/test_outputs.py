@@ -362,6 +362,9 @@ def results(request, tmp_path_factory, device):
         command = [sys.executable, "-m", package, *argv.format(**own).split()]
         if kind == "full":
             command = [sys.executable, "-c", FULL_DISK, str(watched), package, *argv.format(**own).split()]
+            # the same command once without the limit, first: it compiles the kernels the case needs
+            free = places | {"o": str(w / "warm" / name)}
+            runs.append((f"warm {name}", [sys.executable, "-m", package, *argv.format(**free).split()]))
         runs.append((name, command))
     before = _digest([w / "data", w / "rec.h5", w / "model.pt", w / "ping-0.bin", w / "plan.svg", w / "ev_a"])
     before |= _digest([w / "s2r_a", w / "t2_b", w / "suite.json"])
@@ -370,8 +373,13 @@ def results(request, tmp_path_factory, device):
         name, command = item
         return name, subprocess.run(command, capture_output=True, text=True, timeout=300, env=env, cwd=w)
 
+    full = {name for name, kind, *_ in CASES if kind == "full"}
     with ThreadPoolExecutor(4) as pool:
-        done = dict(pool.map(run, runs))
+        # The full-disk cases after the rest: a kernel compiled under their byte limit could not be
+        # written (Warp's cache and precompiled header would fail with errors of their own), and
+        # their warm-up runs before them have compiled every kernel they need.
+        done = dict(pool.map(run, [r for r in runs if r[0] not in full]))
+        done |= dict(pool.map(run, [r for r in runs if r[0] in full]))
     return {"done": done, "places": places, "w": w, "before": before}
 
 
