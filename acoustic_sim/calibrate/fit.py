@@ -124,7 +124,8 @@ class SurfaceFit:
         return found
 
     def scene(self, scene: scenes.Scene) -> scenes.Scene:
-        """`scene` with every material of a fitted class reflecting the fitted R."""
+        """`scene` with every material of a fitted class reflecting the fitted R (and scattering the
+        fitted s, where it was fitted)."""
         return with_surfaces(scene, self.surfaces())
 
     def sonar(self, config: SonarConfig) -> SonarConfig:
@@ -225,8 +226,8 @@ def signal_gram(
         mine = (arrivals.pose_index >= first) & (arrivals.pose_index < last)
         block = np.zeros((count, mics, (last - first) * config.record_samples))
         heard = np.fft.rfft(signals[first:last].astype(np.float64), n=size, axis=-1)[..., band]  # (pings, mics, F)
-        # Every group's pings in one call, each (group, ping) a ping of its own; those with no arrival
-        # stay silent unrecorded (most groups are heard in a few pings only).
+        # Every group's pings in one call (whose pings the CPU splits over its cores), each (group, ping)
+        # a ping of its own; one with no arrival stays silent, unrecorded.
         chosen = arrivals.select(mine)
         pings = last - first
         heard_in, chosen.pose_index = np.unique(group[mine] * pings + chosen.pose_index - first, return_inverse=True)
