@@ -174,18 +174,16 @@ def scattering_recordings(device):
     return room, poses, clean, noisy
 
 
-@pytest.mark.parametrize(("kind", "tolerance"), [("clean", 0.05), ("noisy", 0.10)])
-def test_hidden_scattering_coefficients_are_recovered(scattering_recordings, device, kind, tolerance):
-    """R and s of each class within 5 % without noise and 10 % at 20 dB SNR, starting from the
-    scene's own (R 17-35 % off, s off by a factor 2-5); the fit's scene and JSON-ready surfaces
-    carry both."""
-    room, poses, clean, noisy = scattering_recordings
-    signals = clean if kind == "clean" else noisy
-    fit = fit_surfaces(room, poses, signals, CONFIG, SCATTERING_TRACER, fit_scattering=True, device=device)
+def test_hidden_scattering_coefficients_are_recovered_at_20_db(scattering_recordings, device):
+    """R and s of each class within 10 % at 20 dB SNR (without noise, within 5 %: the command's
+    test below), starting from the scene's own (R 17-35 % off, s off by a factor 2-5); the fit's
+    JSON-ready surfaces carry both."""
+    room, poses, _, noisy = scattering_recordings
+    fit = fit_surfaces(room, poses, noisy, CONFIG, SCATTERING_TRACER, fit_scattering=True, device=device)
     assert fit.scattering_fitted.all()
     for name, r, s in zip(fit.classes, fit.reflection, fit.scattering, strict=True):
-        assert abs(r / HIDDEN_SCATTERING[name]["reflection"] - 1) < tolerance, (name, r)
-        assert abs(s / HIDDEN_SCATTERING[name]["scattering"] - 1) < tolerance, (name, s)
+        assert abs(r / HIDDEN_SCATTERING[name]["reflection"] - 1) < 0.10, (name, r)
+        assert abs(s / HIDDEN_SCATTERING[name]["scattering"] - 1) < 0.10, (name, s)
     assert fit.surfaces()["floor"] == {"reflection": fit.reflection[1], "scattering": fit.scattering[1]}
     assert np.abs(fit.mic_gain_db).max() < 0.5
 
@@ -355,8 +353,9 @@ def test_the_command_writes_the_fit_and_its_picture(tmp_path, device, capsys):
 
 
 def test_the_command_fits_scattering(scattering_recordings, tmp_path, device, capsys):
-    """`calibrate --scattering` on recordings of a room that scatters: the JSON gives each class's
-    fitted s beside its start, R and s within 5 % of the hidden ones, and the line printed says s."""
+    """`calibrate --scattering` on clean recordings of a room that scatters: the JSON gives each
+    class's fitted s beside its start, R and s within 5 % of the hidden ones (the gains and delays
+    held), and the line printed says s."""
     from acoustic_sim.cli import main
 
     _, poses, clean, _ = scattering_recordings
