@@ -155,13 +155,7 @@ def _calibrate_into(args, written: Path) -> str:
     fitted = ", ".join(
         f"{n} {r:.3f} (was {r0:.3f})" for n, r, r0 in zip(fit.classes, fit.reflection, fit.nominal, strict=True)
     )
-    scattering = ", ".join(
-        f"{n} {s:.3f} (was {s0:.3f})"
-        for n, s, s0, on in zip(
-            fit.classes, fit.scattering, fit.scattering_nominal, fit.scattering_fitted, strict=False
-        )
-        if on
-    )
+    scattering = ", ".join(f"{n} {s:.3f} (was {s0:.3f})" for n, (s, s0) in fit.fitted_scattering().items())
     fitted += f"; s {scattering}" if scattering else ""
     return (
         f"{len(poses)} pings, {fit.signatures} signatures: R {fitted}; relative error {fit.loss[0]:.3g} -> "
@@ -175,11 +169,8 @@ def _classes_record(fit) -> dict:
         name: {"reflection": float(r), "nominal": float(r0)}
         for name, r, r0 in zip(fit.classes, fit.reflection, fit.nominal, strict=True)
     }
-    for name, s, s0, on in zip(
-        fit.classes, fit.scattering, fit.scattering_nominal, fit.scattering_fitted, strict=False
-    ):
-        if on:
-            record[name] |= {"scattering": float(s), "scattering_nominal": float(s0)}
+    for name, (s, s0) in fit.fitted_scattering().items():
+        record[name] |= {"scattering": s, "scattering_nominal": s0}
     return record
 
 

@@ -118,10 +118,19 @@ class SurfaceFit:
         """The fit as acoustics per surface class, e.g. {"walls": {"reflection": 0.8, "scattering": 0.1}}
         (scattering where it was fitted)."""
         found = {name: {"reflection": float(r)} for name, r in zip(self.classes, self.reflection, strict=True)}
-        for name, s, fitted in zip(self.classes, self.scattering, self.scattering_fitted, strict=False):
-            if fitted:
-                found[name]["scattering"] = float(s)
+        for name, (s, _) in self.fitted_scattering().items():
+            found[name]["scattering"] = s
         return found
+
+    def fitted_scattering(self) -> dict[str, tuple[float, float]]:
+        """Per class whose s was fitted: (fitted s, where it started)."""
+        return {
+            name: (float(s), float(s0))
+            for name, s, s0, fitted in zip(
+                self.classes, self.scattering, self.scattering_nominal, self.scattering_fitted, strict=False
+            )
+            if fitted
+        }
 
     def scene(self, scene: scenes.Scene) -> scenes.Scene:
         """`scene` with every material of a fitted class reflecting the fitted R (and scattering the

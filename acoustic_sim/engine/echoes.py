@@ -191,9 +191,9 @@ class TracedEchoes:
                 length_m=length,
                 point_m=spec.point.numpy()[pose_index, slot].astype(np.float64),
                 faces=faces,
+                edge=np.zeros(len(length), dtype=bool),
             )
         ]
-        parts[0].edge = np.zeros(len(length), dtype=bool)
         for echoes, kind in ((self.scattered, KIND_SCATTERED), (self.curved, KIND_SPECULAR)):
             if echoes.slots:
                 found, slot = _point_arrivals(echoes, kind, speed_of_sound)
