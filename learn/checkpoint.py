@@ -17,13 +17,15 @@ import zipfile
 from numbers import Integral, Real
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from .config import LearnConfig, from_record
-from .data import DataConfig
+from .data import DataConfig, Frames
 from .devices import torch_device
+from .elevations import missing_elevations
 from .inputs import check_fits, regular_file
-from .models import LEVEL_SLICE, ModelConfig, build_model, check_model_size
+from .models import LEVEL_SLICE, ModelConfig, build_model, check_model_size, trained_elevations
 from .shardfile import READABLE_VERSIONS
 
 # What a resumed run may change: how long it runs and how its steps execute, not what it learns.
@@ -268,3 +270,45 @@ def _found(value) -> str:
         return f"a {type(value).__name__} of {len(value)} items"
     text = repr(value)
     return text if len(text) <= 40 else text[:37] + "..."
+
+
+def _elevation_text(elevation_deg) -> str:
+    values = ", ".join(f"{e:g}" for e in elevation_deg)
+    return f"{len(elevation_deg)} elevation{'s' if len(elevation_deg) > 1 else ''} ({values} deg)"
+
+
+def _grid_text(range_m, azimuth_rad) -> str:
+    r, a = np.asarray(range_m), np.rad2deg(np.asarray(azimuth_rad))
+    return f"{len(r)} ranges {r[0]:.3f}..{r[-1]:.3f} m x {len(a)} azimuths {a[0]:.1f}..{a[-1]:.1f} deg"
+
+
+def check_grid(frames: Frames, ckpt: dict, name: str = "the model") -> None:
+    """Refuse data on another range/azimuth grid or at other elevations than the checkpoint's,
+    naming both."""
+    trained = trained_elevations(ckpt["model_config"].get("elevation_deg"))
+    if missing_elevations(frames.elevation_deg, trained):
+        raise ValueError(
+            f"{frames.info.get('folder')} holds energyscapes at {_elevation_text(frames.elevation_deg)}, but {name} "
+            f"was trained on {_elevation_text(trained)}: give it data beamformed at those elevations "
+            "(processing.elevation_deg)"
+        )
+    same = len(frames.range_m) == len(ckpt["range_m"]) and len(frames.azimuth_rad) == len(ckpt["azimuth_rad"])
+    if not (
+        same and np.allclose(frames.range_m, ckpt["range_m"]) and np.allclose(frames.azimuth_rad, ckpt["azimuth_rad"])
+    ):
+        raise ValueError(
+            f"{frames.info.get('folder')} is on the grid {_grid_text(frames.range_m, frames.azimuth_rad)}, but "
+            f"{name} was trained on {_grid_text(ckpt['range_m'], ckpt['azimuth_rad'])}"
+        )
+
+
+def return_threshold(ckpt: dict, override: float | None = None, name: str = "the checkpoint") -> float:
+    """The return threshold to read a checkpoint's predictions at: `override`, else its calibrated one."""
+    if override is None and "threshold" not in ckpt:
+        raise ValueError(
+            f"{name} has no calibrated return threshold (it predates calibration): give one with --threshold"
+        )
+    threshold = float(ckpt["threshold"] if override is None else override)
+    if not 0 < threshold <= 1:
+        raise ValueError(f"the return threshold must lie in (0, 1], got {threshold}")
+    return threshold

@@ -52,13 +52,15 @@ def _evaluate(args) -> int:
             stage,
             device=args.device,
             split=args.split,
+            from_frame=args.from_frame,
             threshold=args.threshold,
             progress=not args.quiet,
             odometry_noise=OdometryNoise.from_drift(args.odometry_drift),
             odometry_seed=args.odometry_seed,
             grids=not args.no_grids,
         )
-    print(f"{counted(report['windows'], 'window')} ({report['split']} split) of {report['data']}:")
+    skipped = f", from frame {args.from_frame} of each episode" if args.from_frame else ""
+    print(f"{counted(report['windows'], 'window')} ({report['split']} split{skipped}) of {report['data']}:")
     for name, r in report["results"].items():
         m = r["all"]
         print(
@@ -229,6 +231,14 @@ def build_parser(base=None) -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="report folder")
     p.add_argument("--overwrite", action="store_true", help=OVERWRITE_HELP)
     p.add_argument("--split", default="auto", choices=["auto", "val", "all"], help="auto: val on the training data")
+    p.add_argument(
+        "--from-frame",
+        type=int,
+        default=0,
+        metavar="N",
+        help="score only the windows starting N or more frames into their episode (e.g. past the pings a "
+        "calibration was fitted to)",
+    )
     p.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     p.add_argument(

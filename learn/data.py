@@ -367,6 +367,7 @@ class Windows:
         self.scenario = frames.scenario[label_frame]
         first_of_episode = np.flatnonzero(np.r_[True, frames.episode[1:] != frames.episode[:-1]])
         first = first_of_episode[np.searchsorted(first_of_episode, self.starts, side="right") - 1]
+        self.position = self.starts - first  # how many frames into its episode each window starts
         held = share if share is not None and share.frames is frames and share.device == self.device else None
         # windows of other models on the same frames share one copy on the device (a 50,000-frame
         # dataset is 6.5 GB: one per model would not fit a GPU beside the others)

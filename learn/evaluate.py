@@ -25,9 +25,8 @@ import numpy as np
 import torch
 from tqdm.auto import tqdm
 
-from .checkpoint import load_checkpoint
+from .checkpoint import check_grid, load_checkpoint, return_threshold
 from .data import DataConfig, Frames, Windows, level_slice, load_frames, recorded_path
-from .elevations import missing_elevations
 from .grid_baselines import grid_predictors
 from .metrics import image_metrics
 from .models import ModelConfig, predict_image, trained_elevations
@@ -219,6 +218,7 @@ def evaluate(
     device: str = "cpu",
     split: str = "auto",
     episodes=None,
+    from_frame: int = 0,
     batch_size: int = 32,
     examples: int = 4,
     timing: bool = True,
@@ -239,6 +239,8 @@ def evaluate(
         split: "all" windows, "val" (the episodes the first checkpoint held out, on its own
             training data), or "auto" (val on the training data, else all).
         episodes: Episode ids to score instead of a split.
+        from_frame: Score only the windows that start at least this many frames into their
+            episode (e.g. past the pings a calibration was fitted to).
         threshold: Return threshold for every model instead of each checkpoint's calibrated one.
         progress: A progress bar per model and baseline while it is scored.
         odometry_noise: Models with memory (and the occupancy grids) read the drive's poses as
@@ -271,6 +273,13 @@ def evaluate(
                 f"(K = {data_config.frames}, label {data_config.label}); compare alike"
             )
     indices, split = _pick_windows(windows, ckpt, frames, split, episodes)
+    if from_frame < 0:
+        raise ValueError(f"from_frame must be >= 0, got {from_frame}")
+    if from_frame:
+        indices = indices[windows.position[indices] >= from_frame]
+        if len(indices) == 0:
+            where = frames.info.get("folder")
+            raise ValueError(f"no window of {where} starts {from_frame} or more frames into its episode")
     out.mkdir(parents=True, exist_ok=True)
     scenario = windows.scenario[indices]
     predictors = {}
@@ -298,6 +307,7 @@ def evaluate(
         "suite": frames.info.get("suite"),
         "variant": frames.info.get("variant"),
         "split": split,
+        "from_frame": from_frame,
         "windows": len(indices),
         "model": ckpt["model_config"],
         "parameters": ckpt["parameters"],
@@ -346,48 +356,6 @@ def with_noisy_odometry(frames: Frames, noise: OdometryNoise, *, seed: int) -> F
         rng = np.random.default_rng([seed, int(episode)])
         pose[rows] = noisy_drive(frames.pose[rows], noise, rng)
     return dataclasses.replace(frames, pose=pose)
-
-
-def _elevation_text(elevation_deg) -> str:
-    values = ", ".join(f"{e:g}" for e in elevation_deg)
-    return f"{len(elevation_deg)} elevation{'s' if len(elevation_deg) > 1 else ''} ({values} deg)"
-
-
-def _grid_text(range_m, azimuth_rad) -> str:
-    r, a = np.asarray(range_m), np.rad2deg(np.asarray(azimuth_rad))
-    return f"{len(r)} ranges {r[0]:.3f}..{r[-1]:.3f} m x {len(a)} azimuths {a[0]:.1f}..{a[-1]:.1f} deg"
-
-
-def check_grid(frames: Frames, ckpt: dict, name: str = "the model") -> None:
-    """Refuse data on another range/azimuth grid or at other elevations than the checkpoint's,
-    naming both."""
-    trained = trained_elevations(ckpt["model_config"].get("elevation_deg"))
-    if missing_elevations(frames.elevation_deg, trained):
-        raise ValueError(
-            f"{frames.info.get('folder')} holds energyscapes at {_elevation_text(frames.elevation_deg)}, but {name} "
-            f"was trained on {_elevation_text(trained)}: give it data beamformed at those elevations "
-            "(processing.elevation_deg)"
-        )
-    same = len(frames.range_m) == len(ckpt["range_m"]) and len(frames.azimuth_rad) == len(ckpt["azimuth_rad"])
-    if not (
-        same and np.allclose(frames.range_m, ckpt["range_m"]) and np.allclose(frames.azimuth_rad, ckpt["azimuth_rad"])
-    ):
-        raise ValueError(
-            f"{frames.info.get('folder')} is on the grid {_grid_text(frames.range_m, frames.azimuth_rad)}, but "
-            f"{name} was trained on {_grid_text(ckpt['range_m'], ckpt['azimuth_rad'])}"
-        )
-
-
-def return_threshold(ckpt: dict, override: float | None = None, name: str = "the checkpoint") -> float:
-    """The return threshold to read a checkpoint's predictions at: `override`, else its calibrated one."""
-    if override is None and "threshold" not in ckpt:
-        raise ValueError(
-            f"{name} has no calibrated return threshold (it predates calibration): give one with --threshold"
-        )
-    threshold = float(ckpt["threshold"] if override is None else override)
-    if not 0 < threshold <= 1:
-        raise ValueError(f"the return threshold must lie in (0, 1], got {threshold}")
-    return threshold
 
 
 def _pick_windows(windows: Windows, ckpt: dict, frames: Frames, split: str, episodes) -> tuple[np.ndarray, str]:

@@ -24,9 +24,9 @@ from tqdm.auto import tqdm
 from clitools import counted
 from clitools.outputs import atomic_output, check_output
 
-from .checkpoint import load_checkpoint
+from .checkpoint import check_grid, load_checkpoint, return_threshold
 from .data import DataConfig, Frames, load_frames, recorded_path
-from .evaluate import check_grid, model_predictor, model_windows, return_threshold
+from .evaluate import model_predictor, model_windows
 from .inputs import check_fits, npy_header, read_json
 from .models import ModelConfig, trained_elevations
 from .predict_pictures import has_lidar_truth, picture_indices, plot_windows

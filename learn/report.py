@@ -57,10 +57,12 @@ def report_markdown(report: dict) -> str:
     res = report["results"]
     checkpoints = report.get("checkpoints", {"model": report["checkpoint"]})
     thresholds = report.get("thresholds", {})
+    skipped = f", from frame {report['from_frame']} of each episode" if report.get("from_frame") else ""
     lines = [
         f"# Evaluation: {report['model']['name']} (K = {report['data_config']['frames']}) on {_scored_on(report)}",
         "",
-        f"{report['windows']:,} windows ({report['split']} split) of `{report['data']}`. Mean ± std over windows; "
+        f"{report['windows']:,} windows ({report['split']} split{skipped}) of `{report['data']}`. Mean ± std over "
+        "windows; "
         "a prediction is read as a LiDAR scan: per beam the nearest cell at or above the return threshold.",
         "",
         "| predictor | checkpoint | return threshold |",

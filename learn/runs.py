@@ -24,10 +24,9 @@ import numpy as np
 
 from clitools.locks import folder_lock
 
-from .checkpoint import check_compatible, config_changes, load_weights, read_checkpoint, save_checkpoint
+from .checkpoint import check_compatible, check_grid, config_changes, load_weights, read_checkpoint, save_checkpoint
 from .config import MONITORS, LearnConfig, TrainConfig
 from .data import Windows
-from .evaluate import check_grid
 from .models import ModelConfig
 from .progress import warn_if_silent, write_history, write_whole
 

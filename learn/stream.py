@@ -67,7 +67,8 @@ class Stream:
     def __init__(
         self, model: torch.nn.Module, ckpt: dict, device=None, *, threshold=None, amp: bool = True, graphs: bool = True
     ):
-        from .evaluate import model_predictor, return_threshold
+        from .checkpoint import return_threshold
+        from .evaluate import model_predictor
 
         weights = next(iter(model.parameters()), None)
         self.device = torch_device(device) if device is not None else (weights.device if weights is not None else None)

@@ -19,10 +19,9 @@ from tqdm.auto import tqdm
 from clitools.outputs import atomic_output
 
 from .bag import Recording, read_bag, write_bag
-from .checkpoint import load_checkpoint
+from .checkpoint import check_grid, load_checkpoint
 from .data import DataError, shard_paths, window_starts
 from .elevations import elevation_rows
-from .evaluate import check_grid
 from .predict import PredictionRun, _check_outputs, read_input, writing_bar
 from .predict_pictures import has_lidar_truth, plot_stream
 from .stream import Stream

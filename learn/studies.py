@@ -22,10 +22,10 @@ import torch
 
 from clitools.outputs import atomic_folder, atomic_output, check_name
 
-from .checkpoint import load_checkpoint, read_checkpoint
+from .checkpoint import load_checkpoint, read_checkpoint, return_threshold
 from .config import LearnConfig, from_record
 from .data import load_frames, recorded_path, shard_paths
-from .evaluate import evaluate, model_predictor, model_windows, return_threshold
+from .evaluate import evaluate, model_predictor, model_windows
 from .models import ModelConfig
 from .summaries import TABLE2_CASES, distinct_folders, number_at, read_record, spread, study_table
 from .summaries import seeds_summary as seeds_summary  # re-exported: the studies' summaries

@@ -127,6 +127,12 @@ def test_train_checkpoint_resume_and_evaluate(tiny_dataset, tmp_path):
     assert one["split"] == "episodes" and one["windows"] == 6  # one 8-frame episode, K = 3
     with pytest.raises(ValueError, match="none of the episodes"):
         evaluate(run / "best.pt", tiny_dataset, run / "none", episodes=[99], timing=False)
+    # windows past each drive's first frames (a calibration's pings): two 8-frame drives, K = 3: starts 4 and 5 of each
+    late = evaluate(run / "best.pt", tiny_dataset, run / "late", split="all", from_frame=4, timing=False, examples=1)
+    assert late["windows"] == 4 and "from frame 4 of each episode" in (run / "late" / "report.md").read_text()
+    for too_far, complaint in ((6, "starts 6 or more frames"), (-1, "from_frame must be >= 0")):
+        with pytest.raises(ValueError, match=complaint):
+            evaluate(run / "best.pt", tiny_dataset, run / "none", split="all", from_frame=too_far, timing=False)
     energy = load_frames(tiny_dataset).energyscape[:8].astype(np.float32)
     np.save(tmp_path / "recorded.npy", energy)
     out = predict(run / "best.pt", tmp_path / "recorded.npy", tmp_path / "pred.npz")

@@ -12,11 +12,10 @@ import numpy as np
 import pytest
 import torch
 
-from learn.checkpoint import load_checkpoint
+from learn.checkpoint import check_grid, load_checkpoint
 from learn.cli import main
 from learn.config import LearnConfig, TrainConfig
 from learn.data import DataConfig, DataError, load_frames
-from learn.evaluate import check_grid
 from learn.models import ModelConfig
 from learn.train import train
 
