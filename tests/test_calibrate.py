@@ -242,6 +242,37 @@ def test_the_emitters_directivity_is_recovered(device):
     assert max(abs(r / HIDDEN_R[n] - 1) for n, r in zip(held.classes, held.reflection, strict=True)) > 0.10
 
 
+def test_skipping_the_direct_sound_recovers_the_reflections(device):
+    """Recordings near the floor (0.2-0.5 m, as crossengine's) with the emitter's direct sound at
+    every microphone on top (the call at 1 / distance, as an omnidirectional source sends it; no
+    traced path explains it), overlapping the first floor echoes: fitted as they are, R misses by
+    more than 10 %; with the first 3 ms left out of both sides (`skip_s`), each class's within 5 %."""
+    from acoustic_sim.calibrate.fit import skip_window
+
+    room = scenes.box_room((6.0, 4.0, 3.0), wall="painted_wall", floor="floor", ceiling="ceiling_tile")
+    hidden = with_surfaces(room, {name: {"reflection": r} for name, r in HIDDEN_R.items()})
+    rng = np.random.default_rng(4)
+    placed = rng.uniform([1.2, 1.2, 0.2, -np.pi], [4.8, 2.8, 0.5, np.pi], size=(8, 4))
+    poses = np.stack([scenes.pose(x, y, yaw, z) for x, y, z, yaw in placed])
+    sonar = Sonar(CONFIG, TRACER, device=device)
+    signals = sonar.record(sonar.trace(hidden, poses), pose_count=len(poses))
+    distance = np.linalg.norm(np.asarray(CONFIG.microphones_m) - np.asarray(CONFIG.emitter_m), axis=1)
+    call, fs = CONFIG.chirp.samples(), CONFIG.chirp.sample_rate_hz
+    for m, d in enumerate(distance):
+        start = round(d / CONFIG.atmosphere.speed_of_sound * fs)
+        signals[:, m, start : start + len(call)] += call / d
+    options = {"fit_gains": False, "fit_delays": False, "device": device}
+    kept = fit_surfaces(room, poses, signals, CONFIG, TRACER, **options)
+    assert max(abs(r / HIDDEN_R[n] - 1) for n, r in zip(kept.classes, kept.reflection, strict=True)) > 0.10
+    skipped = fit_surfaces(room, poses, signals, CONFIG, TRACER, skip_s=3e-3, **options)
+    for name, value in zip(skipped.classes, skipped.reflection, strict=True):
+        assert abs(value / HIDDEN_R[name] - 1) < 0.05, (name, value)
+    window = skip_window(CONFIG, 3e-3)
+    assert not window[: round(3e-3 * fs)].any() and (window[round(3.2e-3 * fs) :] == 1).all()
+    with pytest.raises(ValueError, match="skip_s"):
+        skip_window(CONFIG, -1e-3)
+
+
 def pra_recording(pose, config, size, reflection, rng, snr_db=40.0):
     """One ping recorded by pyroomacoustics in the shoebox [0, size] whose walls, floor and ceiling
     reflect `reflection` (pressure, absorption 1 - r^2 each), no air absorption, at our speed of
@@ -428,6 +459,53 @@ def test_a_suite_generates_in_the_fitted_physics(tmp_path):
         episode_sonar_config(physics, CONFIG, np.random.default_rng(0))
 
 
+def test_a_suite_spans_several_fits_and_takes_their_air(tmp_path, device):
+    """A list of fits (rooms of one building): each class's R and s from the lowest fit's (1 - f) to
+    the highest's (1 + f), the radius likewise, the gains and delays their mean; fits made without
+    air absorption generate without it (late echoes louder than in absorbing air, the plan naming
+    it; an absorbing variant's physics record stays as it was), and fits that disagree on the air
+    are refused."""
+    from acoustic_sim.datasets.generate import generate
+    from acoustic_sim.datasets.suites import SUITES, load_suite
+
+    def fit(name, walls, gain_db, radius_mm, air=True):
+        record = {
+            "classes": {"walls": {"reflection": walls, "scattering": walls / 4}, "floor": {"reflection": 0.9}},
+            "mic_gain_db": [gain_db] * 32,
+            "directivity": {"piston_radius_mm": radius_mm},
+            "air_absorption": air,
+        }
+        (tmp_path / name).write_text(json.dumps(record))
+
+    fit("a.json", 0.6, 1.0, 2.0, air=False)
+    fit("b.json", 0.8, 3.0, 4.0, air=False)
+    fit("c.json", 0.7, 0.0, 3.0)
+    suite = tmp_path / "rooms.toml"
+    suite.write_text('base = "tiny"\n[physics]\ncalibration = ["a.json", "b.json"]\ncalibration_spread = 0.1\n')
+    (physics,) = load_suite(suite).variants.values()
+    assert physics.surfaces["walls"] == {
+        "reflection": [pytest.approx(0.54), pytest.approx(0.88)],
+        "scattering": [pytest.approx(0.135), pytest.approx(0.22)],
+    }
+    assert physics.surfaces["floor"]["reflection"] == [pytest.approx(0.81), pytest.approx(0.99)]
+    assert physics.mic_gain_db == (2.0,) * 32 and not physics.air_absorption
+    assert physics.vary["sonar.emitter_radius_m"] == [pytest.approx(0.0018), pytest.approx(0.0044)]
+    suite.write_text('base = "tiny"\n[physics]\ncalibration = ["a.json", "c.json"]\n')
+    with pytest.raises(ValueError, match="some fits were made with air absorption and some without"):
+        load_suite(suite)
+    still = dataclasses.replace(physics, air_absorption=True, sonar_noise="none")
+    assert "air_absorption" not in still.to_json()  # plan ids of absorbing air as they were
+    late = {}
+    for name, variant in (("absorbing", still), ("without", dataclasses.replace(still, air_absorption=False))):
+        one = dataclasses.replace(SUITES["tiny"], episode_frames=2, variants={"": variant})
+        generate(one, tmp_path / name, frames=2, shards=1, device=device, progress=False, keep_signals=True, seed=3)
+        with h5py.File(next((tmp_path / name).glob("shard-*.h5"))) as f:
+            late[name] = float((f["signals"][:, :, 4000:].astype(np.float64) ** 2).sum())
+        late[name + " plan"] = (tmp_path / name / "plan.json").read_text()
+    assert late["without"] > 2 * late["absorbing"], late
+    assert '"air_absorption": false' in late["without plan"] and "air_absorption" not in late["absorbing plan"]
+
+
 @pytest.mark.parametrize(("snr_db", "tolerance"), [(None, 0.05), (20.0, 0.10)])
 def test_the_offices_four_surface_classes_are_recovered(device, snr_db, tolerance):
     """The office (walls, floor, ceiling, and objects of several materials, round chair legs and
@@ -510,3 +588,13 @@ def test_recordings_come_as_two_npy_files(tmp_path):
     np.save(tmp_path / "two.npy", poses[:2])
     with pytest.raises(ValueError, match=r"must be \(N, 4, 4\) and \(N, mics, samples\)"):
         load_recordings(tmp_path / "signals.npy", poses_path=tmp_path / "two.npy")
+    # a range of pings (a drive's first ones, the rest kept for testing), then at most `pings` of them
+    part_poses, part_signals = load_recordings(tmp_path / "both.npz", frames=(1, 3), pings=1)
+    np.testing.assert_array_equal(part_poses, poses[1:2])
+    np.testing.assert_array_equal(part_signals, signals[1:2])
+    with pytest.raises(ValueError, match="frames 2:4 are not within its 3 pings"):
+        load_recordings(tmp_path / "both.npz", frames=(2, 4))
+    from acoustic_sim.cli import main
+
+    with pytest.raises(SystemExit):
+        main(["calibrate", str(tmp_path / "both.npz"), "--frames", "3:1"])

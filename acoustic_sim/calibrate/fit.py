@@ -18,6 +18,7 @@ from .directivity import by_knot
 BLOCK_BYTES = 512e6  # the signature signals held at once (float64: signatures x pings x mics x samples)
 MAX_DELAY_S = 20e-6  # how far a microphone's fitted delay may go either way (9 samples at 450 kHz)
 BAND_FLOOR = 1e-3  # the call's band: frequencies within 60 dB of its spectrum's peak
+SKIP_TAPER_S = 0.1e-3  # a skipped start ends in a raised-cosine ramp this long, not a step
 
 
 @dataclass
@@ -169,14 +170,16 @@ def signal_gram(
     absorption: bool = True,
     directivity_knots: int = 0,
     scattering: bool = False,
+    skip_s: float = 0.0,
     device=None,
     progress: bool = False,
 ) -> tuple[SignalGram, tuple[str, ...], np.ndarray, np.ndarray]:
     """Trace `poses` in `scene` once (specular paths, and with `scattering` the scattered ones
     too), group the arrivals by signature (and, with `directivity_knots` > 0, by knot of the
     emitter's directivity, that many every 90 / knots degrees from the axis) and reduce the
-    recorded `signals` (pings, mics, samples) against each group's signals; returns the Gram data,
-    the surface classes the paths reflect off, their nominal R and their nominal s."""
+    recorded `signals` (pings, mics, samples) against each group's signals, both weighted by
+    `skip_window(skip_s)`; returns the Gram data, the surface classes the paths reflect off, their
+    nominal R and their nominal s."""
     from ..engine.sonar import Sonar
 
     poses = np.asarray(poses, dtype=np.float64)
@@ -190,6 +193,8 @@ def signal_gram(
         raise ValueError("signals hold non-finite samples")
     if scattering and directivity_knots > 0:
         raise ValueError("fitting scattering and the emitter's directivity together is not supported yet: choose one")
+    window = skip_window(config, skip_s)
+    signals = signals * window  # a copy: the caller's recording stays as it was
     tracer = dataclasses.replace(tracer or TracerConfig(), scattering=scattering)
     sonar = Sonar(config, tracer, device=device, scattered_faces=scattering)
     arrivals = sonar.trace(scene, poses)
@@ -242,6 +247,7 @@ def signal_gram(
         heard_in, chosen.pose_index = np.unique(group[mine] * pings + chosen.pose_index - first, return_inverse=True)
         recorded = np.zeros((count * pings, mics, config.record_samples), dtype=np.float32)
         recorded[heard_in] = sonar.record(chosen, pose_count=len(heard_in), absorption=absorption)
+        recorded *= window
         recorded = recorded.reshape(count, pings, mics, -1)  # (G, pings, mics, samples)
         for g in range(count):
             block[g] = recorded[g].transpose(1, 0, 2).reshape(mics, -1)
@@ -259,6 +265,19 @@ def signal_gram(
         data.kept, data.scattered = np.split(shares, 2, axis=1)
         data.scattering_class = np.nonzero(scatters)[0]
     return data, classes, nominal, nominal_s
+
+
+def skip_window(config: SonarConfig, skip_s: float) -> np.ndarray:
+    """Weights (samples,) float32 that leave out a recording's first `skip_s` seconds (the
+    emitter's direct sound and ringing, which no traced path explains), rising to 1 over
+    SKIP_TAPER_S after them; all ones for skip_s = 0."""
+    if not 0.0 <= skip_s < config.record_samples / config.chirp.sample_rate_hz:
+        raise ValueError(f"skip_s must be in [0, the recording's length), got {skip_s}")
+    t = np.arange(config.record_samples) / config.chirp.sample_rate_hz - skip_s
+    if skip_s == 0.0:
+        return np.ones(config.record_samples, dtype=np.float32)
+    ramp = 0.5 - 0.5 * np.cos(np.pi * np.clip(t / SKIP_TAPER_S, 0.0, 1.0))
+    return ramp.astype(np.float32)
 
 
 def _delay_band(config: SonarConfig) -> tuple[int, np.ndarray]:
@@ -338,6 +357,7 @@ def fit_surfaces(
     directivity_knots: int = 0,
     fit_scattering: bool = False,
     absorption: bool = True,
+    skip_s: float = 0.0,
     device=None,
     progress: bool = False,
     max_steps: int = 500,
@@ -357,7 +377,8 @@ def fit_surfaces(
     them) and each class's energy scattering coefficient s is fitted too, from its faces' mean;
     a class whose materials scatter nothing (s = 0) sends no scattered arrival to fit it by and
     keeps its s. `absorption`: whether the recording's air absorbs (real air does; a simulation
-    may have left it out)."""
+    may have left it out). `skip_s`: the first seconds of every recording left out of the error
+    (the emitter's direct sound; the simulation's too), `skip_window`."""
     from scipy.optimize import minimize
 
     if directivity_knots < 0:
@@ -371,6 +392,7 @@ def fit_surfaces(
         absorption=absorption,
         directivity_knots=directivity_knots,
         scattering=fit_scattering,
+        skip_s=skip_s,
         device=device,
         progress=progress,
     )

@@ -14,19 +14,20 @@ if TYPE_CHECKING:
 
 
 def load_recordings(
-    path, pings: int | None = None, episode: int | None = None, poses_path=None, sonar=None
+    path, pings: int | None = None, episode: int | None = None, poses_path=None, sonar=None, frames=None
 ) -> tuple[np.ndarray, np.ndarray]:
     """Poses (N, 4, 4) and microphone signals (N, mics, samples) float32 of recorded pings, from a
     .npz holding `poses` and `signals`, a .npy of signals with a .npy of their poses (`poses_path`),
     a CHIRP file (its odometry's poses; its call's sample rate checked against `sonar`'s, the
     eRTIS's by default), or a dataset folder (or one shard) made with `generate --signals`: the
-    frames of one `episode` (one room; required where the data hold several). With `pings`, at
-    most that many, evenly spaced."""
-    return recordings_and_sonar(path, pings, episode, poses_path, sonar)[:2]
+    frames of one `episode` (one room; required where the data hold several). With `frames`
+    (first, stop), only the pings first .. stop - 1 in recorded order (e.g. a drive's first two
+    seconds, the rest kept for testing); with `pings`, at most that many of them, evenly spaced."""
+    return recordings_and_sonar(path, pings, episode, poses_path, sonar, frames)[:2]
 
 
 def recordings_and_sonar(
-    path, pings: int | None = None, episode: int | None = None, poses_path=None, sonar=None
+    path, pings: int | None = None, episode: int | None = None, poses_path=None, sonar=None, frames=None
 ) -> tuple[np.ndarray, np.ndarray, SonarConfig | None]:
     """`load_recordings`'s poses and signals, and the sonar they were recorded with: a CHIRP file's
     own microphones and record length (its pings carry them), else `sonar` itself; one read of
@@ -41,6 +42,8 @@ def recordings_and_sonar(
     elif path.suffix == ".npy":
         poses, signals = _checked_recordings(np.load(poses_path), np.load(path), f"{path} and {poses_path}")
     elif path.suffix == ".h5" and is_chirp(path):
+        if frames is not None:
+            raise ValueError(f"{path}: frames are chosen of a dataset, .npz or .npy; of a CHIRP file, give pings")
         from ..config import SonarConfig
         from ..formats.chirp_input import chirp_recordings
 
@@ -53,6 +56,11 @@ def recordings_and_sonar(
             "signals with a .npy of poses (--poses), a CHIRP file (.h5), or a dataset folder (or shard) made with "
             "generate --signals"
         )
+    if frames is not None:
+        first, stop = frames
+        if not 0 <= first < stop <= len(poses):
+            raise ValueError(f"{path}: frames {first}:{stop} are not within its {len(poses)} pings")
+        poses, signals = poses[first:stop], signals[first:stop]
     if pings is not None and pings < len(poses):
         chosen = np.linspace(0, len(poses) - 1, pings).round().astype(int)
         poses, signals = poses[chosen], signals[chosen]

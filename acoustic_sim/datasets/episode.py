@@ -149,6 +149,7 @@ def simulate_episode(
         noise=physics.sonar_noise,
         snr_db=ready.snr_db,
         seed=episode.seed,
+        absorption=physics.air_absorption,
         keep_signals=keep_signals,
         processing=nominal.processing,
         assumed_array=nominal.sonar,

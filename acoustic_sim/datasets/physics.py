@@ -85,6 +85,8 @@ class Physics:
         lidar_noise_m: Its size (std or half-width) [m].
         lidar_dropout_probability: Share of LiDAR beams that return nothing.
         temperature_c: Air temperature per episode [C]; the beamformer always assumes 343 m/s.
+        air_absorption: False: the air absorbs nothing (ISO 9613-1 left out), as in recordings
+            made by an engine that leaves it out (a fit `calibrate --no-air-absorption` made).
         mic_position_sigma_m, mic_gain_sigma_db, mic_delay_sigma_s: Channel mismatch of the
             simulated array per episode (the beamformer assumes the nominal array).
         mic_gain_db, mic_delay_s: Each microphone's gain [dB] and extra delay [s] (a fit's,
@@ -111,6 +113,7 @@ class Physics:
     lidar_noise_m: float = 0.01
     lidar_dropout_probability: float = 0.0
     temperature_c: tuple[float, float] = (20.0, 20.0)
+    air_absorption: bool = True
     mic_position_sigma_m: float = 0.0
     mic_gain_sigma_db: float = 0.0
     mic_delay_sigma_s: float = 0.0
@@ -175,6 +178,8 @@ class Physics:
         for name in ("vary", "surfaces", "mic_gain_db", "mic_delay_s"):  # left out when empty: shards stay lean
             if not out[name]:
                 del out[name]
+        if self.air_absorption:  # named only when off: the plans (and plan ids) of absorbing air stay as they were
+            del out["air_absorption"]
         return out
 
     def tracer(self) -> TracerConfig:

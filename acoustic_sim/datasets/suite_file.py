@@ -14,6 +14,8 @@ import tomllib
 import typing
 from pathlib import Path
 
+import numpy as np
+
 from clitools import read_value
 from clitools.limits import input_file
 
@@ -98,55 +100,87 @@ def _calibrated_surfaces(table: dict, path: Path, where: str) -> None:
     where fitted), drawn per episode from [R (1 - f), min(1, R (1 + f))] with `calibration_spread = f`
     (default 0: R itself);
     its microphones' gains and delays (`mic_gain_db`, `mic_delay_s`); and where it fitted the
-    emitter's directivity, the closest piston's radius r, drawn from [r (1 - f), r (1 + f)] (`vary`)."""
+    emitter's directivity, the closest piston's radius r, drawn from [r (1 - f), r (1 + f)] (`vary`).
+    A fit made of recordings whose air absorbs nothing (`calibrate --no-air-absorption`) turns
+    `air_absorption` off. A list of fits (several rooms of one building, one sensor) spans them:
+    each class's R and s from the lowest fit's (1 - f) to the highest's (1 + f), the radius
+    likewise, and each microphone's gain and delay their mean over the fits that give them."""
     spread = table.pop("calibration_spread", None)
     if "calibration" not in table:
         if spread is not None:
             raise ValueError(f"{where}: calibration_spread needs calibration = FIT.json (a file calibrate wrote)")
         return
-    name = table.pop("calibration")
-    _check(name, "a string", f"{where}.calibration")
+    names = table.pop("calibration")
+    if isinstance(names, str):
+        names = [names]
+    _check(names, "a list of strings", f"{where}.calibration")
+    if not names:
+        raise ValueError(f"{where}.calibration: name a fit (FIT.json) or a list of them, got an empty list")
     if spread is None:
         spread = 0.0
     _check(spread, "a number", f"{where}.calibration_spread")
     if not 0 <= spread < 1:
         raise ValueError(f"{where}.calibration_spread: a fraction of R (and s) in [0, 1), got {spread}")
-    fit_path = path.parent / name
-    input_file(fit_path, what="calibration", max_bytes=CALIBRATION_MAX_BYTES, bound="a fit is a few kilobytes")
-    try:
-        fit = json.loads(fit_path.read_text(encoding="utf-8"))
-        fitted = {
-            cls: {k: float(values[k]) for k in ("reflection", "scattering") if k in values}
-            for cls, values in fit["classes"].items()
-        }
-        if any("reflection" not in values for values in fitted.values()):
-            raise KeyError("reflection")
-        channels = {"mic_gain_db": [float(v) for v in fit.get("mic_gain_db", [])]}
-        channels["mic_delay_s"] = [float(v) * 1e-6 for v in fit.get("mic_delay_us", [])]
-        radius_mm = (fit.get("directivity") or {}).get("piston_radius_mm")
-        radius = None if radius_mm is None else float(radius_mm) * 1e-3
-    except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError):
-        raise ValueError(
-            f"{where}.calibration: {fit_path} is not a fit `calibrate` wrote (classes with reflection)"
-        ) from None
-    for name, values in channels.items():
-        if values and name in table:
+    fits = [_read_fit(path.parent / name, where) for name in names]
+    for name in ("mic_gain_db", "mic_delay_s"):
+        given = [fit[name] for fit in fits if fit[name]]
+        if given and name in table:
             raise ValueError(f"{where}: {name} and calibration both give the microphones' {name.split('_')[1]}s")
-        if values:
-            table[name] = values
-    if radius is not None:
+        if len({len(values) for values in given}) > 1:
+            raise ValueError(f"{where}.calibration: the fits give {name} for different numbers of microphones")
+        if given:
+            table[name] = np.mean(given, axis=0).tolist()
+    airs = {fit["air_absorption"] for fit in fits}
+    if len(airs) > 1:
+        raise ValueError(f"{where}.calibration: some fits were made with air absorption and some without")
+    if airs == {False}:
+        if table.get("air_absorption", False) is not False:
+            raise ValueError(f"{where}: air_absorption and calibration (made without air absorption) disagree")
+        table["air_absorption"] = False
+    radii = [fit["radius"] for fit in fits if fit["radius"] is not None]
+    if radii:
         vary = table.setdefault("vary", {})
         _check(vary, "a table", f"{where}.vary")
         if "sonar.emitter_radius_m" in vary:
             raise ValueError(f"{where}: vary.sonar.emitter_radius_m and calibration both give the emitter's radius")
-        vary["sonar.emitter_radius_m"] = [radius * (1 - spread), radius * (1 + spread)]
+        vary["sonar.emitter_radius_m"] = [min(radii) * (1 - spread), max(radii) * (1 + spread)]
     surfaces = table.setdefault("surfaces", {})
     _check(surfaces, "a table of tables", f"{where}.surfaces")
-    for cls, values in fitted.items():
-        for key, value in values.items():
-            if key in surfaces.get(cls, {}):
-                raise ValueError(f"{where}: surfaces.{cls}.{key} and calibration both give {cls}' {key}")
-            surfaces.setdefault(cls, {})[key] = [value * (1 - spread), min(1.0, value * (1 + spread))]
+    spans: dict[tuple[str, str], list[float]] = {}
+    for fit in fits:
+        for cls, values in fit["classes"].items():
+            for key, value in values.items():
+                spans.setdefault((cls, key), []).append(value)
+    for (cls, key), values in spans.items():
+        if key in surfaces.get(cls, {}):
+            raise ValueError(f"{where}: surfaces.{cls}.{key} and calibration both give {cls}' {key}")
+        surfaces.setdefault(cls, {})[key] = [min(values) * (1 - spread), min(1.0, max(values) * (1 + spread))]
+
+
+def _read_fit(fit_path: Path, where: str) -> dict:
+    """What a suite takes of a fit `calibrate` wrote: per class R (and s), the microphones' gains
+    [dB] and delays [s] (empty where not fitted) and the nearest piston's radius [m] (or None)."""
+    input_file(fit_path, what="calibration", max_bytes=CALIBRATION_MAX_BYTES, bound="a fit is a few kilobytes")
+    try:
+        fit = json.loads(fit_path.read_text(encoding="utf-8"))
+        classes = {
+            cls: {k: float(values[k]) for k in ("reflection", "scattering") if k in values}
+            for cls, values in fit["classes"].items()
+        }
+        if any("reflection" not in values for values in classes.values()):
+            raise KeyError("reflection")
+        radius_mm = (fit.get("directivity") or {}).get("piston_radius_mm")
+        return {
+            "classes": classes,
+            "mic_gain_db": [float(v) for v in fit.get("mic_gain_db", [])],
+            "mic_delay_s": [float(v) * 1e-6 for v in fit.get("mic_delay_us", [])],
+            "radius": None if radius_mm is None else float(radius_mm) * 1e-3,
+            "air_absorption": bool(fit.get("air_absorption", not fit.get("options", {}).get("no_air_absorption"))),
+        }
+    except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError):
+        raise ValueError(
+            f"{where}.calibration: {fit_path} is not a fit `calibrate` wrote (classes with reflection)"
+        ) from None
 
 
 def _check(value, kind: str, where: str) -> None:
