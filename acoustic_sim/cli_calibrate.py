@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import os
 import time
 from pathlib import Path
 
@@ -14,6 +15,8 @@ from clitools.outputs import OVERWRITE_HELP, atomic_folder
 
 from .cli_scene import add_scene_options, scene_from_args
 from .cli_text import COMMANDS, MESH_OPTIONS, SET_HELP, VERBOSE_HELP
+
+PATH_OPTIONS = ("recordings", "poses", "svg", "mesh", "materials", "out")
 
 
 def add_calibrate_parser(sub, builders) -> None:
@@ -162,6 +165,9 @@ def _calibrate_into(args, written: Path) -> str:
     panels = _before_and_after(scene, fit, poses[middle], signals[middle], rig, tracer, absorption, args.device)
     render_calibration(fit, panels, rig.processing.grid, written.with_suffix(".png"))
     options = {k: v for k, v in vars(args).items() if not callable(v)}
+    for name in PATH_OPTIONS:  # as the learner records paths: relative to where it ran, never a machine's own
+        if options.get(name):
+            options[name] = os.path.relpath(Path(options[name]).absolute())
     record = {
         "classes": _classes_record(fit),
         "mic_gain_db": np.round(fit.mic_gain_db, 4).tolist(),

@@ -3,6 +3,7 @@ recordings made by the simulator with hidden values."""
 
 import dataclasses
 import json
+from pathlib import Path
 
 import h5py
 import numpy as np
@@ -376,6 +377,7 @@ def test_the_command_writes_the_fit_and_its_picture(tmp_path, device, capsys):
     for name, material in nominal.items():
         assert fit["classes"][name]["nominal"] == pytest.approx(scenes.material(material).acoustic_reflection)
     assert fit["pings"] == 6 and fit["loss"][-1] < fit["loss"][0] and fit["sim"]["tracer"]["max_bounces"] == 1
+    assert not Path(fit["options"]["recordings"]).is_absolute() and fit["air_absorption"] is True  # no machine's path
     assert out.with_suffix(".png").stat().st_size > 10_000
     assert "relative error" in capsys.readouterr().out
     np.savez(tmp_path / "bad.npz", poses=poses[:3], signals=signals)
