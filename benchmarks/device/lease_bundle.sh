@@ -1,9 +1,9 @@
 #!/usr/bin/env bash
 # Packs what a lent GPU machine needs beside the working tree, in parts that fit its per-call upload
 # (64 MiB with the tree): Warp and trimesh (../shared/device/warp-bundle), the pure-Python and binary
-# wheels of our own dependencies that machine lacks (svgelements, isal; pyroomacoustics for the
-# crossengine test set), py-spy, and with --ray, Ray and
-# its dependencies unpacked into one xz archive split across the calls. Writes .device/ (ignored by git)
+# wheels of our own dependencies that machine lacks (svgelements, isal; pyroomacoustics and the Cython
+# it imports, for the crossengine test set), py-spy, and with --ray, Ray and its dependencies unpacked
+# into one xz archive split across the calls. Writes .device/ (ignored by git)
 # and prints the calls in order. Run from the repository root, with benchmarks/results moved aside (the
 # tracked tree travels on every call and those results are ~50 MB):
 #
@@ -14,7 +14,7 @@
 set -euo pipefail
 ray=0; [ "${1:-}" = --ray ] && ray=1
 [ -e benchmarks/results ] && { echo "move benchmarks/results aside first (see the top of this script)" >&2; exit 2; }
-../shared/device/warp-bundle svgelements isal pyroomacoustics py-spy >/dev/null
+../shared/device/warp-bundle svgelements isal pyroomacoustics Cython py-spy >/dev/null
 mib() { du -sm "$@" | awk '{s += $1} END {print s}'; }
 bytes=$( (git ls-files -z | xargs -0 du -cb 2>/dev/null || true) | tail -1 | cut -f1) # the results moved aside are missing
 tree=$(((bytes + 1048575) / 1048576))
