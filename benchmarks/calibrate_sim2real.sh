@@ -100,17 +100,26 @@ train)
   wait
   ;;
 score)
+  k=0
+  next_device() { # the GPUs in turn (each validation set is 50,000 frames on the card: spread them)
+    dev=$DEVICE
+    [[ $DEVICE == cuda ]] && dev=cuda:$((k % gpus))
+    k=$((k + 1))
+  }
   for s in "$@"; do
     ckpts=()
     for arm in "${ARMS[@]}"; do ckpts+=(--checkpoint "$arm=$W/runs/seed$s/$arm/best.pt"); done
     # crossengine past each room's calibration frames: no window holds a ping a fit saw
+    next_device
     python3 -m learn evaluate "${ckpts[@]}" --data "$D/crossengine" --split all --from-frame "$CAL_FRAMES" \
-      --out "$W/scores/seed$s/crossengine" --device "$DEVICE" --quiet --overwrite >> "$W/logs/score_seed$s.log" 2>&1 &
+      --out "$W/scores/seed$s/crossengine" --device "$dev" --quiet --overwrite >> "$W/logs/score_seed$s.log" 2>&1 &
+    next_device
     python3 -m learn evaluate "${ckpts[@]}" --data "$D/reality" --split all --out "$W/scores/seed$s/reality" \
-      --device "$DEVICE" --quiet --overwrite >> "$W/logs/score_seed$s.log" 2>&1 &
+      --device "$dev" --quiet --overwrite >> "$W/logs/score_seed$s.log" 2>&1 &
     for arm in "${ARMS[@]}"; do # each arm on its own validation episodes
+      next_device
       python3 -m learn evaluate --checkpoint "$W/runs/seed$s/$arm/best.pt" --data "$D/$arm/bounces_3" --split val \
-        --no-grids --out "$W/scores/seed$s/validation_$arm" --device "$DEVICE" --quiet --overwrite \
+        --no-grids --out "$W/scores/seed$s/validation_$arm" --device "$dev" --quiet --overwrite \
         >> "$W/logs/score_seed$s.log" 2>&1 &
     done
   done
