@@ -16,6 +16,7 @@ the rest of `randomised`'s draws (emitter offset, objects' surfaces) are restate
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import os
 import sys
@@ -143,7 +144,7 @@ def summarise(work: Path, out: Path) -> None:
             baselines[test] = {name: report["results"][name]["all"]["scan_f1"]["mean"] for name in BASELINES}
     table = compare(arms, ARMS[0], list(SETS))
     stops = {arm: [stop_reason(work / "runs" / f"seed{s}" / arm) for s in seeds] for arm in ARMS}
-    text = summary_markdown(table, baselines, windows, stops, seeds)
+    text = summary_markdown(table, baselines, windows, stops, seeds) + "\n" + per_plan_markdown(work, seeds)
     out.mkdir(parents=True, exist_ok=True)
     (out / "calibrate_sim2real.md").write_text(text + "\n" + provenance_line(provenance()) + "\n")
     record = {
@@ -179,6 +180,29 @@ def summary_markdown(table: dict, baselines: dict, windows: dict, stops: dict, s
         + "; ".join(f"`{s}` {paired[s]}" for s in SETS)
         + ".",
     ]
+    return "\n".join(lines) + "\n"
+
+
+def per_plan_markdown(work: Path, seeds: list[int]) -> str:
+    """crossengine's scan F1 per floor-plan family (two rooms each): each arm's mean over seeds, the
+    echo peak's, and the paired differences."""
+    per: dict[str, dict[str, list[float]]] = {}
+    for seed in seeds:
+        with open(work / "scores" / f"seed{seed}" / "crossengine" / "per_scenario.csv", newline="") as f:
+            for row in csv.DictReader(f):
+                if row["scenario"] != "all":
+                    by_predictor = per.setdefault(row["scenario"], {})
+                    by_predictor.setdefault(row["predictor"], []).append(float(row["scan_f1_mean"]))
+    lines = [
+        "`crossengine` per floor-plan family (two rooms each, past the calibration frames), mean over seeds:",
+        "",
+        f"| plan | {ARMS[0]} | {ARMS[1]} | {ARMS[1]} minus {ARMS[0]}, seed by seed | echo peak |",
+        "|---|---|---|---|---|",
+    ]
+    for plan, scores in per.items():
+        paired = " / ".join(f"{b - a:+.3f}" for a, b in zip(scores[ARMS[0]], scores[ARMS[1]], strict=True))
+        cells = " | ".join(f"{np.mean(scores[arm]):.3f}" for arm in ARMS)
+        lines.append(f"| {plan} | {cells} | {paired} | {np.mean(scores['echo peak']):.3f} |")
     return "\n".join(lines) + "\n"
 
 
