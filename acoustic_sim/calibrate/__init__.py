@@ -34,6 +34,10 @@ counts, per class, the factors of (1 - s) and of s, and the recording stays line
 signature's scale. Without it the specular fit takes s as known, and a recording whose scattered
 echoes it leaves out pulls R away from the truth.
 
+A recording's first milliseconds can be left out of the error (`skip_s`, on both sides alike): an
+emitter's direct sound, a real sensor's crosstalk or an omnidirectional source's call at the array,
+overlaps the first floor echoes and no traced path explains it.
+
 What this fit leaves out: paths leaving the emitter backwards (the tracer's baffled emitter sends
 none), and the directivity and scattering fitted together (a scattered arrival's departure angle
 is its ray's, not recorded).
