@@ -33,7 +33,6 @@ from benchmarks.provenance import provenance, write_json  # noqa: E402
 
 CLASSES = ("walls", "floor", "ceiling")
 ARMS = ("randomised", "calibrated")  # the reference first
-SETS = ("validation", "reality", "crossengine")
 BASELINES = ("echo peak", "empty")
 
 
@@ -85,15 +84,18 @@ def write_suite(fits: Path, recordings: Path, out: Path, spread: float) -> None:
 
 
 def fits_markdown(surfaces: dict, directivity: dict, truths: dict, physics) -> str:
-    """Each room's fitted R and s beside its engine's (energy R = the pressure coefficient squared; s = 0:
-    image sources are specular), its piston radius and how much of the recording the fit explains."""
+    """Each room's fitted R and s beside its engine's (energy R = the pressure coefficient squared; s: 0
+    where its surfaces are image sources' mirrors, the rough variant's walls their drawn s), its piston
+    radius and how much of the recording the fit explains."""
     head = " | ".join(f"{c} R fitted / engine's" for c in CLASSES)
     lines = [
-        "Each room's fit beside what its engine used (energy R: the pressure coefficient squared; the engine's s "
-        "is 0). Relative error: the error energy over the recording's, before and after the fit.",
+        "Each room's fit beside what its engine used (energy R: the pressure coefficient squared; the engine's s: "
+        "0, or the rough walls' drawn s). Relative error: the error energy over the recording's, before and after "
+        "the fit.",
         "",
-        f"| room | plan | {head} | s fitted (walls, floor, ceiling) | piston radius [mm] | relative error |",
-        "|---|---|" + "---|" * (len(CLASSES) + 3),
+        f"| room | plan | {head} | s fitted (walls, floor, ceiling) | engine's wall s | piston radius [mm] "
+        "| relative error |",
+        "|---|---|" + "---|" * (len(CLASSES) + 4),
     ]
     misses = {c: [] for c in CLASSES}
     for room, fit in surfaces.items():
@@ -110,7 +112,8 @@ def fits_markdown(surfaces: dict, directivity: dict, truths: dict, physics) -> s
             misses[c].append(got["reflection"] / engine - 1)
         radius = directivity[room]["directivity"]["piston_radius_mm"]
         loss = f"{fit['loss'][0]:.2f} -> {fit['loss'][-1]:.2f}"
-        lines.append(f"| {room} | {truth['plan']} | {' | '.join(cells)} | {', '.join(s)} | {radius:g} | {loss} |")
+        fitted = f"{' | '.join(cells)} | {', '.join(s)} | {truth.get('wall_scattering', 0.0):.3f}"
+        lines.append(f"| {room} | {truth['plan']} | {fitted} | {radius:g} | {loss} |")
     worst = ", ".join(f"{c} {100 * np.max(np.abs(m)):.1f} %" for c, m in misses.items() if m)
     lines += [
         "",
@@ -125,7 +128,8 @@ def fits_markdown(surfaces: dict, directivity: dict, truths: dict, physics) -> s
     return "\n".join(lines) + "\n"
 
 
-def summarise(work: Path, out: Path) -> None:
+def summarise(work: Path, out: Path, test: str = "crossengine") -> None:
+    sets = ("validation", "reality", test)
     seeds = sorted(int(p.name.removeprefix("seed")) for p in (work / "scores").glob("seed*"))
     if not seeds:
         raise SystemExit(f"no scores under {work / 'scores'}: run calibrate_sim2real.sh score first")
@@ -136,15 +140,15 @@ def summarise(work: Path, out: Path) -> None:
         for arm in ARMS:
             own = json.loads((where / f"validation_{arm}" / "metrics.json").read_text())
             arms[arm][seed] = {"validation": own["results"]["model"]["all"]}
-        for test in SETS[1:]:
-            report = json.loads((where / test / "metrics.json").read_text())
-            windows[test] = report["windows"]
+        for name in sets[1:]:
+            report = json.loads((where / name / "metrics.json").read_text())
+            windows[name] = report["windows"]
             for arm in ARMS:
-                arms[arm][seed][test] = report["results"][arm]["all"]
-            baselines[test] = {name: report["results"][name]["all"]["scan_f1"]["mean"] for name in BASELINES}
-    table = compare(arms, ARMS[0], list(SETS))
+                arms[arm][seed][name] = report["results"][arm]["all"]
+            baselines[name] = {b: report["results"][b]["all"]["scan_f1"]["mean"] for b in BASELINES}
+    table = compare(arms, ARMS[0], list(sets))
     stops = {arm: [stop_reason(work / "runs" / f"seed{s}" / arm) for s in seeds] for arm in ARMS}
-    text = summary_markdown(table, baselines, windows, stops, seeds) + "\n" + per_plan_markdown(work, seeds)
+    text = summary_markdown(table, baselines, windows, stops, seeds, sets) + "\n" + per_plan_markdown(work, seeds, test)
     out.mkdir(parents=True, exist_ok=True)
     (out / "calibrate_sim2real.md").write_text(text + "\n" + provenance_line(provenance()) + "\n")
     record = {
@@ -152,49 +156,49 @@ def summarise(work: Path, out: Path) -> None:
         for arm, row in table.items()
     }
     write_json(out / "calibrate_sim2real.json", {"scan_f1": record, "baselines": baselines})
-    plot(table, ARMS[0], list(SETS[1:]), out / "calibrate_sim2real.png")
+    plot(table, ARMS[0], list(sets[1:]), out / "calibrate_sim2real.png")
     print(text, end="")
     print(f"wrote {out / 'calibrate_sim2real.md'} and its picture")
 
 
-def summary_markdown(table: dict, baselines: dict, windows: dict, stops: dict, seeds: list[int]) -> str:
-    seed_names = " / ".join(str(s) for s in seeds)
+def summary_markdown(table: dict, baselines: dict, windows: dict, stops: dict, seeds: list[int], sets) -> str:
+    seed_names, test = " / ".join(str(s) for s in seeds), sets[-1]
     lines = [
-        f"Scan F1 (0.10 m), mean ± std over seeds {seed_names}; `crossengine` only past each room's calibration "
-        f"frames ({windows['crossengine']} windows), `reality` whole ({windows['reality']} windows), validation: "
+        f"Scan F1 (0.10 m), mean ± std over seeds {seed_names}; `{test}` only past each room's calibration "
+        f"frames ({windows[test]} windows), `reality` whole ({windows['reality']} windows), validation: "
         "each arm's own held-out episodes.",
         "",
-        "| arm | " + " | ".join(f"`{s}`" for s in SETS) + " | stopped by, sub-epochs (kept) |",
-        "|---|" + "---|" * (len(SETS) + 1),
+        "| arm | " + " | ".join(f"`{s}`" for s in sets) + " | stopped by, sub-epochs (kept) |",
+        "|---|" + "---|" * (len(sets) + 1),
     ]
     for arm, row in table.items():
-        cells = " | ".join(f"{row[s]['mean']:.3f} ± {row[s]['std']:.3f}" for s in SETS)
+        cells = " | ".join(f"{row[s]['mean']:.3f} ± {row[s]['std']:.3f}" for s in sets)
         lines.append(f"| {arm} | {cells} | {'; '.join(stops[arm])} |")
     for name in BASELINES:
-        cells = " | ".join(f"{baselines[s][name]:.3f}" if s in baselines else "-" for s in SETS)
+        cells = " | ".join(f"{baselines[s][name]:.3f}" if s in baselines else "-" for s in sets)
         lines.append(f"| {name} baseline | {cells} | - |")
-    paired = {s: " / ".join(f"{d:+.3f}" for d in table[ARMS[1]][s]["paired"]) for s in SETS}
+    paired = {s: " / ".join(f"{d:+.3f}" for d in table[ARMS[1]][s]["paired"]) for s in sets}
     lines += [
         "",
         f"Paired by seed ({seed_names}), {ARMS[1]} minus {ARMS[0]}: "
-        + "; ".join(f"`{s}` {paired[s]}" for s in SETS)
+        + "; ".join(f"`{s}` {paired[s]}" for s in sets)
         + ".",
     ]
     return "\n".join(lines) + "\n"
 
 
-def per_plan_markdown(work: Path, seeds: list[int]) -> str:
-    """crossengine's scan F1 per floor-plan family (two rooms each): each arm's mean over seeds, the
+def per_plan_markdown(work: Path, seeds: list[int], test: str) -> str:
+    """The test set's scan F1 per floor-plan family (two rooms each): each arm's mean over seeds, the
     echo peak's, and the paired differences."""
     per: dict[str, dict[str, list[float]]] = {}
     for seed in seeds:
-        with open(work / "scores" / f"seed{seed}" / "crossengine" / "per_scenario.csv", newline="") as f:
+        with open(work / "scores" / f"seed{seed}" / test / "per_scenario.csv", newline="") as f:
             for row in csv.DictReader(f):
                 if row["scenario"] != "all":
                     by_predictor = per.setdefault(row["scenario"], {})
                     by_predictor.setdefault(row["predictor"], []).append(float(row["scan_f1_mean"]))
     lines = [
-        "`crossengine` per floor-plan family (two rooms each, past the calibration frames), mean over seeds:",
+        f"`{test}` per floor-plan family (two rooms each, past the calibration frames), mean over seeds:",
         "",
         f"| plan | {ARMS[0]} | {ARMS[1]} | {ARMS[1]} minus {ARMS[0]}, seed by seed | echo peak |",
         "|---|---|---|---|---|",
@@ -216,12 +220,13 @@ def main() -> None:
     s.add_argument("--spread", type=float, default=0.05, help="calibration_spread (default 0.05)")
     s = sub.add_parser("summary", help="both arms per seed from WORKDIR/scores")
     s.add_argument("work", type=Path)
+    s.add_argument("--test", default="crossengine", help="the rooms calibrated to: crossengine or crossengine_rough")
     s.add_argument("--out", type=Path, required=True, help="folder for calibrate_sim2real.md, .json and .png")
     args = p.parse_args()
     if args.step == "suite":
         write_suite(args.fits, args.recordings, args.out, args.spread)
     else:
-        summarise(args.work, args.out)
+        summarise(args.work, args.out, args.test)
 
 
 if __name__ == "__main__":

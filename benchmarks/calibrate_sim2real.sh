@@ -13,7 +13,7 @@
 # of 12,000 windows, 2,000 validation windows, early stopping on validation scan F1 with patience 4.
 #
 #   bash benchmarks/calibrate_sim2real.sh fit   WORKDIR           # the recordings and the fits (CPU: ~25 min), then
-#   python benchmarks/calibrate_sim2real.py suite FITS --recordings WORKDIR/data/crossengine_signals --out SUITE
+#   python benchmarks/calibrate_sim2real.py suite FITS --recordings WORKDIR/data/CROSS_signals --out SUITE
 #                                                                 # (FITS: WORKDIR/fits, or a copy beside SUITE)
 #   bash benchmarks/calibrate_sim2real.sh gen   WORKDIR SUITE     # both training sets, crossengine, reality
 #   bash benchmarks/calibrate_sim2real.sh train WORKDIR SEED...   # both arms of each seed, side by side
@@ -35,7 +35,10 @@
 #   call 3: score W 0 1 2, pack W "$OUT"
 # A process left running in the background does not outlive its call.
 #
-# Environment: FRAMES (50000 per arm), CAL_FRAMES (20), CAL_PINGS (10), KNOTS (6),
+# CROSS=crossengine_rough runs the same study on the rough-wall variant (its fits find each room's s);
+# give it its own WORKDIR.
+#
+# Environment: CROSS (crossengine), FRAMES (50000 per arm), CAL_FRAMES (20), CAL_PINGS (10), KNOTS (6),
 # DEVICE (cuda; cpu for a dry run), GPUS (runs spread over cuda:0..GPUS-1; default: all), WORKERS (8 per
 # generation), CROSS_FRAMES (1000, as the study's), CROSS_WORKERS (12), REALITY_FRAMES (the suite's 1,500),
 # MINUTES (per run and call, 8), EPOCHS (100), PATIENCE (4), SUBEPOCH (12000), VAL (2000).
@@ -46,6 +49,7 @@ export PYTHONUNBUFFERED=1 OMP_NUM_THREADS=${OMP_NUM_THREADS:-2}
 D=$W/data
 DEVICE=${DEVICE:-cuda}
 CAL_FRAMES=${CAL_FRAMES:-20}
+CROSS=${CROSS:-crossengine}
 ARMS=(randomised calibrated)
 mkdir -p "$W/logs" "$W/runs" "$W/scores" "$W/summary" "$W/fits"
 python3 benchmarks/provenance.py write "$W/logs/provenance-$phase-$(date -u +%Y%m%dT%H%M%SZ).json" --device "$DEVICE"
@@ -53,8 +57,8 @@ gpus=${GPUS:-$(python3 -c "import torch; print(max(1, torch.cuda.device_count())
 
 case $phase in
 fit)
-  rec=$D/crossengine_signals
-  python3 -m acoustic_sim generate --suite crossengine --frames 1000 --signals --seed 0 --out "$rec" \
+  rec=$D/${CROSS}_signals
+  python3 -m acoustic_sim generate --suite "$CROSS" --frames 1000 --signals --seed 0 --out "$rec" \
     --workers "${CROSS_WORKERS:-2}" --device "${GEN_DEVICE:-cpu}" --quiet
   told=(--scene-from-data --frames "0:$CAL_FRAMES" --pings "${CAL_PINGS:-10}" --skip-ms 3 --no-air-absorption
     --set sonar.atmosphere.temperature_c=19.6335 --device "${GEN_DEVICE:-cpu}" --overwrite)
@@ -75,7 +79,7 @@ gen)
   python3 -m acoustic_sim generate --suite randomised --out "$D/randomised" "${GEN[@]}" --device "$first" &
   python3 -m acoustic_sim generate --suite "$suite" --out "$D/calibrated" "${GEN[@]}" --device "$second" &
   wait
-  python3 -m acoustic_sim generate --suite crossengine --frames "${CROSS_FRAMES:-1000}" --out "$D/crossengine" \
+  python3 -m acoustic_sim generate --suite "$CROSS" --frames "${CROSS_FRAMES:-1000}" --out "$D/$CROSS" \
     --workers "${CROSS_WORKERS:-12}" --device "$first" --seed 0 --quiet &
   python3 -m acoustic_sim generate --suite reality ${REALITY_FRAMES:+--frames "$REALITY_FRAMES"} --out "$D/reality" \
     --workers "${WORKERS:-8}" --device "$second" --seed 0 --quiet
@@ -109,10 +113,10 @@ score)
   for s in "$@"; do
     ckpts=()
     for arm in "${ARMS[@]}"; do ckpts+=(--checkpoint "$arm=$W/runs/seed$s/$arm/best.pt"); done
-    # crossengine past each room's calibration frames: no window holds a ping a fit saw
+    # the rooms past their calibration frames: no window holds a ping a fit saw
     next_device
-    python3 -m learn evaluate "${ckpts[@]}" --data "$D/crossengine" --split all --from-frame "$CAL_FRAMES" \
-      --out "$W/scores/seed$s/crossengine" --device "$dev" --quiet --overwrite >> "$W/logs/score_seed$s.log" 2>&1 &
+    python3 -m learn evaluate "${ckpts[@]}" --data "$D/$CROSS" --split all --from-frame "$CAL_FRAMES" \
+      --out "$W/scores/seed$s/$CROSS" --device "$dev" --quiet --overwrite >> "$W/logs/score_seed$s.log" 2>&1 &
     next_device
     python3 -m learn evaluate "${ckpts[@]}" --data "$D/reality" --split all --out "$W/scores/seed$s/reality" \
       --device "$dev" --quiet --overwrite >> "$W/logs/score_seed$s.log" 2>&1 &
@@ -124,7 +128,7 @@ score)
     done
   done
   wait
-  python3 benchmarks/calibrate_sim2real.py summary "$W" --out "$W/summary"
+  python3 benchmarks/calibrate_sim2real.py summary "$W" --test "$CROSS" --out "$W/summary"
   ;;
 pack)
   bash benchmarks/pack_study.sh "$W" "$1"
