@@ -495,6 +495,9 @@ def test_a_suite_spans_several_fits_and_takes_their_air(tmp_path, device):
     suite.write_text('base = "tiny"\n[physics]\ncalibration = ["a.json", "c.json"]\n')
     with pytest.raises(ValueError, match="some fits were made with air absorption and some without"):
         load_suite(suite)
+    suite.write_text('base = "tiny"\n[physics]\ncalibration = ["a.json"]\nair_absorption = true\n')
+    with pytest.raises(ValueError, match=r"air_absorption and calibration \(made without air absorption\) disagree"):
+        load_suite(suite)
     still = dataclasses.replace(physics, air_absorption=True, sonar_noise="none")
     assert "air_absorption" not in still.to_json()  # plan ids of absorbing air as they were
     late = {}

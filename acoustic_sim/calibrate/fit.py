@@ -273,9 +273,9 @@ def skip_window(config: SonarConfig, skip_s: float) -> np.ndarray:
     SKIP_TAPER_S after them; all ones for skip_s = 0."""
     if not 0.0 <= skip_s < config.record_samples / config.chirp.sample_rate_hz:
         raise ValueError(f"skip_s must be in [0, the recording's length), got {skip_s}")
-    t = np.arange(config.record_samples) / config.chirp.sample_rate_hz - skip_s
     if skip_s == 0.0:
         return np.ones(config.record_samples, dtype=np.float32)
+    t = np.arange(config.record_samples) / config.chirp.sample_rate_hz - skip_s
     ramp = 0.5 - 0.5 * np.cos(np.pi * np.clip(t / SKIP_TAPER_S, 0.0, 1.0))
     return ramp.astype(np.float32)
 

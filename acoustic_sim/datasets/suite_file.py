@@ -134,7 +134,7 @@ def _calibrated_surfaces(table: dict, path: Path, where: str) -> None:
     if len(airs) > 1:
         raise ValueError(f"{where}.calibration: some fits were made with air absorption and some without")
     if airs == {False}:
-        if table.get("air_absorption", False) is not False:
+        if table.get("air_absorption") is True:
             raise ValueError(f"{where}: air_absorption and calibration (made without air absorption) disagree")
         table["air_absorption"] = False
     radii = [fit["radius"] for fit in fits if fit["radius"] is not None]
