@@ -46,9 +46,9 @@ def _rooms(folder: Path) -> dict[int, dict]:
 
 def _truths(recordings: Path) -> dict[int, dict]:
     """Each crossengine room's record (its plan and pressure reflection coefficients)."""
-    from acoustic_sim.datasets.shards import dataset_shards, read_attrs
+    from acoustic_sim.calibrate.recordings import episode_records
 
-    return {r["index"]: r for shard in dataset_shards(recordings) for r in read_attrs(shard)["episodes"]}
+    return {record["index"]: record for record in episode_records(recordings)}
 
 
 def write_suite(fits: Path, recordings: Path, out: Path, spread: float) -> None:

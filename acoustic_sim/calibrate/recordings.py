@@ -131,11 +131,9 @@ def recorded_scene(path, episode: int | None = None):
     import scenes
 
     from ..datasets.mesh_scenarios import MESH_BUILDER
-    from ..datasets.shards import dataset_shards, read_attrs
 
     path = Path(path)
-    shards = dataset_shards(path) if path.is_dir() else [path]
-    records = [record for shard in shards for record in read_attrs(shard).get("episodes", [])]
+    records = episode_records(path)
     indices = sorted({record.get("index") for record in records})
     if episode is None and len(indices) > 1:
         raise ValueError(f"{path} holds episodes {indices[:10]}: give one (--episode), one room a fit")
@@ -152,3 +150,12 @@ def recorded_scene(path, episode: int | None = None):
         corners, height = record["corners"], record["height_m"]
         return scenes.polygon_room(record["plan"], corners=corners, height=height, ceiling=ceiling)
     raise ValueError(f"{path}: episode {record.get('index')}'s record describes no room (no builder, no floor plan)")
+
+
+def episode_records(path) -> list[dict]:
+    """Every episode record of a dataset folder or one shard (its room, drive and draws)."""
+    from ..datasets.shards import dataset_shards, read_attrs
+
+    path = Path(path)
+    shards = dataset_shards(path) if path.is_dir() else [path]
+    return [record for shard in shards for record in read_attrs(shard).get("episodes", [])]
