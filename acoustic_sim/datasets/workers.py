@@ -23,6 +23,7 @@ from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 
 from ..devices import cpu_cores, cuda_started, quiet_warp, resolve_device, warp_voice
+from .runner import keep_freed_memory
 from .shared_frames import sweep
 
 # A worker's work: (its tasks, read lazily; its device; on_frames(n)) -> seconds by part.
@@ -154,6 +155,7 @@ def _init_worker(claimed, tasks, ready, progress, abort, parent, cpu_threads, qu
         _INDEX = claimed.value
         claimed.value += 1
     _TASKS, _READY, _PROGRESS, _ABORT, _START, _LAUNCHED = tasks, ready, progress, abort, start, launched
+    keep_freed_memory()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole process group: the parent stops us
     quiet_warp(quiet, start=False)  # the parent's voice (a spawned worker would start with the default)
     os.environ["SONAR2LIDAR_CPU_THREADS"] = str(cpu_threads)  # the workers share the cores (devices.cpu_cores)
