@@ -40,10 +40,6 @@ MAX_HELPERS = 4  # host processes beside one rendering process: enough to keep a
 # block is mapped apart, to go back to the system when freed (M_MMAP_THRESHOLD: -3, at most 32 MB).
 # By default a shard's chunks and copies went back between shards and were page-faulted in again.
 MALLOC_KEEP = {-1: 64 << 20, -3: 32 << 20}
-# A helper's scheduling priority below its rendering process's: when host work outnumbers the cores,
-# a rendering thread back from its GPU gets a core first, since a GPU left without work is lost time
-# while a write that starts later has slack (rendering processes waited ~2 s in 40 for theirs).
-HELPER_NICENESS = 5
 
 
 def host_helpers(workers: int, requested: int | None = None) -> int:
@@ -313,7 +309,6 @@ def _init_helper(parent: int) -> None:
     with its rendering process (even one killed by SIGKILL), so that no helper goes on writing a
     shard that the parent, having stopped the run, is about to remove."""
     keep_freed_memory()
-    os.nice(HELPER_NICENESS)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
     if os.getppid() != parent:  # it died before the line above
