@@ -242,10 +242,10 @@ def test_shared_frames_round_trip_and_fall_back(tmp_path, monkeypatch):
     assert list(tmp_path.iterdir()) == []
     assert shared_frames.SharedFrames.share(frames, folder=str(tmp_path / "absent")) is None
 
-    def full(fd, offset, size):
+    def full(fd, data, offset):
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(shared_frames.os, "posix_fallocate", full)
+    monkeypatch.setattr(shared_frames.os, "pwrite", full)
     assert shared_frames.SharedFrames.share(frames, folder=str(tmp_path)) is None
     assert list(tmp_path.iterdir()) == []
     # a rendering process killed after handing a shard over: its parent sweeps what it left
