@@ -12,7 +12,9 @@
 #   bash benchmarks/multi_gpu.sh ddp   WORKDIR  # bench_learn --ddp: windows/s on 1..N GPUs, efficiency
 #   bash benchmarks/multi_gpu.sh train WORKDIR  # one GPU at the network's batch B (16; paper 12) vs N GPUs at B/N each,
 #                                               # seeds 0 and 1 (after gen; TRAIN_MODEL polar_unet or paper,
-#                                               # TRAIN_WINDOWS a sub-epoch's, EPOCHS)
+#                                               # TRAIN_WINDOWS a sub-epoch's, EPOCHS; TRAIN_RUNS "one ddp0 ddp1",
+#                                               # a part of them per call: a lent machine's call lasts 10 minutes
+#                                               # and ends what it started in the background)
 #   bash benchmarks/multi_gpu.sh all   WORKDIR  # the four above in that order
 #   bash benchmarks/multi_gpu.sh check WORKDIR  # on ONE GPU: --workers 2 --device auto gives the same shards,
 #                                               # torchrun's NCCL path at world size 1 trains as the plain run
@@ -119,23 +121,28 @@ train() {
   OPTS=(--data "$W/one_gpu" --model "$model" --loss "$loss" --lr "$lr" --epochs "${EPOCHS:-8}" --patience 100 --split-seed 0
     --max-train-windows "${TRAIN_WINDOWS:-$windows}" --max-val-windows 2000 --device cuda --quiet --overwrite)
   ((GPUS >= 1 && batch % GPUS == 0)) || { echo "train needs a GPU count that divides the global batch $batch, got $GPUS" >&2; exit 2; }
+  local todo=" ${TRAIN_RUNS:-one ddp0 ddp1} "
   pids=() failed=0
-  for seed in 0 1; do # one process on one GPU each, side by side
-    CUDA_VISIBLE_DEVICES=$((seed % GPUS)) python -m learn train "${OPTS[@]}" --seed $seed --batch-size $batch \
-      --out "$W/runs/${model}_one_gpu_seed$seed" >"$R/train_${model}_one_gpu_seed$seed.log" 2>&1 &
-    pids+=($!)
-  done
-  for pid in "${pids[@]}"; do wait "$pid" || failed=1; done # both finish before a failure stops the phase
-  ((failed == 0)) || { echo "a one-GPU run failed: $R/train_${model}_one_gpu_seed*.log" >&2; exit 1; }
+  if [[ $todo == *" one "* ]]; then
+    for seed in 0 1; do # one process on one GPU each, side by side
+      CUDA_VISIBLE_DEVICES=$((seed % GPUS)) python -m learn train "${OPTS[@]}" --seed $seed --batch-size $batch \
+        --out "$W/runs/${model}_one_gpu_seed$seed" >"$R/train_${model}_one_gpu_seed$seed.log" 2>&1 &
+      pids+=($!)
+    done
+    for pid in "${pids[@]}"; do wait "$pid" || failed=1; done # both finish before a failure stops the phase
+    ((failed == 0)) || { echo "a one-GPU run failed: $R/train_${model}_one_gpu_seed*.log" >&2; exit 1; }
+  fi
   for seed in 0 1; do
+    [[ $todo == *" ddp$seed "* ]] || continue
     torchrun --standalone --nproc_per_node "$GPUS" -m learn train "${OPTS[@]}" --seed $seed \
       --batch-size $((batch / GPUS)) --out "$W/runs/${model}_${GPUS}_gpus_seed$seed" >"$R/train_${model}_${GPUS}_gpus_seed$seed.log" 2>&1
   done
-  python benchmarks/same_global_batch.py "$W/runs/${model}_one_gpu_seed"{0,1} "$W/runs/${model}_${GPUS}_gpus_seed"{0,1} \
-    --out "$R/same_global_batch_$model"
-  for run in "$W"/runs/"$model"_*; do # each run's own record beside the comparison
-    mkdir -p "$R/runs/${run##*/}" && cp "$run"/{config.json,history.csv,curves.png} "$R/runs/${run##*/}/"
+  for run in "$W"/runs/"$model"_*; do # each finished run's own record, beside the comparison once all are in
+    if [ -f "$run/history.csv" ]; then mkdir -p "$R/runs/${run##*/}" && cp "$run"/{config.json,history.csv,curves.png} "$R/runs/${run##*/}/"; fi
   done
+  local runs=("$W/runs/${model}_one_gpu_seed"{0,1} "$W/runs/${model}_${GPUS}_gpus_seed"{0,1})
+  for run in "${runs[@]}"; do [ -f "$run/summary.json" ] || { echo "not compared yet: $run has not finished"; return 0; }; done
+  python benchmarks/same_global_batch.py "${runs[@]}" --out "$R/same_global_batch_$model"
 }
 
 check() {
