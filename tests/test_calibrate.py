@@ -226,7 +226,8 @@ def test_the_emitters_directivity_is_recovered(device):
     every knot; with the nominal directivity held, R misses by more than 10 %."""
     room = scenes.box_room((6.0, 4.0, 3.0), wall="painted_wall", floor="floor", ceiling="ceiling_tile")
     hidden = with_surfaces(room, {name: {"reflection": r} for name, r in HIDDEN_R.items()})
-    poses = scenes.trajectory(room, frames=10, dt=0.5, speed=0.4, seed=3)
+    # 6 pings: the knots come out as close as from 10 (0.013 against 0.014 at worst) in ~60 % of the time
+    poses = scenes.trajectory(room, frames=6, dt=0.5, speed=0.4, seed=3)
     sonar = Sonar(dataclasses.replace(CONFIG, emitter_radius_m=0.0035), TRACER, device=device)
     signals = sonar.record(sonar.trace(hidden, poses), pose_count=len(poses))
     fit = fit_surfaces(room, poses, signals, CONFIG, TRACER, directivity_knots=6, fit_delays=False, device=device)
