@@ -296,7 +296,7 @@ def markdown(res: dict, suite: str, args) -> str:
             f"| {', '.join(r['devices'])} | {r['workers']} | {r['start'] or '-'} | "
             f"{_parts(r)} | "
             f"{r['median_s']:.1f} | **{r['frames_per_s']:,.1f}** | {r.get('call_s') or float('nan'):.1f} | "
-            + " | ".join(f"{p[k]:.1f}" for k in PARTS)
+            + " | ".join(f"{p.get(k, 0.0):.1f}" for k in PARTS)
             + " | "
             + (f"{r['simulator_frames_per_s']:,.1f}" if r["workers"] == 1 else "-")
             + " | "

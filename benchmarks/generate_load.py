@@ -52,7 +52,7 @@ tree = {"user_s": sum(u.ru_utime for u in used), "system_s": sum(u.ru_stime for 
         "minor_faults": sum(u.ru_minflt for u in used)}  # this process and every process it waited for
 print("RESULT " + json.dumps({k: summary.get(k) for k in keep} | {"tree": tree}))
 """
-PARTS_SHOWN = ("start-up", "prepare", "lidar", "sonar", "write")  # generate's seconds by part, summed
+PARTS_SHOWN = ("start-up", "prepare", "lidar", "sonar", "assemble", "write")  # generate's seconds by part, summed
 # What a sampled thread was doing, by the first of these functions found in its stack.
 ACTIVITIES = (
     ("checksum", "fletcher32"),

@@ -131,7 +131,8 @@ def simulate_episode(
     """Scene, drive, LiDAR and sonar of one episode -> (arrays, episode record for the shard).
     `nominal` is the variant's rig (`suites.rig`) before this episode's draws; `episode` may come
     prepared already (`prepare_episode`); `on_frames(n)` is called as the sonar finishes each batch
-    of n frames; `seconds`, if given, adds the time of each part ("prepare", "lidar", "sonar")."""
+    of n frames; `seconds`, if given, adds the time of each part ("prepare", "lidar", "sonar",
+    "assemble")."""
     from ..engine.lidar import lidar_image
 
     seconds = {} if seconds is None else seconds
@@ -159,8 +160,6 @@ def simulate_episode(
     t3 = time.perf_counter()
     ranges = scan.ranges()
     t4 = time.perf_counter()
-    for part, dt in (("prepare", t1 - t0), ("lidar", t2 - t1 + t4 - t3), ("sonar", t3 - t2)):
-        seconds[part] = seconds.get(part, 0.0) + dt
     arrays = {
         "energyscape": result.energyscape,
         "lidar_ranges": ranges,
@@ -169,7 +168,8 @@ def simulate_episode(
         "time": np.arange(episode.frames) * suite["dt_s"],
         "signals": result.signals,
     }
-    if keep_arrivals:
+    traced = time.perf_counter()
+    if keep_arrivals:  # traced again, on the device: the sonar's time
         arrivals = sonar.trace(scene, poses)
         arrays["arrivals"] = {
             "frame": arrivals.pose_index,
@@ -180,6 +180,7 @@ def simulate_episode(
             "kind": arrivals.kind,
             "point_m": arrivals.point_m,
         }
+    traced = time.perf_counter() - traced
     sonar_config = ready.sonar_config
     record = dataclasses.asdict(episode) | {
         "scene": scene.describe(),
@@ -194,6 +195,14 @@ def simulate_episode(
         record["surfaces"] = ready.acoustics
     if any(isinstance(suite.get(name), list | tuple) for name in ready.drive):
         record["drive"] = ready.drive
+    assembled = time.perf_counter() - t4 - traced  # the LiDAR image and the record: host work between renderings
+    for part, dt in (
+        ("prepare", t1 - t0),
+        ("lidar", t2 - t1 + t4 - t3),
+        ("sonar", t3 - t2 + traced),
+        ("assemble", assembled),
+    ):
+        seconds[part] = seconds.get(part, 0.0) + dt
     return arrays, record
 
 

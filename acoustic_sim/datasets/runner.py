@@ -33,7 +33,10 @@ from .shared_frames import SharedFrames
 
 # Where a run's time goes: a worker process's start (launch to Warp and its device ready; a spawned
 # one also starts an interpreter and imports the package; 0 in this process), then run_tasks's parts.
-PARTS = ("start-up", "prepare", "lidar", "sonar", "write", "waiting")
+# "assemble": the rendering thread's own host work between renderings (an episode's LiDAR image and
+# record, adding it to its shard, handing full shards to their writer): on two H100s ~23-30 ms an
+# episode of each rendering process lay outside every other part (benchmarks/results/multi_gpu/session33).
+PARTS = ("start-up", "prepare", "lidar", "sonar", "assemble", "write", "waiting")
 PR_SET_PDEATHSIG = 1  # Linux prctl: the signal a process gets when its parent dies
 MAX_HELPERS = 4  # host processes beside one rendering process: enough to keep an H100's share fed
 # glibc's malloc: how much freed memory a process keeps (M_TRIM_THRESHOLD: -1) and from what size a
@@ -128,7 +131,8 @@ def run_tasks(
     (Linux) that many forked processes prepare and as many write, each with its own interpreter
     lock, `helpers` episodes ahead and up to `helpers` writes in flight. The arrays are the same
     either way. Seconds per part: "prepare", "lidar", "sonar", "write" (time each took, wherever it
-    ran) and "waiting" (the rendering thread blocked on a preparation or a write). `on_frames(n)`
+    ran), "assemble" (the rendering thread's own host work between renderings) and "waiting" (the
+    rendering thread blocked on a preparation or a write). `on_frames(n)`
     reports progress."""
     if not sys.platform.startswith("linux"):
         helpers = 0  # forked helpers and their death with the parent (prctl) are Linux's
@@ -190,7 +194,9 @@ class _Run:
             arrays, record = self.renderer.render(
                 task, ready, device=self.device, on_frames=self.on_frames, seconds=self.seconds
             )
+            t0 = time.perf_counter()
             shard.add(episode, arrays, record)
+            self.seconds["assemble"] += time.perf_counter() - t0
         last = self._write_here(shard) if shard is not None else None
         while self.writing:
             self._wait_for_write()
@@ -217,10 +223,16 @@ class _Run:
         if shard is not None:
             if len(self.writing) >= self.depth:
                 self._wait_for_write()
+            t0 = time.perf_counter()
             shared = SharedFrames.share(shard.frames) if isinstance(self.writer, _Helpers) else None
             if shared is not None:
                 shard = _Shard(shard.task, shared, shard.records)
-            self.writing.append((self.writer.submit(_write, self.renderer, shard, self.device), shared))
+            future = self.writer.submit(_write, self.renderer, shard, self.device)
+            handed = time.perf_counter() - t0
+            if isinstance(self.writer, _AtOnce):  # it wrote the shard right here: that is the write's
+                handed -= future.result()[1]
+            self.seconds["assemble"] += handed
+            self.writing.append((future, shared))
 
     def _wait_for_write(self) -> None:
         future, shared = self.writing.popleft()
