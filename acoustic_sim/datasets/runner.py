@@ -34,7 +34,7 @@ from .shared_frames import SharedFrames
 # Where a run's time goes: a worker process's start (launch to Warp and its device ready; a spawned
 # one also starts an interpreter and imports the package; 0 in this process), then run_tasks's parts.
 # "assemble": the rendering thread's own host work between renderings (an episode's LiDAR image and
-# record, adding it to its shard, handing full shards to their writer): on two H100s ~23-30 ms an
+# record, adding it to its shard, handing full shards to their writer): on two H100s up to ~23-30 ms an
 # episode of each rendering process lay outside every other part (benchmarks/results/multi_gpu/session33).
 PARTS = ("start-up", "prepare", "lidar", "sonar", "assemble", "write", "waiting")
 PR_SET_PDEATHSIG = 1  # Linux prctl: the signal a process gets when its parent dies
