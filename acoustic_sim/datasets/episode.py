@@ -168,7 +168,7 @@ def simulate_episode(
         "time": np.arange(episode.frames) * suite["dt_s"],
         "signals": result.signals,
     }
-    traced = time.perf_counter()
+    t5 = time.perf_counter()
     if keep_arrivals:  # traced again, on the device: the sonar's time
         arrivals = sonar.trace(scene, poses)
         arrays["arrivals"] = {
@@ -180,7 +180,7 @@ def simulate_episode(
             "kind": arrivals.kind,
             "point_m": arrivals.point_m,
         }
-    traced = time.perf_counter() - traced
+    t6 = time.perf_counter()
     sonar_config = ready.sonar_config
     record = dataclasses.asdict(episode) | {
         "scene": scene.describe(),
@@ -195,12 +195,12 @@ def simulate_episode(
         record["surfaces"] = ready.acoustics
     if any(isinstance(suite.get(name), list | tuple) for name in ready.drive):
         record["drive"] = ready.drive
-    assembled = time.perf_counter() - t4 - traced  # the LiDAR image and the record: host work between renderings
+    t7 = time.perf_counter()
     for part, dt in (
         ("prepare", t1 - t0),
         ("lidar", t2 - t1 + t4 - t3),
-        ("sonar", t3 - t2 + traced),
-        ("assemble", assembled),
+        ("sonar", t3 - t2 + t6 - t5),
+        ("assemble", t5 - t4 + t7 - t6),  # the LiDAR image and the record: host work between renderings
     ):
         seconds[part] = seconds.get(part, 0.0) + dt
     return arrays, record
