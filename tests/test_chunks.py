@@ -117,11 +117,12 @@ if sys.argv[1] == "keep":
     keep_freed_memory()
 rows = (np.random.default_rng(0).random((120, 240, 181)) ** 8).astype(np.float16)  # energyscape-like
 with h5py.File(sys.argv[2], "w") as f:
-    for shard in range(3):  # the last shard's faults, once the process is warm
-        before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    for shard in range(6):  # the faults of shards 1-5, once the process is warm
+        if shard == 1:
+            before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
         x = f.create_dataset(f"x{shard}", shape=rows.shape, dtype=rows.dtype, chunks=(1, 240, 181), **COMPRESSION)
         write_rows(x, rows, threads=2)
-print((resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / len(rows))
+print((resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / (5 * len(rows)))
 """
 
 
@@ -129,17 +130,27 @@ print((resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / len(rows))
 def test_a_process_that_keeps_freed_memory_encodes_without_page_faults(tmp_path):
     """`keep_freed_memory` (generate's worker and helper processes) stops malloc from returning a
     shard's compressed chunks and copies between shards: writing a warm process's third shard in
-    two threads then page-faults almost nothing, against several faults a frame without it (8.6
-    against 0.1 on the 2-core CPU; each a trip into the kernel, contended between threads)."""
+    two threads then page-faults little, against several faults a frame without it (each a trip
+    into the kernel, contended between threads). Which arena each thread's blocks come from varies
+    run to run: a single shard gave 4.0-9.7 faults a frame without, 0.1-1.5 with (CI once saw 5.2
+    against 1.5); five shards' mean, the median of three processes each way, 3.7-8.3 against
+    0.1-1.0 on the 2-core CPU."""
     faults = {
         how: float(
-            subprocess.run(
-                [sys.executable, "-c", FAULTS_SCRIPT, how, str(tmp_path / f"{how}.h5")],
-                capture_output=True,
-                text=True,
-                check=True,
-            ).stdout
+            np.median(
+                [
+                    float(
+                        subprocess.run(
+                            [sys.executable, "-c", FAULTS_SCRIPT, how, str(tmp_path / f"{how}{run}.h5")],
+                            capture_output=True,
+                            text=True,
+                            check=True,
+                        ).stdout
+                    )
+                    for run in range(3)
+                ]
+            )
         )
         for how in ("default", "keep")
     }
-    assert faults["default"] > 2 and faults["keep"] < faults["default"] / 4, faults
+    assert faults["default"] > 2 and faults["keep"] < faults["default"] / 3, faults
