@@ -3,9 +3,10 @@ each GPU's utilisation over each run, for settings compared in rounds.
 
     python benchmarks/generate_load.py --settings cuda:0/5,auto/10,auto/10/block,pair/5 --frames 75000 --out DIR
 
-A setting is DEVICE/WORKERS[/WAIT[/HELPERS]]: WAIT is how the workers' CUDA waits (spin, CUDA's
-default, or block: SONAR2LIDAR_CUDA_WAIT), HELPERS the host processes per worker (generate's choice
-if left out). DEVICE `pair` runs two `generate` commands at once, one on cuda:0 and one on cuda:1,
+A setting is DEVICE/WORKERS[/WAIT[/HELPERS[/NICENESS]]]: WAIT is how the workers' CUDA waits (spin,
+CUDA's default, or block: SONAR2LIDAR_CUDA_WAIT), HELPERS the host processes per worker (generate's
+choice if left out or `-`), NICENESS how far below its rendering process a helper is scheduled
+(SONAR2LIDAR_HELPER_NICENESS, 0 if left out). DEVICE `pair` runs two `generate` commands at once, one on cuda:0 and one on cuda:1,
 with WORKERS each and half the frames each: whether two GPUs slow each other through the host
 rather than through one command's machinery. Each run is a fresh process, as a `generate` command
 is. Beside its frames/s: the share of the host's CPU time busy over the run (/proc/stat), the CPU
@@ -142,8 +143,9 @@ def run(setting: str, args, work: Path, out: Path, tag: str, spy: bool = False) 
     """One run of `setting`, with the machine's load over it."""
     device, workers, *rest = setting.split("/")
     wait = rest[0] if rest else "spin"
-    helpers = int(rest[1]) if len(rest) > 1 else None
-    env = dict(os.environ, SONAR2LIDAR_CUDA_WAIT=wait)
+    helpers = int(rest[1]) if len(rest) > 1 and rest[1] != "-" else None
+    niceness = rest[2] if len(rest) > 2 else "0"
+    env = dict(os.environ, SONAR2LIDAR_CUDA_WAIT=wait, SONAR2LIDAR_HELPER_NICENESS=niceness)
     spec = {"suite": args.suite, "frames": args.frames, "workers": int(workers), "helpers": helpers}
     shutil.rmtree(work, ignore_errors=True)
     sampler = start_sampler(out / f"utilisation_{tag}.csv")
@@ -242,7 +244,7 @@ def markdown(res: dict) -> str:
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--settings", required=True, help="DEVICE/WORKERS[/WAIT[/HELPERS]], comma-separated")
+    parser.add_argument("--settings", required=True, help="DEVICE/WORKERS[/WAIT[/HELPERS[/NICENESS]]], comma-separated")
     parser.add_argument("--suite", default="paper")
     parser.add_argument("--frames", type=int, default=75000)
     parser.add_argument("--rounds", type=int, default=2)

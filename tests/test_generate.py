@@ -268,6 +268,31 @@ def test_helper_counts(monkeypatch):
     assert [runner.host_helpers(w) for w in (1, 4, 5, 8, 16)] == expected
 
 
+def _niceness(_renderer) -> int:
+    return os.nice(0)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="helper processes are forked on Linux only")
+def test_helpers_run_at_the_niceness_asked(monkeypatch):
+    """SONAR2LIDAR_HELPER_NICENESS lowers the helpers' priority below this process's (0 by
+    default); a value outside 0-19 is refused before any helper is forked."""
+    own = os.nice(0)
+    for asked, expected in ((None, own), ("7", min(19, own + 7))):
+        if asked is None:
+            monkeypatch.delenv(runner.HELPER_NICENESS_ENV, raising=False)
+        else:
+            monkeypatch.setenv(runner.HELPER_NICENESS_ENV, asked)
+        pool = runner._helper_pool(1, None)
+        try:
+            assert pool.submit(_niceness, None).result() == expected
+        finally:
+            pool.shutdown()
+    for bad in ("-2", "20", "low"):
+        monkeypatch.setenv(runner.HELPER_NICENESS_ENV, bad)
+        with pytest.raises(ValueError, match="SONAR2LIDAR_HELPER_NICENESS"):
+            runner._helper_pool(1, None)
+
+
 def test_foreign_corrupt_and_other_version_files(reference, tmp_path, device):
     path = tmp_path / "x.h5"
     path.write_text("not hdf5")

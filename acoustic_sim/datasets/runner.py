@@ -43,6 +43,9 @@ MAX_HELPERS = 4  # host processes beside one rendering process: enough to keep a
 # block is mapped apart, to go back to the system when freed (M_MMAP_THRESHOLD: -3, at most 32 MB).
 # By default a shard's chunks and copies went back between shards and were page-faulted in again.
 MALLOC_KEEP = {-1: 64 << 20, -3: 32 << 20}
+# A helper's niceness above its rendering process's (0: the same): whether a rendering thread back
+# from its GPU should get a core before a write with slack is for benchmarks/generate_load.py to measure.
+HELPER_NICENESS_ENV = "SONAR2LIDAR_HELPER_NICENESS"
 
 
 def host_helpers(workers: int, requested: int | None = None) -> int:
@@ -293,7 +296,8 @@ def _helper_pool(count: int, renderer: Renderer) -> _Helpers:
     global _RENDERER
     _RENDERER = renderer
     fork = multiprocessing.get_context("fork")
-    pool = _Helpers(count, mp_context=fork, initializer=_init_helper, initargs=(os.getpid(),))
+    niceness = helper_niceness()  # checked here: a helper's error would only break the pool
+    pool = _Helpers(count, mp_context=fork, initializer=_init_helper, initargs=(os.getpid(), niceness))
     for started in [pool.submit(_started, None) for _ in range(count)]:
         started.result()
     return pool
@@ -315,15 +319,25 @@ def keep_freed_memory() -> None:
         mallopt(option, value)
 
 
-def _init_helper(parent: int) -> None:
+def _init_helper(parent: int, niceness: int) -> None:
     """A helper ignores Ctrl-C (its rendering process is stopped by the parent) and dies at once
     with its rendering process (even one killed by SIGKILL), so that no helper goes on writing a
     shard that the parent, having stopped the run, is about to remove."""
     keep_freed_memory()
+    os.nice(niceness)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
     if os.getppid() != parent:  # it died before the line above
         os._exit(1)
+
+
+def helper_niceness() -> int:
+    """SONAR2LIDAR_HELPER_NICENESS: how much less a helper's scheduling priority is than its
+    rendering process's, 0 (the default) to 19."""
+    chosen = os.environ.get(HELPER_NICENESS_ENV, "0")
+    if not chosen.isdigit() or int(chosen) > 19:
+        raise ValueError(f"{HELPER_NICENESS_ENV}={chosen!r}: use a whole number from 0 to 19")
+    return int(chosen)
 
 
 class _AtOnce:
