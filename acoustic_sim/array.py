@@ -38,3 +38,15 @@ def piston_directivity(
     x = 2 * np.pi * np.asarray(frequency_hz) / speed_of_sound * radius_m * np.sin(np.asarray(theta))
     safe = np.where(np.abs(x) < 1e-8, 1.0, x)
     return np.where(np.abs(x) < 1e-8, 1.0, 2.0 * j1(safe) / safe)
+
+
+def emitter_directivity(sonar, cosine: np.ndarray | float) -> np.ndarray:
+    """Pressure the emitter of `sonar` (a SonarConfig) sends at the call's centre frequency
+    towards directions at `cosine` from its axis (the sensor's x), relative to on axis: its
+    baffled piston's pattern in front and nothing behind the baffle, or 1 everywhere ("omni")."""
+    cosine = np.asarray(cosine, dtype=np.float64)
+    if sonar.emitter_pattern == "omni":
+        return np.ones_like(cosine)
+    centre, air = sonar.chirp.centre_frequency_hz, sonar.atmosphere.speed_of_sound
+    front = piston_directivity(np.arccos(np.clip(cosine, 0.0, 1.0)), centre, sonar.emitter_radius_m, air)
+    return np.where(cosine >= 0.0, front, 0.0)

@@ -30,6 +30,10 @@ NOISE_KINDS: tuple[str, ...] = typing.get_args(NoiseKind)
 NOISE_CODES: dict[str, int] = {"none": 0, "gaussian": 1, "uniform": 2}
 """Noise kind -> the integer code the kernels take (kernels.common.NOISE_NONE, ...; a test checks they agree)."""
 Normalise = Literal[None, "max", "db"]
+# The emitter's pattern: "piston", a circular piston of emitter_radius_m in a baffle (the sensor's y-z
+# plane: nothing leaves it backwards); "omni", the same pressure in every direction, behind the
+# sensor too (a point source, as image-source engines such as pyroomacoustics model one).
+EmitterPattern = Literal["piston", "omni"]
 NORMALISE: tuple[str | None, ...] = typing.get_args(Normalise)
 MAX_BOUNCES = 10
 """Most secondary reflections a path may have (the tracer's kernels store MAX_BOUNCES + 1 planes)."""
@@ -270,6 +274,7 @@ class SonarConfig:
     microphones_m: tuple[tuple[float, float, float], ...] = ()  # [m], sensor frame
     emitter_m: tuple[float, float, float] = (0.0, 0.0, 0.05)  # [m], sensor frame
     emitter_radius_m: float = 0.005  # baffled piston model of the emitter's directivity [m]
+    emitter_pattern: EmitterPattern = "piston"  # or "omni": every direction alike, backwards too
     record_samples: int = 16384  # samples per microphone and ping, at the call's sample rate
     # Channel mismatch of a real array (empty: ideal): linear gain and extra delay per microphone.
     microphone_gain: tuple[float, ...] = ()  # linear, one per microphone
@@ -282,6 +287,9 @@ class SonarConfig:
             raise ValueError(f"microphones_m must be >= 2 finite (x, y, z) positions, got shape {mics.shape}")
         if len(self.emitter_m) != 3 or not np.isfinite(self.emitter_m).all() or not self.emitter_radius_m > 0:
             raise ValueError("emitter_m must be a finite (x, y, z) position and emitter_radius_m must be positive")
+        if self.emitter_pattern not in typing.get_args(EmitterPattern):
+            choices = " or ".join(typing.get_args(EmitterPattern))
+            raise ValueError(f"emitter_pattern must be {choices}, got {self.emitter_pattern!r}")
         if np.ptp(mics, axis=0).max() <= 0:  # one point has no aperture: no direction can be told
             raise ValueError("microphones_m are all at one point; an array needs microphones at distinct positions")
         if self.record_samples < self.chirp.sample_count:

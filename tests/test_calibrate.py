@@ -199,6 +199,9 @@ def test_with_scattering_frozen_the_reflections_come_out_wrong(scattering_record
     assert max(misses) > 0.10 and not len(fit.scattering)
     with pytest.raises(ValueError, match="scattering and the emitter's directivity together"):
         fit_surfaces(room, poses, clean, CONFIG, SCATTERING_TRACER, fit_scattering=True, directivity_knots=2)
+    omni = dataclasses.replace(CONFIG, emitter_pattern="omni")
+    with pytest.raises(ValueError, match="knots shape a baffled piston: this emitter is omni"):
+        fit_surfaces(room, poses, clean, omni, SCATTERING_TRACER, directivity_knots=2)
 
 
 @pytest.mark.parametrize("where", ["box_room", "office"])
@@ -279,8 +282,8 @@ def pra_recording(pose, config, size, reflection, rng, snr_db=40.0):
     """One ping recorded by pyroomacoustics in the shoebox [0, size] whose walls, floor and ceiling
     reflect `reflection` (pressure, absorption 1 - r^2 each), no air absorption, at our speed of
     sound. Its image sources are kept where our sensor hears them: not the direct path (an
-    emitter's call to its own array is no echo) and not paths that leave the emitter backwards
-    (ours is baffled); each image's axis parities give its leaving direction."""
+    emitter's call to its own array is no echo), and with a baffled emitter (`config`'s piston)
+    not paths that leave it backwards; each image's axis parities give its leaving direction."""
     pra = pytest.importorskip("pyroomacoustics")
     absorbed = {name: pra.Material(1.0 - r**2) for name, r in reflection.items()}
     walls = {"west": "wall", "east": "wall", "south": "wall", "north": "wall", "floor": "floor", "ceiling": "ceiling"}
@@ -302,7 +305,9 @@ def pra_recording(pose, config, size, reflection, rng, snr_db=40.0):
     arrival = (position - images) / np.linalg.norm(position - images, axis=1, keepdims=True)
     flips = np.stack([axis_reflections(images[:, i], emitter[i], size[i]) for i in range(3)], axis=1)
     leaving = (arrival * (-1.0) ** flips) @ rotation  # in the sensor frame
-    heard = (source.orders > 0) & (leaving[:, 0] >= -1e-6)  # sideways (floor, ceiling) counts as forwards, as ours
+    heard = source.orders > 0
+    if config.emitter_pattern == "piston":
+        heard &= leaving[:, 0] >= -1e-6  # sideways (floor, ceiling) counts as forwards, as ours
     source.damping[:, ~heard] = 0.0
     room.compute_rir()
     room.simulate(recompute_rir=False)
@@ -326,9 +331,10 @@ def test_pyroomacoustics_absorption_is_recovered_as_our_reflection(device):
     """Recordings by another engine (pyroomacoustics' image sources in a shoebox, known
     absorption a per class): the fitted R of each class within 10 % of 1 - a (its pressure factor
     sqrt(R) within 5 % of sqrt(1 - a)), our classes purely specular as image sources are; every
-    microphone's gain within 0.5 dB of 0 dB (both engines' sources give pressure 1 at 1 m)."""
+    microphone's gain within 0.5 dB of 0 dB (both engines' sources give pressure 1 at 1 m). Both
+    emitters are omnidirectional, paths leaving backwards included ("omni")."""
     pra = pytest.importorskip("pyroomacoustics")
-    omni = sim.SonarConfig.ertis(emitter_radius_m=1e-6)
+    omni = sim.SonarConfig.ertis(emitter_pattern="omni")
     size = np.array([6.0, 4.0, 3.0])
     reflection = {"wall": 0.85, "floor": 0.7, "ceiling": 0.55}
     rng = np.random.default_rng(5)

@@ -11,6 +11,7 @@ import warp as wp
 import acoustic_sim as sim
 import scenes
 from acoustic_sim.engine.kernels.common import add_count, claim_slot
+from acoustic_sim.engine.kernels.image_sources import image_key
 from acoustic_sim.engine.lidar import check_poses
 from acoustic_sim.engine.paths import KIND_SCATTERED, KIND_SPECULAR, PosesOnDevice
 from acoustic_sim.engine.sonar import Sonar
@@ -20,6 +21,7 @@ SIZE = np.array([6.0, 4.0, 3.0])
 POSE = scenes.pose(2.0, 1.5, 0.4, 1.2)
 # A vanishing piston radius makes the emitter omnidirectional over its front half-space.
 OMNI = sim.SonarConfig.ertis(emitter_radius_m=1e-6)
+SPHERE = sim.SonarConfig.ertis(emitter_pattern="omni")  # omnidirectional over the whole sphere
 SAMPLE_M = 343.0 / 450e3  # one sample at 450 kHz, as a path length
 
 
@@ -166,17 +168,17 @@ def test_trace_is_deterministic_and_batched(device):
 
 
 def test_rays_are_the_fibonacci_lattice_in_neighbouring_order():
-    """hemisphere_directions reorders the lattice and changes no ray: its rows are the lattice's
+    """ray_directions reorders the lattice and changes no ray: its rows are the lattice's
     (x uniform in cos theta, golden-angle azimuth), and neighbours in the array are neighbours on
     the sphere (median angle under 1 degree at 100k rays; the lattice's own order: ~108 degrees)."""
-    from acoustic_sim.engine.paths import hemisphere_directions
+    from acoustic_sim.engine.paths import ray_directions
 
     n = 100_000
     i = np.arange(n) + 0.5
     x = 1.0 - i / n
     phi = np.pi * (3.0 - np.sqrt(5.0)) * i
     lattice = np.c_[x, np.sqrt(1.0 - x * x) * np.cos(phi), np.sqrt(1.0 - x * x) * np.sin(phi)]
-    rays = hemisphere_directions(n)
+    rays = ray_directions(n)
     np.testing.assert_array_equal(rays[np.lexsort(rays.T)], lattice[np.lexsort(lattice.T)])
     step = np.degrees(np.arccos(np.clip(np.sum(rays[1:] * rays[:-1], axis=1), -1.0, 1.0)))
     assert np.median(step) < 1.0, np.median(step)
@@ -334,22 +336,76 @@ def test_generate_workers_share_the_cores(monkeypatch):
     assert Sonar(OMNI, device="cpu").cpu_threads == len(__import__("os").sched_getaffinity(0))
 
 
+def test_an_omni_emitter_hears_every_image_source_of_pyroomacoustics(device):
+    """pyroomacoustics' image sources (a peer engine; its sources are omnidirectional) in a
+    6 x 4 x 3 m shoebox, energy absorption 0.1 on the walls, 0.3 on the floor, 0.5 on the
+    ceiling, orders 1-3 (62 images, every one audible in a box): the tracer of an "omni" emitter
+    finds each once, those leaving the emitter backwards included, the path length within 0.1 mm
+    and the amplitude pyroomacoustics' damping (prod sqrt(1 - a)) over it; the baffled piston's
+    tracer finds exactly the images whose path leaves forwards. The emitter sits 2 cm to the
+    side as well as 5 cm above the array: straight above it, every path reflecting once off each
+    of two adjoining walls runs exactly through the edge between them (an image source for
+    pyroomacoustics, for rays a graze they may miss), and the pose avoids simple ratios to the
+    room's sides for the same reason."""
+    pra = pytest.importorskip("pyroomacoustics")
+    pose = scenes.pose(2.13, 1.37, 0.4, 1.21)
+    sphere, piston = (dataclasses.replace(c, emitter_m=(0.0, 0.02, 0.05)) for c in (SPHERE, OMNI))
+    absorption = {"wall": 0.1, "floor": 0.3, "ceiling": 0.5}
+    mats = {side: pra.Material(absorption["wall"]) for side in ("east", "west", "north", "south")}
+    mats |= {side: pra.Material(absorption[side]) for side in ("floor", "ceiling")}
+    emitter, receiver = emitter_and_receiver(pose, sphere)
+    room = pra.ShoeBox(SIZE, fs=450000, max_order=3, materials=mats, air_absorption=False)
+    room.add_source(emitter)
+    room.add_microphone(receiver)
+    room.image_source_model()
+    theirs = room.sources[0]
+    order = theirs.orders > 0
+    images, damping = theirs.images.T[order], theirs.damping[0, order]
+    lengths = np.linalg.norm(images - receiver, axis=1)
+    leaving = (receiver - images) / lengths[:, None] * (-1.0) ** np.abs(theirs.orders_xyz.T[order])
+    forwards = leaving @ pose[:3, 0] >= -1e-6  # the floor's and ceiling's own echoes leave in the baffle's plane
+
+    def surface(name):
+        return scenes.Material(
+            name=name, acoustic_reflection=1.0 - absorption[name], acoustic_scattering=0.0, lidar_reflectivity=0.5
+        )
+
+    box = scenes.box_room(tuple(SIZE), wall=surface("wall"), floor=surface("floor"), ceiling=surface("ceiling"))
+    for config, heard in ((sphere, np.ones(len(images), bool)), (piston, forwards)):
+        got = Sonar(config, max_bounces=2, ray_count=40_000, scattering=False, device=device).trace(box, pose)
+        expected = (images[heard] - receiver) @ pose[:3, :3]  # into the sensor frame
+        gap = np.linalg.norm(got.source_m[:, None] - expected[None], axis=-1)
+        assert len(got) == heard.sum() and len(set(gap.argmin(axis=1))) == len(got), (config.emitter_pattern, len(got))
+        match = gap.argmin(axis=0)  # each image's arrival
+        assert gap.min(axis=0).max() < 1e-4
+        np.testing.assert_allclose(got.length_m[match], lengths[heard], atol=1e-4)
+        np.testing.assert_allclose(got.amplitude[match] * got.length_m[match], damping[heard], rtol=1e-4)
+    assert 0.3 < 1 - forwards.mean() < 0.7  # about half of them leave backwards
+
+
 LOOKING_DOWN = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # sensor x -> world -z
+LOOKING_UP = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])  # sensor x -> world +z
 
 
-@pytest.mark.parametrize("height", [1.0, 2.0])
-def test_scattered_energy_from_a_lambertian_plane(device, height):
-    """Omnidirectional sonar `height` m above an infinite Lambertian floor (R = 1, s = 1), looking
-    down: the scattered energy reaching it is the radiosity integral
-    int cos^2(t) / (pi r^4) dA = 1 / (2 h^2); echoes start at 2 h / c."""
+@pytest.mark.parametrize(
+    ("height", "pattern", "facing"), [(1.0, "piston", "down"), (2.0, "piston", "down"), (1.5, "omni", "up")]
+)
+def test_scattered_energy_from_a_lambertian_plane(device, height, pattern, facing):
+    """Omnidirectional sonar `height` m above an infinite Lambertian floor (R = 1, s = 1): the
+    scattered energy reaching it is the radiosity integral int cos^2(t) / (pi r^4) dA =
+    1 / (2 h^2), echoes starting at 2 h / c; a vanishing piston facing the floor, or an "omni"
+    emitter facing away from it (sent backwards: a baffled one hears nothing there)."""
     floor = trimesh_square(200.0)
     lambert = scenes.Material(name="lambert", acoustic_reflection=1.0, acoustic_scattering=1.0, lidar_reflectivity=0.5)
     scene = scenes.from_mesh(floor, material=lambert)
     pose = np.eye(4)
-    pose[:3, :3] = LOOKING_DOWN
+    pose[:3, :3] = LOOKING_DOWN if facing == "down" else LOOKING_UP
     pose[2, 3] = height
-    config = sim.SonarConfig.ertis(emitter_radius_m=1e-6, emitter_m=(0.0, 0.0, 0.0))
+    config = sim.SonarConfig.ertis(emitter_radius_m=1e-6, emitter_m=(0.0, 0.0, 0.0), emitter_pattern=pattern)
     got = Sonar(config, max_bounces=0, ray_count=20_000, device=device).trace(scene, pose)
+    if facing == "up":
+        baffled = dataclasses.replace(config, emitter_pattern="piston")
+        assert len(Sonar(baffled, max_bounces=0, ray_count=2_000, device=device).trace(scene, pose)) == 0
     assert np.all(got.kind == KIND_SCATTERED) and np.all(got.order == 1)
     assert np.sum(got.amplitude**2) == pytest.approx(1.0 / (2 * height**2), rel=2e-3)
     assert got.length_m.min() == pytest.approx(2 * height, abs=1e-3)
@@ -476,3 +532,32 @@ def test_per_ping_counters_give_every_thread_its_own_slot(device):
         filled = got[i][got[i] >= 0]
         assert len(filled) == counts.numpy()[i] and (got[i][: len(filled)] >= 0).all()
         np.testing.assert_array_equal(np.sort(filled), np.flatnonzero(claim & (rows == i)))
+
+
+@wp.kernel(enable_backward=False)
+def _image_keys(order: int, images: wp.array[wp.vec3], keys: wp.array[wp.uint64]):
+    i = wp.tid()
+    keys[i] = image_key(order, images[i])
+
+
+def test_distinct_image_sources_get_distinct_keys(device):
+    """`image_key` (a ping's image sources are told apart by it): 4,000 random image sources
+    within 20 m, each with its seven copies mirrored through the sensor's axes and planes and its
+    five permutations, all of one order, all get distinct keys; a copy moved by less than half a
+    cell of IMAGE_GRID gets its original's. With FNV's xor-and-multiply on whole words, (x, y, z)
+    and (-x, -y, z) shared a key a quarter of the time (found by the omni emitter's test against
+    pyroomacoustics)."""
+    rng = np.random.default_rng(3)
+    base = rng.uniform(-20.0, 20.0, (4000, 3))
+    signs = np.array(list(itertools.product((1, -1), repeat=3)))
+    copies = [base * s for s in signs] + [base[:, list(p)] for p in itertools.permutations(range(3))][1:]
+    images = np.concatenate(copies)
+    images = np.round(images / 1e-4) * 1e-4  # cell centres: the rounding changes half a cell away
+    nudged = images + rng.uniform(-2e-5, 2e-5, images.shape)
+    with wp.ScopedDevice(device):
+        keys = [wp.zeros(len(images), dtype=wp.uint64) for _ in range(2)]
+        for points, out in zip((images, nudged), keys, strict=True):
+            wp.launch(_image_keys, dim=len(points), inputs=[3, wp.array(points.astype(np.float32), dtype=wp.vec3), out])
+    first, second = (k.numpy() for k in keys)
+    assert len(np.unique(first)) == len(first)
+    np.testing.assert_array_equal(first, second)

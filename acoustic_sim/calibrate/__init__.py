@@ -38,9 +38,11 @@ A recording's first milliseconds can be left out of the error (`skip_s`, on both
 emitter's direct sound, a real sensor's crosstalk or an omnidirectional source's call at the array,
 overlaps the first floor echoes and no traced path explains it.
 
-What this fit leaves out: paths leaving the emitter backwards (the tracer's baffled emitter sends
-none), and the directivity and scattering fitted together (a scattered arrival's departure angle
-is its ray's, not recorded).
+Paths leaving the emitter backwards are in the fit only with an omnidirectional emitter
+(`SonarConfig.emitter_pattern` "omni", as image-source engines model one): a baffled piston sends
+none. What this fit leaves out: the directivity of an "omni" emitter (the knots shape the baffled
+piston), and the directivity and scattering fitted together (a scattered arrival's departure
+angle is its ray's, not recorded).
 """
 
 from .directivity import departure_cosine

@@ -193,6 +193,8 @@ def signal_gram(
         raise ValueError("signals hold non-finite samples")
     if scattering and directivity_knots > 0:
         raise ValueError("fitting scattering and the emitter's directivity together is not supported yet: choose one")
+    if directivity_knots > 0 and config.emitter_pattern != "piston":
+        raise ValueError("the directivity knots shape a baffled piston: this emitter is omni (sonar.emitter_pattern)")
     window = skip_window(config, skip_s)
     signals = signals * window  # a copy: the caller's recording stays as it was
     tracer = dataclasses.replace(tracer or TracerConfig(), scattering=scattering)

@@ -41,7 +41,8 @@ class TracerInputs:
     emitter: wp.vec3  # emitter position, sensor frame [m]
     ray_dirs: wp.array  # vec3 (rays,) unit directions, sensor frame
     ray_energy: wp.array  # float (rays,) each ray's share of the emitted energy
-    directivity: wp.array  # float (DIRECTIVITY_STEPS + 1,) emitter amplitude over cos(angle from its axis)
+    directivity: wp.array  # float (2 DIRECTIVITY_STEPS + 1,) emitter amplitude over cos(angle from its axis), -1..1
+    emit_min_cosine: float  # paths leaving the emitter at a lower cosine from its axis are cut (its baffle)
     ray_count: int
     max_order: int  # reflections per path: max_bounces + 1
     edge_width_m: float  # band along sharp edges that scatters everything it reflects [m]
@@ -154,6 +155,7 @@ class BatchStages:
                 rows(specular.order),
                 ws.plane_curved,
                 self.inputs.directivity,
+                self.inputs.emit_min_cosine,
                 rows(b.planes),  # becomes each valid path's faces
             ],
             outputs=[
@@ -202,6 +204,7 @@ class BatchStages:
                 inverse,
                 self.inputs.emitter,
                 self.inputs.directivity,
+                self.inputs.emit_min_cosine,
             ],
             outputs=[
                 rows(curved.source),

@@ -25,7 +25,7 @@ import warp as wp
 
 from scenes import Scene
 
-from ..array import piston_directivity
+from ..array import emitter_directivity
 from ..config import SonarConfig, TracerConfig
 from ..devices import cpu_cores, device_calls, warp_device
 from .echoes import (
@@ -43,31 +43,34 @@ from .path_stages import BatchStages, TracerInputs, reset_tables
 from .poses import check_poses, raise_for_bad_poses, warn_poses_behind
 from .scene import warp_scene
 
-DIRECTIVITY_STEPS = 1024  # steps of the emitter's directivity table over the cosine from its axis
-__all__ = ["KIND_SCATTERED", "KIND_SPECULAR", "Arrivals", "PathTracer", "concatenate", "hemisphere_directions"]
+DIRECTIVITY_STEPS = 1024  # steps of the emitter's directivity table per unit of the cosine from its axis
+BAFFLE_SLACK = 1.0e-6  # [cosine] how far behind a baffled emitter's plane a path may leave it
+__all__ = ["KIND_SCATTERED", "KIND_SPECULAR", "Arrivals", "PathTracer", "concatenate", "ray_directions"]
 
 
-def hemisphere_directions(count: int) -> np.ndarray:
-    """`count` near-uniform unit vectors over the front hemisphere x > 0 (Fibonacci lattice), (count, 3),
-    in Z-order of their (y, z): rays next to each other in the array leave in neighbouring directions.
+def ray_directions(count: int, sphere: bool = False) -> np.ndarray:
+    """`count` near-uniform unit vectors (Fibonacci lattice) over the front hemisphere x > 0, or
+    with `sphere` over the whole sphere, (count, 3), in Z-order of their (y, z) (the front ones
+    first where there are both): rays next to each other in the array leave in neighbouring
+    directions.
 
     A GPU runs 32 consecutive rays as one warp. In the lattice's own order neighbours differ by the
     golden angle in azimuth, so a warp's rays walk different branches of the BVH and their scattered
     echoes land at unrelated times; in Z-order they hit one patch of wall. The set of rays, and so
     every echo, is the same in any order."""
-    return _hemisphere_directions(count).copy()
+    return _ray_directions(count, sphere).copy()
 
 
 @functools.lru_cache(maxsize=4)
-def _hemisphere_directions(count: int) -> np.ndarray:
-    """`hemisphere_directions`, computed once per count (~35 ms at 20k rays: every episode of a
-    dataset builds a tracer)."""
+def _ray_directions(count: int, sphere: bool) -> np.ndarray:
+    """`ray_directions`, computed once per count (~35 ms at 20k rays: every episode of a dataset
+    builds a tracer)."""
     i = np.arange(count) + 0.5
-    x = 1.0 - i / count  # uniform in cos(theta) from the +x axis over (0, 1]
+    x = 1.0 - (2.0 if sphere else 1.0) * i / count  # uniform in cos(theta) from the +x axis
     rho = np.sqrt(1.0 - x * x)
     phi = np.pi * (3.0 - np.sqrt(5.0)) * i
     directions = np.c_[x, rho * np.cos(phi), rho * np.sin(phi)]
-    directions = directions[np.argsort(_z_order(directions[:, 1:]), kind="stable")]
+    directions = directions[np.lexsort((_z_order(directions[:, 1:]), x < 0))]  # stable: each half in Z-order
     directions.setflags(write=False)  # shared by every caller
     return directions
 
@@ -117,15 +120,17 @@ class PathTracer:
         self.config = config
         self.edge_width_m = config.edge_width_for(sonar)
         self.device = warp_device(device)
-        centre_hz, c = sonar.chirp.centre_frequency_hz, sonar.atmosphere.speed_of_sound
-        directions = hemisphere_directions(config.ray_count)
-        # Each ray carries its share of the half-space (2 pi sr), weighted by the emitter's power
-        # directivity at the call's centre frequency.
-        theta = np.arccos(np.clip(directions[:, 0], -1.0, 1.0))
-        power = piston_directivity(theta, centre_hz, sonar.emitter_radius_m, c) ** 2
-        ray_energy = (2 * np.pi / config.ray_count * power).astype(np.float32)
-        cosine = np.linspace(0.0, 1.0, DIRECTIVITY_STEPS + 1)
-        pattern = piston_directivity(np.arccos(cosine), centre_hz, sonar.emitter_radius_m, c)
+        sphere = sonar.emitter_pattern == "omni"  # else a baffled piston: nothing leaves backwards
+        directions = ray_directions(config.ray_count, sphere)
+        # Each ray carries its share of the solid angle the emitter fills (2 pi sr in front of its
+        # baffle, 4 pi sr without one), weighted by its power directivity at the call's centre frequency.
+        power = emitter_directivity(sonar, directions[:, 0]) ** 2
+        ray_energy = ((4 if sphere else 2) * np.pi / config.ray_count * power).astype(np.float32)
+        cosine = np.linspace(-1.0, 1.0, 2 * DIRECTIVITY_STEPS + 1)
+        # Behind a baffle the table holds the pattern's value at 90 degrees: the kernels read it
+        # only for paths leaving within BAFFLE_SLACK behind the baffle's plane and cut the rest.
+        pattern = emitter_directivity(sonar, cosine if sphere else np.maximum(cosine, 0.0))
+        self._emit_min_cosine = -2.0 if sphere else -BAFFLE_SLACK
         with wp.ScopedDevice(self.device):
             self._ray_energy = wp.array(ray_energy, dtype=float)
             self._ray_dirs = wp.array(directions.astype(np.float32), dtype=wp.vec3)
@@ -318,6 +323,7 @@ class PathTracer:
             ray_dirs=self._ray_dirs,
             ray_energy=self._ray_energy,
             directivity=self._directivity,
+            emit_min_cosine=self._emit_min_cosine,
             ray_count=tracer.ray_count,
             max_order=tracer.max_bounces + 1,
             edge_width_m=self.edge_width_m,

@@ -61,8 +61,8 @@ def add_count(counts: wp.array[wp.int32], i: int, value: int):
 
 @wp.func
 def lookup(table: wp.array[float], x: float) -> float:
-    """Table of a function over [0, 1] at equal steps, interpolated linearly at x (clamped)."""
-    position = wp.clamp(x, 0.0, 1.0) * float(table.shape[0] - 1)
+    """Table of a function over [-1, 1] at equal steps, interpolated linearly at x (clamped)."""
+    position = (wp.clamp(x, -1.0, 1.0) + 1.0) * 0.5 * float(table.shape[0] - 1)
     i = wp.min(int(position), table.shape[0] - 2)
     w = position - float(i)
     return (1.0 - w) * table[i] + w * table[i + 1]

@@ -3,7 +3,7 @@
 import warp as wp
 
 from .common import add_count, lookup
-from .paths import BAFFLE_SLACK, SURFACE_STEP
+from .paths import SURFACE_STEP
 
 CURVED_SPHERE = wp.constant(0)  # curved surface kinds, as acoustic_sim.engine.scene.CURVED_KINDS
 CURVED_STEPS = wp.constant(24)  # fixed-point steps towards a curved surface's reflection point
@@ -52,6 +52,7 @@ def curved_echoes(
     inverse_poses: wp.array[wp.mat44],
     emitter: wp.vec3,
     directivity: wp.array[float],
+    emit_min_cosine: float,
     # out
     source_out: wp.array2d[wp.vec3],
     extra_out: wp.array2d[float],
@@ -114,7 +115,7 @@ def curved_echoes(
         blocked = wp.mesh_query_ray_anyhit(mesh, start, wp.normalize(r - start), wp.length(r - start), -1)
     add_count(ray_queries_out, p, queries)
     emit = wp.normalize(wp.transform_vector(inverse, point - e))
-    if blocked or emit[0] < -BAFFLE_SLACK:  # the emitter is baffled: nothing leaves it backwards
+    if blocked or emit[0] < emit_min_cosine:  # a baffled emitter sends nothing backwards
         return
     if sphere:  # bends the front by 2 / (a cos) in the plane of incidence, 2 cos / a across it
         rho_1 = reflected_radius(d1, 2.0 / (a * cosine))

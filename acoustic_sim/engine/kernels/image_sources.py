@@ -4,7 +4,7 @@ echo per image source: the exact specular path of each sequence, its sound or si
 import warp as wp
 
 from .common import add_count, lookup
-from .paths import BAFFLE_SLACK, HASH_PRIME, HASH_SEED, SURFACE_STEP, TABLE_PROBES, mirror
+from .paths import HASH_SEED, SURFACE_STEP, TABLE_PROBES, mirror
 
 PLANE_MATCH = wp.constant(2.0e-3)  # [m] how far a validation hit may lie from the image-source reflection point
 EDGE_PROBE = wp.constant(1.0e-3)  # [m] probe distance that checks an edge point lies on a face of a plane
@@ -39,6 +39,7 @@ def validate_sequences(
     table_order: wp.array2d[wp.int32],
     plane_curved: wp.array[wp.uint8],
     directivity: wp.array[float],
+    emit_min_cosine: float,
     # in-out: each slot's plane sequence, replaced by the faces its path reflects off
     table_planes: wp.array3d[wp.int32],
     # out
@@ -53,12 +54,13 @@ def validate_sequences(
     Exact image-source check of a discovered sequence: mirror the emitter in each plane, then
     walk back from the receiver (sensor origin) through the reflection points. Valid when every
     leg's first hit is at the expected reflection point (within PLANE_MATCH) and the last leg
-    reaches the emitter unoccluded, leaving it forwards. Outputs are in the sensor frame: the
+    reaches the emitter unoccluded, leaving it at a cosine from its axis of at least
+    `emit_min_cosine` (a baffled emitter's: just below 0). Outputs are in the sensor frame: the
     image source [m], the direction the echo arrives from and the last reflection point. The
     amplitude (0 where invalid) is the product of the specular pressure reflection factors
     sqrt(R (1 - s)) along the path, R and s those of the face of each plane the path reflects
     off, times the emitter's directivity towards the path (table over the cosine from its axis,
-    0..1), over the path length. Each reflection's entry of `table_planes` becomes that face once
+    -1..1), over the path length. Each reflection's entry of `table_planes` becomes that face once
     it is checked (the planes before it are all a later check reads), so a valid slot's row holds
     the faces of its path in order: what a path's amplitude owes to each surface. Adds its BVH ray
     queries to `ray_queries_out[pose]`. A sequence through a facet of a curved surface
@@ -152,8 +154,8 @@ def validate_sequences(
             mesh, x + direction * SURFACE_STEP, direction, distance - 2.0 * SURFACE_STEP, -1
         )
         queries += 1
-        # The emitter is baffled in the sensor's y-z plane: nothing leaves it backwards.
-        if not blocked and emit[0] >= -BAFFLE_SLACK:
+        # A baffled emitter (the sensor's y-z plane) sends nothing backwards.
+        if not blocked and emit[0] >= emit_min_cosine:
             amplitude_out[p, s] = gain * lookup(directivity, emit[0]) / wp.length(image - receiver)
             image_out[p, s] = wp.transform_point(inverse, image)
             arrival_dir_out[p, s] = wp.normalize(wp.transform_vector(inverse, arrival))
@@ -165,11 +167,23 @@ IMAGE_GRID = wp.constant(1.0e-4)  # [m] image sources closer than this are one e
 
 
 @wp.func
+def mix64(z: wp.uint64) -> wp.uint64:
+    """SplitMix64's finaliser: every input bit reaches every output bit."""
+    z = (z ^ (z >> wp.uint64(30))) * wp.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> wp.uint64(27))) * wp.uint64(0x94D049BB133111EB)
+    return z ^ (z >> wp.uint64(31))
+
+
+@wp.func
 def image_key(order: int, image: wp.vec3) -> wp.uint64:
-    key = (HASH_SEED ^ wp.uint64(order)) * HASH_PRIME
+    """A hash of (order, image rounded to IMAGE_GRID). Each coordinate is mixed in fully: with
+    FNV's xor-and-multiply on whole words, (x, y, z) and (-x, -y, z) shared a key for a quarter of
+    all cells (the sign's high bits never reach the low ones), so one of two distinct image
+    sources mirrored through the sensor's z axis was dropped as the other's duplicate."""
+    key = mix64(HASH_SEED ^ wp.uint64(order))
     for k in range(3):
         cell = wp.int64(wp.round(image[k] / IMAGE_GRID))
-        key = (key ^ wp.uint64(cell)) * HASH_PRIME
+        key = mix64(key ^ wp.uint64(cell))
     return wp.max(key, wp.uint64(1))
 
 

@@ -11,7 +11,6 @@ TABLE_PROBES = wp.constant(32)  # linear probes before an insertion into a pose'
 HASH_SEED = wp.constant(wp.uint64(14695981039346656037))  # FNV-1a 64-bit offset basis
 HASH_PRIME = wp.constant(wp.uint64(1099511628211))
 SURFACE_STEP = wp.constant(1.0e-4)  # [m] step off a surface before the next query
-BAFFLE_SLACK = wp.constant(1.0e-6)  # [cosine] how far behind the emitter's baffle a path may leave it
 
 
 @wp.func
