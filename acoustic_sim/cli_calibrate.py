@@ -58,10 +58,14 @@ def add_calibrate_parser(sub, builders) -> None:
     )
     cal.add_argument(
         "--scattering",
-        action="store_true",
+        nargs="?",
+        const="waveform",
+        choices=("waveform", "energy"),
         help="also fit each surface class's scattering coefficient s, tracing scattered arrivals (diffuse rain and "
         "edge bands) beside the specular paths: slower, and needed where the room scatters (the scene's s > 0 is "
-        "the start; a class with s = 0 keeps it)",
+        "the start; a class with s = 0 keeps it). waveform (the default): by the signals, for recordings our "
+        "engine made; energy: then s again by the echo energy per millisecond, holding each class's specular "
+        "share, for recordings another engine or a real room made (their diffuse echoes share no phase with ours)",
     )
     cal.add_argument(
         "--no-air-absorption",
@@ -125,7 +129,7 @@ def _calibrate_into(args, written: Path) -> str:
     import numpy as np
 
     from . import __version__
-    from .calibrate import fit_surfaces, recordings_and_sonar
+    from .calibrate import fit_scattering_energy, fit_surfaces, recordings_and_sonar
     from .config import SimConfig
     from .devices import check_device, quiet_warp
     from .render import render_calibration
@@ -155,12 +159,25 @@ def _calibrate_into(args, written: Path) -> str:
         fit_gains=not args.no_gains,
         fit_delays=not args.no_delays,
         directivity_knots=args.directivity_knots,
-        fit_scattering=args.scattering,
+        fit_scattering=bool(args.scattering),
         absorption=absorption,
         skip_s=args.skip_ms * 1e-3,
         device=args.device,
         progress=True,
     )
+    if args.scattering == "energy":
+        fit = fit_scattering_energy(
+            scene,
+            poses,
+            signals,
+            rig.sonar,
+            fit,
+            tracer,
+            absorption=absorption,
+            skip_s=args.skip_ms * 1e-3,
+            device=args.device,
+            progress=True,
+        )
     middle = len(poses) // 2
     panels = _before_and_after(scene, fit, poses[middle], signals[middle], rig, tracer, absorption, args.device)
     render_calibration(fit, panels, rig.processing.grid, written.with_suffix(".png"))
@@ -178,6 +195,7 @@ def _calibrate_into(args, written: Path) -> str:
             "nominal": np.round(fit.directivity_nominal, 5).tolist(),
             "piston_radius_mm": round(fit.piston_radius_m(rig.sonar) * 1e3, 3) if len(fit.directivity) else None,
         },
+        "energy": _energy_record(fit.energy),
         "air_absorption": absorption,  # a suite naming this fit simulates the same air
         "loss": fit.loss,
         "signatures": fit.signatures,
@@ -209,6 +227,16 @@ def _classes_record(fit) -> dict:
     for name, (s, s0) in fit.fitted_scattering().items():
         record[name] |= {"scattering": s, "scattering_nominal": s0}
     return record
+
+
+def _energy_record(energy) -> dict | None:
+    """The energy stage's bins (recorded, simulated before and after, noise) where it ran."""
+    if energy is None:
+        return None
+    rounded = {k: [float(f"{v:.5g}") for v in getattr(energy, k)] for k in ("recorded", "before", "after")}
+    start_ms = [round(float(t) * 1e3, 4) for t in energy.bin_start_s]
+    loss = [energy.loss_before, energy.loss_after]
+    return {"bin_start_ms": start_ms, **rounded, "noise_per_bin": float(f"{energy.noise:.5g}"), "loss": loss}
 
 
 def _before_and_after(scene, fit, pose, recorded, rig, tracer, absorption: bool, device) -> list:

@@ -115,11 +115,14 @@ def render_examples(examples: list[tuple[str, np.ndarray, np.ndarray]], grid: Po
 def render_calibration(fit, energyscapes: list[tuple[str, np.ndarray]], grid: PolarGrid, out: str | Path) -> Path:
     """A calibration at a glance: the relative error at each step, each class's R (and where fitted
     its s) before and after, each microphone's fitted gain and delay, the emitter's directivity
-    where it was fitted, and one ping's energyscapes (recorded, simulated with the nominal and the
-    fitted values), in dB below the first one's peak."""
+    where it was fitted, the echo energy per bin where s was fitted to it, and one ping's
+    energyscapes (recorded, simulated with the nominal and the fitted values), in dB below the
+    first one's peak."""
     out = Path(out)
     n = len(energyscapes)
-    top = 4 if len(fit.directivity) else 3
+    optional = ((_directivity_panel, len(fit.directivity) > 0), (_energy_panel, fit.energy is not None))
+    extra = [panel for panel, drawn in optional if drawn]
+    top = 3 + len(extra)
     fig = plt.figure(figsize=(5.5 * max(n, top * 0.8), 8.6))
     grid_spec = fig.add_gridspec(2, top * n)  # the top row's panels over the bottom row's n
     loss = fig.add_subplot(grid_spec[0, :n])
@@ -147,13 +150,8 @@ def render_calibration(fit, energyscapes: list[tuple[str, np.ndarray]], grid: Po
     lags = mics.twinx()
     lags.plot(index, fit.mic_delay_s * 1e6, "o", color="tab:red", markersize=4)
     lags.set_ylabel("delay [us]", color="tab:red")
-    if len(fit.directivity):
-        beam = fig.add_subplot(grid_spec[0, 3 * n :])
-        beam.plot(fit.directivity_deg, fit.directivity_nominal, "o-", label="nominal piston (start)")
-        beam.plot(fit.directivity_deg, fit.directivity, "o-", label="fitted")
-        beam.axhline(0.0, color="0.6", linewidth=0.8)
-        beam.set(xlabel="angle from the emitter's axis [deg]", ylabel="pressure (1 on axis)", title="emitter")
-        beam.legend(loc="upper right", fontsize=8)
+    for k, panel in enumerate(extra, start=3):
+        panel(fig.add_subplot(grid_spec[0, k * n : (k + 1) * n]), fit)
     peak = float(np.max(energyscapes[0][1]))  # one dB scale: the first image's peak
     for k, (title, image) in enumerate(energyscapes):
         ax = fig.add_subplot(grid_spec[1, top * k : top * k + top])
@@ -163,6 +161,27 @@ def render_calibration(fit, energyscapes: list[tuple[str, np.ndarray]], grid: Po
     fig.savefig(out, dpi=80, bbox_inches="tight")
     plt.close(fig)
     return out
+
+
+def _directivity_panel(beam, fit) -> None:
+    beam.plot(fit.directivity_deg, fit.directivity_nominal, "o-", label="nominal piston (start)")
+    beam.plot(fit.directivity_deg, fit.directivity, "o-", label="fitted")
+    beam.axhline(0.0, color="0.6", linewidth=0.8)
+    beam.set(xlabel="angle from the emitter's axis [deg]", ylabel="pressure (1 on axis)", title="emitter")
+    beam.legend(loc="upper right", fontsize=8)
+
+
+def _energy_panel(ax, fit) -> None:
+    """The energy stage: the recordings' echo energy per bin beside the simulation's (plus the
+    fitted noise) at the waveform fit's s and at the fitted s."""
+    energy = fit.energy
+    start_ms = energy.bin_start_s * 1e3
+    ax.semilogy(start_ms, energy.recorded, "k.-", label="recorded")
+    ax.semilogy(start_ms, energy.before, "-", label=f"simulated, waveform's s ({energy.loss_before:.2g})")
+    ax.semilogy(start_ms, energy.after, "-", label=f"simulated, fitted s ({energy.loss_after:.2g})")
+    ax.axhline(energy.noise, color="0.6", linestyle="--", linewidth=0.8, label="fitted noise")
+    ax.set(xlabel="bin start [ms]", ylabel="energy per bin (all mics and pings)", title="echo energy (s by energy)")
+    ax.legend(loc="upper right", fontsize=7)
 
 
 def render_elevations(

@@ -46,13 +46,16 @@ angle is its ray's, not recorded).
 """
 
 from .directivity import departure_cosine
+from .energy import EnergyFit, fit_scattering_energy
 from .fit import SignalGram, SurfaceFit, fit_surfaces, loss_and_gradient, signal_gram
 from .recordings import load_recordings, recorded_scene, recordings_and_sonar
 
 __all__ = [
+    "EnergyFit",
     "SignalGram",
     "SurfaceFit",
     "departure_cosine",
+    "fit_scattering_energy",
     "fit_surfaces",
     "load_recordings",
     "loss_and_gradient",

@@ -4,16 +4,21 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from tqdm.auto import tqdm
 
 import scenes
-from scenes.surfaces import SURFACE_CLASSES, surface_classes, with_surfaces
+from scenes.surfaces import with_surfaces
 
 from ..array import piston_directivity
 from ..config import SonarConfig, TracerConfig
 from .directivity import by_knot
+from .signatures import at_unit_surfaces
+
+if TYPE_CHECKING:
+    from .energy import EnergyFit
 
 BLOCK_BYTES = 512e6  # the signature signals held at once (float64: signatures x pings x mics x samples)
 MAX_DELAY_S = 20e-6  # how far a microphone's fitted delay may go either way (9 samples at 450 kHz)
@@ -99,6 +104,7 @@ class SurfaceFit:
             where it started (the class's faces' mean); empty where scattering was not fitted,
             and nominal wherever no scattered arrival came off the class.
         scattering_fitted: Per class whether its s was fitted (bool); empty without.
+        energy: The energy stage's bins and fit, where s was fitted to echo energies.
     """
 
     classes: tuple[str, ...]
@@ -114,6 +120,7 @@ class SurfaceFit:
     scattering: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     scattering_nominal: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     scattering_fitted: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=bool))
+    energy: EnergyFit | None = None  # where s was fitted to echo energies (`energy.fit_scattering_energy`)
 
     def surfaces(self) -> dict[str, dict[str, float]]:
         """The fit as acoustics per surface class, e.g. {"walls": {"reflection": 0.8, "scattering": 0.1}}
@@ -200,26 +207,9 @@ def signal_gram(
     tracer = dataclasses.replace(tracer or TracerConfig(), scattering=scattering)
     sonar = Sonar(config, tracer, device=device, scattered_faces=scattering)
     arrivals = sonar.trace(scene, poses)
-    face_class = surface_classes(scene)
-    face_r, face_s = scene.material_table("acoustic_reflection"), scene.material_table("acoustic_scattering")
-    reflected, kept, scattered = arrivals.face_roles()
-    faces = np.maximum(arrivals.faces, 0)
-    factor = np.where(reflected, np.sqrt(face_r[faces]), 1.0)
-    by_class = arrivals.surface_factors(face_class, len(SURFACE_CLASSES))
-    seen = by_class[0].sum(axis=0) > 0
-    classes = tuple(np.array(SURFACE_CLASSES)[seen])
-    nominal = np.array([face_r[face_class == k].mean() for k in np.nonzero(seen)[0]])
-    nominal_s = np.array([face_s[face_class == k].mean() for k in np.nonzero(seen)[0]])
-    # s is fitted for the classes that scattered an arrival; elsewhere (1 - s) stays in the amplitude.
-    scatters = by_class[2][:, seen].sum(axis=0) > 0
-    if scatters.any():
-        fitted = np.isin(face_class[faces], np.nonzero(seen)[0][scatters])
-        factor *= np.where(kept & fitted, np.sqrt(1.0 - face_s[faces]), 1.0)
-        factor *= np.where(scattered & fitted, np.sqrt(face_s[faces]), 1.0)
-    # Each arrival at R = 1 (and s's factors at 1) on its faces: its amplitude over their product.
-    arrivals.amplitude = arrivals.amplitude / np.prod(factor, axis=1)
-    counts = by_class[0][:, seen]
-    shares = np.column_stack([by_class[1][:, seen][:, scatters], by_class[2][:, seen][:, scatters]])
+    found = at_unit_surfaces(arrivals, scene)  # each arrival at R = 1 (and s's factors at 1) on its faces
+    classes, nominal, nominal_s, scatters = found.classes, found.nominal, found.nominal_s, found.scatters
+    counts, shares = found.counts, found.shares
     knot = knot_deg = None
     if directivity_knots > 0:
         arrivals, counts, knot, knot_deg = by_knot(arrivals, counts, scene, poses, config, directivity_knots)
