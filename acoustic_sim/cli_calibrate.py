@@ -165,6 +165,7 @@ def _calibrate_into(args, written: Path) -> str:
         device=args.device,
         progress=True,
     )
+    waveform = fit
     if args.scattering == "energy":
         fit = fit_scattering_energy(
             scene,
@@ -195,7 +196,7 @@ def _calibrate_into(args, written: Path) -> str:
             "nominal": np.round(fit.directivity_nominal, 5).tolist(),
             "piston_radius_mm": round(fit.piston_radius_m(rig.sonar) * 1e3, 3) if len(fit.directivity) else None,
         },
-        "energy": _energy_record(fit.energy),
+        "energy": _energy_record(fit.energy, waveform),
         "air_absorption": absorption,  # a suite naming this fit simulates the same air
         "loss": fit.loss,
         "signatures": fit.signatures,
@@ -229,14 +230,22 @@ def _classes_record(fit) -> dict:
     return record
 
 
-def _energy_record(energy) -> dict | None:
-    """The energy stage's bins (recorded, simulated before and after, noise) where it ran."""
+def _energy_record(energy, waveform) -> dict | None:
+    """Where the energy stage ran: the waveform stage's classes, and the bins (recorded, simulated
+    before and after, noise)."""
     if energy is None:
         return None
     rounded = {k: [float(f"{v:.5g}") for v in getattr(energy, k)] for k in ("recorded", "before", "after")}
     start_ms = [round(float(t) * 1e3, 4) for t in energy.bin_start_s]
     loss = [energy.loss_before, energy.loss_after]
-    return {"bin_start_ms": start_ms, **rounded, "noise_per_bin": float(f"{energy.noise:.5g}"), "loss": loss}
+    noise = float(f"{energy.noise:.5g}")
+    return {
+        "waveform": _classes_record(waveform),
+        "bin_start_ms": start_ms,
+        **rounded,
+        "noise_per_bin": noise,
+        "loss": loss,
+    }
 
 
 def _before_and_after(scene, fit, pose, recorded, rig, tracer, absorption: bool, device) -> list:

@@ -54,10 +54,15 @@ def _truths(recordings: Path) -> dict[int, dict]:
 def write_suite(fits: Path, recordings: Path, out: Path, spread: float) -> None:
     from acoustic_sim.datasets.suites import RANDOMISED_PHYSICS, load_suite
 
-    surfaces, directivity = _rooms(fits / "surfaces"), _rooms(fits / "directivity")
-    if sorted(surfaces) != sorted(directivity):
+    surfaces = _rooms(fits / "surfaces")
+    # energy fits (calibrate_sim2real.sh FIT=energy) were told the emitter is omnidirectional: no directivity
+    directivity = _rooms(fits / "directivity") if (fits / "directivity").is_dir() else {}
+    if directivity and sorted(surfaces) != sorted(directivity):
         raise SystemExit(f"rooms fitted: surfaces {sorted(surfaces)}, directivity {sorted(directivity)}; not the same")
-    radii = np.array([fit["directivity"]["piston_radius_mm"] * 1e-3 for fit in directivity.values()])
+    vary = {"sonar.emitter_m": RANDOMISED_PHYSICS["vary"]["sonar.emitter_m"]}
+    if directivity:
+        radii = np.array([fit["directivity"]["piston_radius_mm"] * 1e-3 for fit in directivity.values()])
+        vary["sonar.emitter_radius_m"] = [float(radii.min() * (1 - spread)), float(radii.max() * (1 + spread))]
     names = [os.path.relpath(fits / "surfaces" / f"room{room}.json", out.parent) for room in surfaces]
     suite = {
         "base": "randomised",
@@ -66,10 +71,7 @@ def write_suite(fits: Path, recordings: Path, out: Path, spread: float) -> None:
         "physics": {
             "calibration": names,
             "calibration_spread": spread,
-            "vary": {
-                "sonar.emitter_radius_m": [float(radii.min() * (1 - spread)), float(radii.max() * (1 + spread))],
-                "sonar.emitter_m": RANDOMISED_PHYSICS["vary"]["sonar.emitter_m"],
-            },
+            "vary": vary,
             "surfaces": {"objects": RANDOMISED_PHYSICS["surfaces"]["objects"]},
         },
     }
@@ -110,7 +112,7 @@ def fits_markdown(surfaces: dict, directivity: dict, truths: dict, physics) -> s
             cells.append(f"{got['reflection']:.3f} / {engine:.3f}")
             s.append(f"{got.get('scattering', float('nan')):.3f}")
             misses[c].append(got["reflection"] / engine - 1)
-        radius = directivity[room]["directivity"]["piston_radius_mm"]
+        radius = directivity[room]["directivity"]["piston_radius_mm"] if directivity else "omni"
         loss = f"{fit['loss'][0]:.2f} -> {fit['loss'][-1]:.2f}"
         fitted = f"{' | '.join(cells)} | {', '.join(s)} | {truth.get('wall_scattering', 0.0):.3f}"
         lines.append(f"| {room} | {truth['plan']} | {fitted} | {radius:g} | {loss} |")
@@ -121,7 +123,8 @@ def fits_markdown(surfaces: dict, directivity: dict, truths: dict, physics) -> s
         "",
         "The suite draws per episode (`randomised` bounces_3 with these on top): "
         + "; ".join(f"{c} {v}" for c, v in physics.surfaces.items())
-        + f"; emitter radius {physics.vary['sonar.emitter_radius_m']} m; air absorption "
+        + f"; emitter {physics.vary.get('sonar.emitter_pattern') or physics.vary['sonar.emitter_radius_m']}"
+        + "; air absorption "
         + ("on" if physics.air_absorption else "off")
         + ".",
     ]

@@ -25,7 +25,10 @@
 # here) and that its air absorbs nothing (the engine leaves absorption out; --no-air-absorption), and
 # to skip the first 3 ms of each recording (the omnidirectional emitter's direct sound, which lasts
 # the 2.5 ms call). First each room's emitter directivity is fitted (knots every 15 degrees,
-# specular), then R and s of each class with the emitter as the nearest piston to that fit.
+# specular), then R and s of each class with the emitter as the nearest piston to that fit. With
+# FIT=energy the fits are told the emitter is omnidirectional instead (the engine's is) and fit s by
+# the echo energy (`calibrate --scattering energy`: the rough walls' diffuse echoes share no phase
+# with ours); the suite then simulates an omnidirectional emitter too.
 #
 # The GPU machine (a lent two-GPU kind; calls back to back, each under 10 minutes): the fits are made
 # here first (`fit`, then `calibrate_sim2real.py suite`) and travel with the tree (the suite names
@@ -62,6 +65,15 @@ fit)
     --workers "${CROSS_WORKERS:-2}" --device "${GEN_DEVICE:-cpu}" --quiet
   told=(--scene-from-data --frames "0:$CAL_FRAMES" --pings "${CAL_PINGS:-10}" --skip-ms 3 --no-air-absorption
     --set sonar.atmosphere.temperature_c=19.6335 --device "${GEN_DEVICE:-cpu}" --overwrite)
+  if [[ ${FIT:-directivity} == energy ]]; then
+    # told also that the engine's source is omnidirectional (it is); s by the echo energy, which another
+    # engine's diffuse echoes keep where their phases are not ours
+    for room in 0 1 2 3 4 5 6 7 8 9; do
+      python3 -m acoustic_sim calibrate "$rec" --episode "$room" "${told[@]}" --scattering energy \
+        --set sonar.emitter_pattern=omni --out "$W/fits/surfaces/room$room.json" >> "$W/logs/fit.log" 2>&1
+    done
+    exit 0
+  fi
   for room in 0 1 2 3 4 5 6 7 8 9; do
     python3 -m acoustic_sim calibrate "$rec" --episode "$room" "${told[@]}" --directivity-knots "${KNOTS:-6}" \
       --set tracer.scattering=false --out "$W/fits/directivity/room$room.json" >> "$W/logs/fit.log" 2>&1

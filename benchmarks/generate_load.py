@@ -6,11 +6,11 @@ each GPU's utilisation over each run, for settings compared in rounds.
 A setting is DEVICE/WORKERS[/WAIT[/HELPERS[/NICENESS]]]: WAIT is how the workers' CUDA waits (spin,
 CUDA's default, or block: SONAR2LIDAR_CUDA_WAIT), HELPERS the host processes per worker (generate's
 choice if left out or `-`), NICENESS how far below its rendering process a helper is scheduled
-(SONAR2LIDAR_HELPER_NICENESS, 0 if left out). DEVICE `pair` runs two `generate` commands at once, one on cuda:0 and one on cuda:1,
-with WORKERS each and half the frames each: whether two GPUs slow each other through the host
-rather than through one command's machinery. Each run is a fresh process, as a `generate` command
-is. Beside its frames/s: the share of the host's CPU time busy over the run (/proc/stat), the CPU
-time and page faults of the run's whole process tree (getrusage), each GPU's utilisation
+(SONAR2LIDAR_HELPER_NICENESS, 0 if left out). DEVICE `pair` runs two `generate` commands at once,
+one on cuda:0 and one on cuda:1, with WORKERS each and half the frames each: whether two GPUs slow
+each other through the host rather than through one command's machinery. Each run is a fresh
+process, as a `generate` command is. Beside its frames/s: the share of the host's CPU time busy over
+the run (/proc/stat), the CPU time and page faults of the run's whole process tree (getrusage), each GPU's utilisation
 (nvidia-smi every 250 ms: the mean, the median, and the mean of the samples while the GPUs were in
 use), which processes hold a context on which GPU (6 s into the run), and with --spy, a py-spy
 recording of one more run of each named setting (`pip install py-spy`), summed by what the busy

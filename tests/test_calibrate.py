@@ -499,7 +499,13 @@ def test_a_suite_generates_in_the_fitted_physics(tmp_path):
     suite.write_text('base = "tiny"\n[physics]\ncalibration = "fit.json"\n')
     (physics,) = load_suite(suite).variants.values()
     assert physics.surfaces["walls"]["reflection"] == [0.8, 0.8]
+    (tmp_path / "omni.json").write_text(json.dumps(fit | {"sim": {"sonar": {"emitter_pattern": "omni"}}}))
+    suite.write_text('base = "tiny"\n[physics]\ncalibration = "omni.json"\n')
+    (physics,) = load_suite(suite).variants.values()
+    assert physics.vary["sonar.emitter_pattern"] == {"choice": ["omni"]}  # a fit made with one simulates one
+    assert physics.draw(sim.SimConfig(), np.random.default_rng(0))[0].sonar.emitter_pattern == "omni"
     refused = {
+        '[physics]\ncalibration = "omni.json"\nvary = {"sonar.emitter_pattern" = {choice = ["piston"]}}\n': "pattern",
         "[physics]\ncalibration_spread = 0.1\n": "calibration_spread needs calibration",
         '[physics]\ncalibration = "fit.json"\nsurfaces = {walls = {reflection = [0.5, 0.6]}}\n': "both give walls",
         '[physics]\ncalibration = "fit.json"\nmic_gain_db = [0.0]\n': "both give the microphones' gains",

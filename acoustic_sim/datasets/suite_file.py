@@ -100,11 +100,13 @@ def _calibrated_surfaces(table: dict, path: Path, where: str) -> None:
     where fitted), drawn per episode from [R (1 - f), min(1, R (1 + f))] with `calibration_spread = f`
     (default 0: R itself);
     its microphones' gains and delays (`mic_gain_db`, `mic_delay_s`); and where it fitted the
-    emitter's directivity, the closest piston's radius r, drawn from [r (1 - f), r (1 + f)] (`vary`).
-    A fit made of recordings whose air absorbs nothing (`calibrate --no-air-absorption`) turns
-    `air_absorption` off. A list of fits (several rooms of one building, one sensor) spans them:
-    each class's R and s from the lowest fit's (1 - f) to the highest's (1 + f), the radius
-    likewise, and each microphone's gain and delay their mean over the fits that give them."""
+    emitter's directivity, the closest piston's radius r, drawn from [r (1 - f), r (1 + f)] (`vary`);
+    a fit made with an omnidirectional emitter (`sonar.emitter_pattern=omni`) simulates one too
+    (its R were fitted with the paths such an emitter sends backwards). A fit made of recordings
+    whose air absorbs nothing (`calibrate --no-air-absorption`) turns `air_absorption` off. A list
+    of fits (several rooms of one building, one sensor) spans them: each class's R and s from the
+    lowest fit's (1 - f) to the highest's (1 + f), the radius likewise, and each microphone's gain
+    and delay their mean over the fits that give them."""
     spread = table.pop("calibration_spread", None)
     if "calibration" not in table:
         if spread is not None:
@@ -144,6 +146,13 @@ def _calibrated_surfaces(table: dict, path: Path, where: str) -> None:
         if "sonar.emitter_radius_m" in vary:
             raise ValueError(f"{where}: vary.sonar.emitter_radius_m and calibration both give the emitter's radius")
         vary["sonar.emitter_radius_m"] = [min(radii) * (1 - spread), max(radii) * (1 + spread)]
+    patterns = sorted({fit["emitter_pattern"] for fit in fits})
+    if patterns != ["piston"]:
+        vary = table.setdefault("vary", {})
+        _check(vary, "a table", f"{where}.vary")
+        if "sonar.emitter_pattern" in vary:
+            raise ValueError(f"{where}: vary.sonar.emitter_pattern and calibration both give the emitter's pattern")
+        vary["sonar.emitter_pattern"] = {"choice": patterns}
     surfaces = table.setdefault("surfaces", {})
     _check(surfaces, "a table of tables", f"{where}.surfaces")
     spans: dict[tuple[str, str], list[float]] = {}
@@ -159,7 +168,8 @@ def _calibrated_surfaces(table: dict, path: Path, where: str) -> None:
 
 def _read_fit(fit_path: Path, where: str) -> dict:
     """What a suite takes of a fit `calibrate` wrote: per class R (and s), the microphones' gains
-    [dB] and delays [s] (empty where not fitted) and the nearest piston's radius [m] (or None)."""
+    [dB] and delays [s] (empty where not fitted), the nearest piston's radius [m] (or None), whether
+    its air absorbed and its emitter's pattern."""
     input_file(fit_path, what="calibration", max_bytes=CALIBRATION_MAX_BYTES, bound="a fit is a few kilobytes")
     try:
         fit = json.loads(fit_path.read_text(encoding="utf-8"))
@@ -176,6 +186,7 @@ def _read_fit(fit_path: Path, where: str) -> dict:
             "mic_delay_s": [float(v) * 1e-6 for v in fit.get("mic_delay_us", [])],
             "radius": None if radius_mm is None else float(radius_mm) * 1e-3,
             "air_absorption": bool(fit.get("air_absorption", not fit.get("options", {}).get("no_air_absorption"))),
+            "emitter_pattern": str(fit.get("sim", {}).get("sonar", {}).get("emitter_pattern", "piston")),
         }
     except (UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError, ValueError, AttributeError):
         raise ValueError(
