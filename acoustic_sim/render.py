@@ -123,7 +123,7 @@ def render_calibration(fit, energyscapes: list[tuple[str, np.ndarray]], grid: Po
     optional = ((_directivity_panel, len(fit.directivity) > 0), (_energy_panel, fit.energy is not None))
     extra = [panel for panel, drawn in optional if drawn]
     top = 3 + len(extra)
-    fig = plt.figure(figsize=(5.5 * max(n, top * 0.8), 8.6))
+    fig = plt.figure(figsize=(5.5 * max(n, top), 8.6))  # a top panel as wide as an energyscape: labels clear
     grid_spec = fig.add_gridspec(2, top * n)  # the top row's panels over the bottom row's n
     loss = fig.add_subplot(grid_spec[0, :n])
     loss.semilogy(np.arange(1, len(fit.loss) + 1), fit.loss, marker=".")
@@ -181,7 +181,7 @@ def _energy_panel(ax, fit) -> None:
     ax.semilogy(start_ms, energy.after, "-", label=f"simulated, fitted s ({energy.loss_after:.2g})")
     ax.axhline(energy.noise, color="0.6", linestyle="--", linewidth=0.8, label="fitted noise")
     ax.set(xlabel="bin start [ms]", ylabel="energy per bin (all mics and pings)", title="echo energy (s by energy)")
-    ax.legend(loc="upper right", fontsize=7)
+    ax.legend(loc="best", fontsize=7)
 
 
 def render_elevations(

@@ -188,7 +188,7 @@ def _check_settings(command: Command, cwd: Path) -> None:
 
 def _suite_frames(args: argparse.Namespace, cwd: Path) -> int:
     """Frames `generate` would simulate, after loading the suite and choosing its variants."""
-    if args.suite == "crossengine":
+    if args.suite in ("crossengine", "crossengine_rough"):
         return args.frames or 1000
     from acoustic_sim.datasets.suites import SUITES, load_suite
 

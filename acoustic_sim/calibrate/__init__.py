@@ -38,6 +38,12 @@ A recording's first milliseconds can be left out of the error (`skip_s`, on both
 emitter's direct sound, a real sensor's crosstalk or an omnidirectional source's call at the array,
 overlaps the first floor echoes and no traced path explains it.
 
+Recordings another engine or a real room made need the scattering fitted again by echo energy
+(`fit_scattering_energy`, `calibrate --scattering energy`): their diffuse echoes share no phase with
+our scattered arrivals, so the waveform fit returns s = 0 and R at the specular share R (1 - s). The
+energy stage holds each class's specular share as the waveform fit found it and fits s and the
+recordings' noise to the echo energy in 1 ms bins (`energy` module docstring).
+
 Paths leaving the emitter backwards are in the fit only with an omnidirectional emitter
 (`SonarConfig.emitter_pattern` "omni", as image-source engines model one): a baffled piston sends
 none. What this fit leaves out: the directivity of an "omni" emitter (the knots shape the baffled

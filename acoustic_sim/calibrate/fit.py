@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -16,9 +15,6 @@ from ..array import piston_directivity
 from ..config import SonarConfig, TracerConfig
 from .directivity import by_knot
 from .signatures import at_unit_surfaces
-
-if TYPE_CHECKING:
-    from .energy import EnergyFit
 
 BLOCK_BYTES = 512e6  # the signature signals held at once (float64: signatures x pings x mics x samples)
 MAX_DELAY_S = 20e-6  # how far a microphone's fitted delay may go either way (9 samples at 450 kHz)
@@ -120,7 +116,7 @@ class SurfaceFit:
     scattering: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     scattering_nominal: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
     scattering_fitted: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0, dtype=bool))
-    energy: EnergyFit | None = None  # where s was fitted to echo energies (`energy.fit_scattering_energy`)
+    energy: object = None  # an energy.EnergyFit where s was fitted to echo energies (`fit_scattering_energy`)
 
     def surfaces(self) -> dict[str, dict[str, float]]:
         """The fit as acoustics per surface class, e.g. {"walls": {"reflection": 0.8, "scattering": 0.1}}
