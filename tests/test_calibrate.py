@@ -1,6 +1,7 @@
 """Calibration (acoustic_sim.calibrate): reflection coefficients and microphone gains fitted to
 recordings made by the simulator with hidden values."""
 
+import contextlib
 import dataclasses
 import json
 from pathlib import Path
@@ -278,6 +279,17 @@ def test_skipping_the_direct_sound_recovers_the_reflections(device):
         skip_window(CONFIG, -1e-3)
 
 
+@contextlib.contextmanager
+def pra_speed_of_sound(pra, speed: float):
+    """pyroomacoustics at our speed of sound while the block runs: one speed for both engines."""
+    was = pra.constants.get("c")
+    pra.constants.set("c", speed)
+    try:
+        yield
+    finally:
+        pra.constants.set("c", was)
+
+
 def pra_recording(pose, config, size, reflection, rng, snr_db=40.0):
     """One ping recorded by pyroomacoustics in the shoebox [0, size] whose walls, floor and ceiling
     reflect `reflection` (pressure, absorption 1 - r^2 each), no air absorption, at our speed of
@@ -341,12 +353,8 @@ def test_pyroomacoustics_absorption_is_recovered_as_our_reflection(device):
     xy = rng.uniform([1.0, 1.0], [5.0, 3.0], size=(20, 2))
     yaws, heights = rng.uniform(-np.pi, np.pi, 20), rng.uniform(0.5, 2.2, 20)
     poses = np.stack([scenes.pose(x, y, yaw, z) for (x, y), yaw, z in zip(xy, yaws, heights, strict=True)])
-    speed = pra.constants.get("c")
-    pra.constants.set("c", omni.atmosphere.speed_of_sound)  # one speed of sound for both engines
-    try:
+    with pra_speed_of_sound(pra, omni.atmosphere.speed_of_sound):
         signals = np.stack([pra_recording(pose, omni, size, reflection, rng) for pose in poses])
-    finally:
-        pra.constants.set("c", speed)
     room = scenes.box_room(tuple(size), wall="painted_wall", floor="floor", ceiling="ceiling_tile")
     specular = tuple(dataclasses.replace(m, acoustic_scattering=0.0) for m in room.materials)
     room = dataclasses.replace(room, materials=specular)
@@ -440,12 +448,8 @@ def test_another_engines_rough_walls_are_fitted_by_their_echo_energy(tmp_path, d
     rough = draw_rough_walls(np.array(corners), size[2], room.wall_reflection, rng, scattering_range=(0.3, 0.3))
     xy, yaws = rng.uniform([1.2, 1.0], [3.8, 3.0], (6, 2)), rng.uniform(-np.pi, np.pi, 6)
     poses = np.stack([scenes.pose(x, y, yaw, room.sensor_height_m) for (x, y), yaw in zip(xy, yaws, strict=True)])
-    speed = pra.constants.get("c")
-    pra.constants.set("c", sonar.atmosphere.speed_of_sound)  # one speed of sound for both engines
-    try:
+    with pra_speed_of_sound(pra, sonar.atmosphere.speed_of_sound):
         signals = np.stack([record_ping(room, pose, sonar, rng, rough) for pose in poses])
-    finally:
-        pra.constants.set("c", speed)
     np.savez(tmp_path / "rec.npz", poses=poses, signals=signals)
     out = tmp_path / "fit.json"
     argv = ["calibrate", str(tmp_path / "rec.npz"), "--scene", "box_room", "--scene-arg", f"size={list(size)}"]
