@@ -41,7 +41,8 @@
 # CROSS=crossengine_rough runs the same study on the rough-wall variant (its fits find each room's s);
 # give it its own WORKDIR.
 #
-# Environment: CROSS (crossengine), FRAMES (50000 per arm), CAL_FRAMES (20), CAL_PINGS (10), KNOTS (6),
+# Environment: CROSS (crossengine), FIT (directivity; energy: an omni emitter, s by echo energy),
+# FRAMES (50000 per arm), CAL_FRAMES (20), CAL_PINGS (10), KNOTS (6),
 # DEVICE (cuda; cpu for a dry run), GPUS (runs spread over cuda:0..GPUS-1; default: all), WORKERS (8 per
 # generation), CROSS_FRAMES (1000, as the study's), CROSS_WORKERS (12), REALITY_FRAMES (the suite's 1,500),
 # MINUTES (per run and call, 8), EPOCHS (100), PATIENCE (4), SUBEPOCH (12000), VAL (2000).
