@@ -112,10 +112,10 @@ def fits_markdown(surfaces: dict, directivity: dict, truths: dict, physics) -> s
             cells.append(f"{got['reflection']:.3f} / {engine:.3f}")
             s.append(f"{got.get('scattering', float('nan')):.3f}")
             misses[c].append(got["reflection"] / engine - 1)
-        radius = directivity[room]["directivity"]["piston_radius_mm"] if directivity else "omni"
+        radius = f"{directivity[room]['directivity']['piston_radius_mm']:g}" if directivity else "omni"
         loss = f"{fit['loss'][0]:.2f} -> {fit['loss'][-1]:.2f}"
         fitted = f"{' | '.join(cells)} | {', '.join(s)} | {truth.get('wall_scattering', 0.0):.3f}"
-        lines.append(f"| {room} | {truth['plan']} | {fitted} | {radius:g} | {loss} |")
+        lines.append(f"| {room} | {truth['plan']} | {fitted} | {radius} | {loss} |")
     worst = ", ".join(f"{c} {100 * np.max(np.abs(m)):.1f} %" for c, m in misses.items() if m)
     lines += [
         "",
