@@ -77,6 +77,9 @@ def fit_scattering_energy(
 
     if not fit.scattering_fitted.any():
         raise ValueError("fit s by energy after a waveform fit of scattering (fit_scattering=True) that found some")
+    signals = np.asarray(signals, dtype=np.float32)
+    if signals.shape != (len(poses), config.microphone_count, config.record_samples):
+        raise ValueError(f"signals must be (pings, microphones, samples) for these poses, got {signals.shape}")
     tracer = dataclasses.replace(tracer or TracerConfig(), scattering=True)
     sonar = Sonar(fit.sonar(config), tracer, device=device, scattered_faces=True)  # the fitted gains and delays
     arrivals = sonar.trace(scene, np.asarray(poses, dtype=np.float64))
@@ -95,12 +98,16 @@ def fit_scattering_energy(
     if bins < 2:
         raise ValueError(f"bin_s {bin_s} leaves {bins} bins after the skipped {skip_s} s: give shorter bins")
     span = slice(first, first + bins * length)
+    heard = (signals * window)[:, :, span].astype(np.float64).reshape(len(signals), -1, bins, length)
+    recorded = (heard**2).sum(axis=(0, 1, 3))
+    if not (recorded > 0).all():
+        raise ValueError("a bin of the recordings holds no energy at all: no noise, no echo; fit by the waveform")
     check_memory_for(
         len(keys) * config.microphone_count * config.record_samples * 8,
         f"the energy fit's signature signals of one ping ({len(keys)} signatures)",
         "fit fewer bounces (--max-bounces) or fewer surface classes at once",
     )
-    gram, recorded = np.zeros((bins, len(keys), len(keys))), np.zeros(bins)
+    gram = np.zeros((bins, len(keys), len(keys)))
     for ping in tqdm(range(len(poses)), desc="echo energy", unit="ping", disable=not progress):
         mine = arrivals.pose_index == ping
         chosen = arrivals.select(mine)
@@ -109,8 +116,6 @@ def fit_scattering_energy(
         binned = made[:, :, span].reshape(len(present), -1, bins, length).transpose(2, 0, 1, 3)
         binned = binned.reshape(bins, len(present), -1)  # (bins, present, mics x samples of a bin)
         gram[:, present[:, None], present[None, :]] += binned @ binned.transpose(0, 2, 1)
-        heard = (signals[ping] * window)[:, span].astype(np.float64)
-        recorded += (heard.reshape(-1, bins, length) ** 2).sum(axis=(0, 2))
     # log R per class; for a scattering class its specular share log (R (1 - s)) as fitted, held
     # (elsewhere the arrivals kept their (1 - s) at unit surfaces)
     rho = np.log(fit.reflection)
@@ -125,8 +130,6 @@ def fit_scattering_energy(
     def loss(theta: np.ndarray) -> float:
         return float(np.mean((np.log(energy(theta[:-1]) + np.exp(theta[-1])) - np.log(recorded)) ** 2))
 
-    if not (recorded > 0).all():
-        raise ValueError("a bin of the recordings holds no energy at all: no noise, no echo; fit by the waveform")
     highest = np.maximum(np.minimum(S_BOUNDS[1], 1.0 - np.exp(rho[scatters])), S_BOUNDS[0])  # R stays <= 1
     s_before = np.clip(fit.scattering[scatters], S_BOUNDS[0], highest)
     start = np.r_[np.minimum(S_START, highest), np.log(np.percentile(recorded, 5))]
