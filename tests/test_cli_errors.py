@@ -27,16 +27,16 @@ CKPT = Path(learn.PRETRAINED_CHECKPOINT)
 # (id, package, argv with {placeholders}, words the error line must contain)
 CASES = [
     # learn: checkpoints
-    ("ckpt-missing", "learn", "evaluate --checkpoint {tmp}/none.pt --data {data} --out {tmp}/e", "does not exist"),
-    ("ckpt-zero-bytes", "learn", "evaluate --checkpoint {zero} --data {data} --out {tmp}/e", "can read safely"),
-    ("ckpt-truncated", "learn", "evaluate --checkpoint {truncated} --data {data} --out {tmp}/e", "can read safely"),
+    ("ckpt-missing", "learn", "evaluate --checkpoint {tmp}/none.pt --data {data} --out {tmp}/e1", "does not exist"),
+    ("ckpt-zero-bytes", "learn", "evaluate --checkpoint {zero} --data {data} --out {tmp}/e2", "can read safely"),
+    ("ckpt-truncated", "learn", "evaluate --checkpoint {truncated} --data {data} --out {tmp}/e3", "can read safely"),
     ("ckpt-not-torch", "learn", "predict --checkpoint {text} --input {data} --out {pred}", "can read safely"),
     ("ckpt-pickle", "learn", "export --checkpoint {evil} --out {tmp}/m.onnx", "can read safely"),
     ("ckpt-misfit", "learn", "predict --checkpoint {misfit} --input {data} --out {pred}", "do not fit the model"),
-    ("ckpt-folder", "learn", "evaluate --checkpoint {tmp} --data {data} --out {tmp}/e", "is a folder"),
+    ("ckpt-folder", "learn", "evaluate --checkpoint {tmp} --data {data} --out {tmp}/e4", "is a folder"),
     ("init-from-missing", "learn", "train --data {data} --out {tmp}/t1 --init-from {tmp}/none.pt", "does not exist"),
     # learn: devices
-    ("learn-cuda", "learn", "evaluate --checkpoint {ckpt} --data {data} --out {tmp}/e --device cuda", "no CUDA GPU"),
+    ("learn-cuda", "learn", "evaluate --checkpoint {ckpt} --data {data} --out {tmp}/e5 --device cuda", "no CUDA GPU"),
     ("learn-cuda-index", "learn", "train --data {data} --out {tmp}/t2 --device cuda:3", "CUDA GPU"),
     (
         "learn-device-name",
@@ -45,10 +45,10 @@ CASES = [
         "not a torch device",
     ),
     # learn: data and folders
-    ("data-is-file", "learn", "evaluate --checkpoint {ckpt} --data {ckpt} --out {tmp}/e", "not a folder"),
-    ("data-empty", "learn", "evaluate --checkpoint {ckpt} --data {empty} --out {tmp}/e", "no shard"),
+    ("data-is-file", "learn", "evaluate --checkpoint {ckpt} --data {ckpt} --out {tmp}/e6", "not a folder"),
+    ("data-empty", "learn", "evaluate --checkpoint {ckpt} --data {empty} --out {tmp}/e7", "no shard"),
     ("data-missing", "learn", "train --data {tmp}/nowhere --out {tmp}/t3", "nowhere"),
-    ("shard-zero-bytes", "learn", "evaluate --checkpoint {ckpt} --data {zero_shard} --out {tmp}/e", "shard-00000.h5"),
+    ("shard-zero-bytes", "learn", "evaluate --checkpoint {ckpt} --data {zero_shard} --out {tmp}/e8", "shard-00000.h5"),
     ("shard-garbage", "learn", "train --data {garbage_shard} --out {tmp}/t4", "shard-00000.h5"),
     ("train-out-is-file", "learn", "train --data {data} --out {ckpt}", "is a file"),
     ("train-onto-a-run", "learn", "train --data {data} --out {finished}", "--overwrite"),
@@ -60,7 +60,7 @@ CASES = [
     (
         "threshold-above-1",
         "learn",
-        "evaluate --checkpoint {ckpt} --data {data} --threshold 1.5 --out {tmp}/e",
+        "evaluate --checkpoint {ckpt} --data {data} --threshold 1.5 --out {tmp}/e9",
         "(0, 1]",
     ),
     (
@@ -137,7 +137,7 @@ CASES = [
     (
         "checkpoint-names-twice",
         "learn",
-        "evaluate --checkpoint a={ckpt} --checkpoint a={ckpt} --data {data} --out {tmp}/e",
+        "evaluate --checkpoint a={ckpt} --checkpoint a={ckpt} --data {data} --out {tmp}/e10",
         "twice",
     ),
 ]
@@ -189,6 +189,8 @@ def _inputs(tmp: Path, data: Path) -> dict[str, str]:
 
 @pytest.fixture(scope="module")
 def results(tiny_dataset, tmp_path_factory) -> dict[str, tuple[subprocess.CompletedProcess, Path]]:
+    # The commands run side by side: each writes (or is refused) in an --out of its own. Ten of them
+    # shared {tmp}/e, and one evaluate once failed on another's half-made output folder.
     tmp = tmp_path_factory.mktemp("cli_errors")
     files = _inputs(tmp, tiny_dataset)
     env = {**os.environ, "PYTHONUNBUFFERED": "1", "CUDA_VISIBLE_DEVICES": os.environ.get("CUDA_VISIBLE_DEVICES", "")}
