@@ -36,6 +36,8 @@
 #   call 1: gen W SUITE (both arms at once, one per GPU), then MINUTES=6 train W 0 1 2
 #   call 2: MINUTES=8 train W 0 1 2 (--resume goes on from each run's last epoch)
 #   call 3: score W 0 1 2, pack W "$OUT"
+# (two H200s, the rough arm: gen 195 s, then MINUTES=5 per call; a run the call's end kills shows as
+# "cut off" in the summary until a later train call takes it to its early stop)
 # A process left running in the background does not outlive its call.
 #
 # CROSS=crossengine_rough runs the same study on the rough-wall variant (its fits find each room's s);

@@ -42,11 +42,15 @@ def load_arm(folder: Path, variant: str) -> dict[int, dict]:
 
 
 def stop_reason(run: Path) -> str:
-    """'early stop' when the run ended `patience` sub-epochs after its best, else 'time budget'."""
+    """'early stop' when the run ended `patience` sub-epochs after its best, 'time budget' when it ended
+    sooner, 'cut off' when its history outran its summary (a process killed mid-run: the summary is an
+    earlier call's, and the checkpoint scored may be a later epoch's)."""
     patience = json.loads((run / "config.json").read_text())["train_config"]["patience"]
     with open(run / "history.csv") as f:
         epochs = [int(row["epoch"]) for row in csv.DictReader(f)]
     summary = json.loads((run / "summary.json").read_text())
+    if summary["epochs"] != len(epochs):
+        return f"cut off, {len(epochs)} (summary of {summary['epochs']})"
     stopped = len(epochs) - summary["best_epoch"] >= patience
     return f"{'early stop' if stopped else 'time budget'}, {len(epochs)} ({summary['best_epoch']})"
 

@@ -11,8 +11,9 @@ from benchmarks import compare_arms
 SETS = ("in_domain", "reality", "crossengine")
 
 
-def write_arm(root, name, scores, epochs=10, best_epoch=6, patience=4):
-    """An arm folder as `learn sim2real` leaves it: seed*/sim2real.json and seed*/bounces_3 run files."""
+def write_arm(root, name, scores, epochs=10, best_epoch=6, patience=4, summary_epochs=None):
+    """An arm folder as `learn sim2real` leaves it: seed*/sim2real.json and seed*/bounces_3 run files
+    (summary_epochs: the summary an earlier call left, when the last was killed mid-run)."""
     for seed, by_set in enumerate(scores):
         run = root / name / f"seed{seed}" / "bounces_3"
         run.mkdir(parents=True)
@@ -20,7 +21,7 @@ def write_arm(root, name, scores, epochs=10, best_epoch=6, patience=4):
         result |= {f"{s}_echo_peak": {"scan_f1": {"mean": 0.1}} for s in SETS[1:]}
         (run.parent / "sim2real.json").write_text(json.dumps({"bounces_3": result}))
         (run / "config.json").write_text(json.dumps({"train_config": {"patience": patience}}))
-        (run / "summary.json").write_text(json.dumps({"best_epoch": best_epoch}))
+        (run / "summary.json").write_text(json.dumps({"epochs": summary_epochs or epochs, "best_epoch": best_epoch}))
         (run / "history.csv").write_text("epoch,val_scan_f1\n" + "".join(f"{e},0.5\n" for e in range(1, epochs + 1)))
     return root / name
 
@@ -53,3 +54,10 @@ def test_arms_with_other_seeds_than_the_reference_are_refused(tmp_path):
         compare_arms.compare(arms, "plain", list(SETS))
     with pytest.raises(ValueError, match="no variant"):
         compare_arms.load_arm(plain, "bounces_1")
+
+
+def test_a_run_killed_mid_call_is_cut_off_not_early_stopped(tmp_path):
+    """31 epochs in the history, the summary from a call that ended at epoch 11 with 11 kept: 31 - 11
+    exceeds the patience, yet nothing stopped the run but its kill."""
+    arm = write_arm(tmp_path, "killed", [(0.7, 0.5, 0.4)], epochs=31, best_epoch=11, summary_epochs=11)
+    assert compare_arms.stop_reason(arm / "seed0" / "bounces_3") == "cut off, 31 (summary of 11)"
