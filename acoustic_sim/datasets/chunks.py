@@ -18,7 +18,7 @@ import numpy as np
 from isal import isal_zlib
 
 BLOCK = 360  # words per Fletcher block (HDF5's: the most sums that cannot overflow 32 bits)
-PIECE = 20 * BLOCK  # words summed at once by `fletcher32` (whole blocks; 58 kB of int64)
+PIECE = 80 * BLOCK  # words summed at once by `fletcher32` (115 kB of uint32: below malloc's mmap threshold)
 # Deflating is most of a shard's writing, and writing the largest host cost of generation (38-45 s
 # summed over the workers for 25,000 frames on two H100s, benchmarks/results/multi_gpu/
 # h100x2_session27). On a `paper` shard's shuffled float16 energyscapes ISA-L's level 1 took
@@ -32,6 +32,11 @@ ROWS_A_CALL = 16  # rows a compressing thread takes at once (write_rows)
 # A block's sum of running sums below this cannot carry the 32-bit sums of HDF5's loop past 2^32
 # (with both sums folded below 2^17 before it): only blocks of words near 0xFFFF come close.
 NO_CARRY = (1 << 32) - (BLOCK + 1) * 0x1FFFE
+# Word j of a block is in BLOCK - j of its running sums; their sum, at most 65535 * 360 * 361 / 2,
+# fits 32 bits: uint32 products and sums are exact and take half an int64 copy's memory traffic.
+RAMP = np.arange(BLOCK, 0, -1, dtype=np.uint32)
+# Past this many words sum2's int64 terms could overflow (65535 n^2 < 2^63); such chunks take the loop
+MAX_WORDS = 10_000_000
 
 
 def fletcher32(data: bytes) -> int:
@@ -42,26 +47,42 @@ def fletcher32(data: bytes) -> int:
     Folding keeps each sum's value modulo 65535 (2^16 = 1 there) and a positive sum positive, so
     where no block carries its 32-bit sums past 2^32 the checksum follows from the plain sums:
     sum1 = sum of the words, sum2 = sum of (n - i) word_i, each taken to 1..65535 (0 if zero).
-    Writing a shard checks thousands of chunks: this costs one pass of numpy, where HDF5's loop
-    over blocks in Python cost ~0.4 ms a chunk (benchmarks/results/generate_cuda.md)."""
-    # Both sums from the running sums R: sum2 = sum of R (word i counts n - i times), and a
-    # block's sum of running sums is its R's sum less BLOCK times the R before it. One cumsum
-    # instead of two products with ramps, over pieces of PIECE words: an energyscape chunk's
-    # int64 copies in one piece (~230 kB each) went back to the system after every chunk and
-    # were page-faulted in again, 3.5x the arithmetic (0.26 against 0.07 ms a chunk on the
-    # 2-core CPU).
+    Writing a shard checks thousands of chunks: this costs a few passes of numpy, where HDF5's
+    loop over blocks in Python cost ~0.4 ms a chunk (benchmarks/results/generate_cuda.md)."""
+    # Per block b: its words' sum S_b and the sum of its running sums W_b = sum_j (L_b - j) w_bj
+    # (what HDF5's 32-bit sums must hold). Then sum2 = sum_b W_b + L_b * (the words' sum before b).
+    # A cumsum over the words made the same sums: a paper shard's checksums cost 0.094 ms a frame
+    # on the 2-core CPU that way, 0.064 this way (checksums were 11 % of generation's busy host
+    # time on two H200s, benchmarks/results/multi_gpu/session35). The copies go by PIECE words,
+    # which malloc keeps between chunks.
     n = len(data) // 2
+    if n > MAX_WORDS:
+        return _fletcher32_by_blocks(data)
     words = np.frombuffer(data, dtype=">u2", count=n)
-    total = summed = 0  # the words' sum so far (R), the sum of the running sums so far
+    sums, weighted = [], []
     for start in range(0, n, PIECE):
-        running = np.cumsum(words[start : start + PIECE], dtype=np.int64)
-        full = len(running) // BLOCK * BLOCK
-        ends = running[BLOCK - 1 : full : BLOCK]
-        blocks = running[:full].reshape(-1, BLOCK).sum(axis=1) - BLOCK * np.concatenate(([0], ends[:-1]))
-        if (blocks >= NO_CARRY).any():
+        piece = words[start : start + PIECE]
+        full = len(piece) // BLOCK * BLOCK
+        if full == len(piece):
+            blocks = piece.astype(np.uint32)
+        else:  # a last, shorter block of L words, right-aligned: its word j then weighs L - j
+            blocks = np.zeros(full + BLOCK, dtype=np.uint32)
+            blocks[:full] = piece[:full]
+            blocks[full + BLOCK - (len(piece) - full) :] = piece[full:]
+        blocks = blocks.reshape(-1, BLOCK)
+        sums.append(blocks.sum(axis=1, dtype=np.int64))
+        weighted.append(np.einsum("ij,j->i", blocks, RAMP))
+    if sums:
+        block_sums, block_weighted = (np.concatenate(x) if len(x) > 1 else x[0] for x in (sums, weighted))
+        block_weighted = block_weighted.astype(np.int64)
+        if (block_weighted >= NO_CARRY).any():
             return _fletcher32_by_blocks(data)
-        summed += int(running.sum()) + len(running) * total
-        total += int(running[-1])
+        before = np.cumsum(block_sums) - block_sums  # each block's words' running sum on entry
+        short = -n % BLOCK  # words the last block lacks: its running sums count `before` that much less
+        total = int(block_sums.sum())
+        summed = int(block_weighted.sum() + BLOCK * before.sum() - short * before[-1])
+    else:  # fewer than two bytes
+        total = summed = 0
     if len(data) % 2:  # the odd last byte, as the high byte of a last word
         total += data[-1] << 8
         summed += total
