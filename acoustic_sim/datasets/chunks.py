@@ -27,6 +27,13 @@ PIECE = 80 * BLOCK  # words summed at once by `fletcher32` (115 kB of uint32: be
 # images 0.03 against 0.06 ms (0.8 against 0.5 KB). ISA-L's levels go to 3: HDF5's above it is 3.
 ISAL_MAX_LEVEL = isal_zlib.ISAL_BEST_COMPRESSION
 ROWS_A_CALL = 16  # rows a compressing thread takes at once (write_rows)
+# After the shuffle filter a float's low mantissa bytes lie together, as noise: a paper energyscape's
+# low plane deflated to 99.7 % of itself in 0.115 of the chunk's 0.175 ms (2-core CPU). A plane
+# whose first SAMPLE bytes deflate to more than STORE_ABOVE of themselves is stored as it is.
+SAMPLE = 4096
+STORE_ABOVE = 0.95
+ZLIB_HEADER = b"\x78\x01"  # deflate, 32 kB window (RFC 1950)
+LAST_EMPTY_BLOCK = b"\x01\x00\x00\xff\xff"  # a final stored block of no bytes (RFC 1951)
 
 
 # A block's sum of running sums below this cannot carry the 32-bit sums of HDF5's loop past 2^32
@@ -126,13 +133,35 @@ def pipeline(dataset: h5py.Dataset) -> list[tuple[int, tuple]]:
     return filters
 
 
+def deflate_planes(data: bytes, planes: int, level: int) -> bytes:
+    """A zlib stream of `data`, `planes` byte planes of equal length back to back (as the shuffle
+    filter leaves them): each plane deflated, or kept in stored blocks where a sample of it does not
+    deflate (noise). Any inflater reads it as one stream, as it reads a single `compress`'s."""
+    plane = len(data) // planes
+    view, parts = memoryview(data), [ZLIB_HEADER]
+    for start in range(0, len(data), plane):
+        piece = view[start : start + plane]
+        if len(isal_zlib.compress(piece[:SAMPLE], level)) > STORE_ABOVE * min(SAMPLE, len(piece)):
+            for at in range(0, len(piece), 0xFFFF):  # stored blocks: a header byte, LEN, ~LEN, the bytes
+                block = piece[at : at + 0xFFFF]
+                parts += [struct.pack("<BHH", 0, len(block), 0xFFFF ^ len(block)), block]
+        else:  # raw deflate ending on a byte boundary, not final (a sync flush)
+            squeeze = isal_zlib.compressobj(level, isal_zlib.DEFLATED, -15)
+            parts += [squeeze.compress(piece), squeeze.flush(isal_zlib.Z_SYNC_FLUSH)]
+    parts += [LAST_EMPTY_BLOCK, struct.pack(">I", isal_zlib.adler32(data))]
+    return b"".join(parts)
+
+
 def encode(chunk: np.ndarray, filters: list[tuple[int, tuple]]) -> bytes:
     """One chunk's bytes as stored after `filters`."""
     data = np.ascontiguousarray(chunk).tobytes()
-    size = chunk.dtype.itemsize
+    size, planes = chunk.dtype.itemsize, 1
     for code, values in filters:
         if code == h5py.h5z.FILTER_SHUFFLE and size > 1:  # byte k of every element, then byte k + 1
             data = np.frombuffer(data, np.uint8).reshape(-1, size).T.tobytes()
+            planes = size
+        elif code == h5py.h5z.FILTER_DEFLATE and planes > 1 and len(data) >= planes * SAMPLE:
+            data = deflate_planes(data, planes, min(values[0], ISAL_MAX_LEVEL))
         elif code == h5py.h5z.FILTER_DEFLATE:
             data = isal_zlib.compress(data, min(values[0], ISAL_MAX_LEVEL))
         elif code == h5py.h5z.FILTER_FLETCHER32:
