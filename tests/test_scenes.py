@@ -229,3 +229,22 @@ def test_surface_classes_and_their_acoustics():
         with_surfaces(office, {"roof": {"reflection": 0.5}})
     open_room = scenes.polygon_room("u_room", ceiling=None)
     assert (surface_classes(open_room) != SURFACE_CLASSES.index("ceiling")).all()
+
+
+def test_box_mesh_is_trimeshs_box_bit_for_bit():
+    """`box_mesh` builds trimesh's box without its transform's bookkeeping: the same vertices (every
+    bit) and faces for boxes turned and moved, unturned at the origin, and flat; a scene's face
+    order, and so every shard, stays as it was."""
+    from scenes.scene import box_mesh
+
+    rng = np.random.default_rng(0)
+    for i in range(300):
+        center = np.zeros(3) if i % 7 == 0 else rng.uniform(-5, 5, 3)
+        extents = rng.uniform(0.01, 5, 3) * (1, 1, 1e-3 if i % 5 == 0 else 1)
+        yaw = 0.0 if i % 3 == 0 else rng.uniform(-4, 4)
+        transform = trimesh.transformations.rotation_matrix(yaw, (0, 0, 1))
+        transform[:3, 3] = center
+        theirs, ours = trimesh.creation.box(extents=extents, transform=transform), box_mesh(center, extents, yaw)
+        assert np.array_equal(ours.vertices, theirs.vertices) and np.array_equal(ours.faces, theirs.faces), i
+    with pytest.raises(ValueError, match="3 extents"):
+        box_mesh((0, 0, 0), (1, 1))
