@@ -223,8 +223,8 @@ _UNIT_BOX = trimesh.creation.box()  # trimesh's box: its vertex and face order, 
 
 def box_mesh(center: Sequence[float], extents: Sequence[float], yaw: float = 0.0) -> trimesh.Trimesh:
     """Closed box with outward normals, rotated by `yaw` [rad] about z: `trimesh.creation.box`'s
-    vertices and faces, bit for bit, without its transform's bookkeeping (0.47 ms a box, ~10 % of
-    preparing a paper episode on the 2-core CPU)."""
+    vertices and faces, bit for bit, without its transform's bookkeeping (0.47 ms a box against
+    0.03; a paper episode's preparation 25.5-27.6 ms with trimesh's, 24.7 without, 2-core CPU)."""
     extents = np.asarray(extents, dtype=np.float64)
     if extents.shape != (3,):
         raise ValueError(f"a box needs 3 extents, got {extents.shape}")

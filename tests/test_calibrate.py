@@ -115,10 +115,11 @@ def test_hidden_reflection_gains_and_delays_are_recovered(room_and_recording, de
 
 
 def test_without_delays_the_gains_come_out_wrong(room_and_recording, device):
-    """The same clean recordings fitted with every delay frozen at 0: the gains absorb what the
-    delays explain and miss by far more than 0.5 dB (so the delay fit is what the test above checks)."""
+    """The same clean recordings (half their pings: a control, not a recovery) fitted with every delay
+    frozen at 0: the gains absorb what the delays explain and miss by far more than 0.5 dB (so the
+    delay fit is what the test above checks)."""
     room, poses, (gains_db, _), clean, _ = room_and_recording
-    fit = fit_surfaces(room, poses, clean, CONFIG, TRACER, device=device, fit_delays=False)
+    fit = fit_surfaces(room, poses[:10], clean[:10], CONFIG, TRACER, device=device, fit_delays=False)
     assert np.abs(fit.mic_gain_db - gains_db).max() > 1.0 and not fit.mic_delay_s.any()
 
 
