@@ -1,5 +1,6 @@
 """Crafted files and processes for the safety tests."""
 
+import os
 import signal
 import subprocess
 import sys
@@ -38,3 +39,23 @@ def sigint_as_from_a_terminal() -> None:
     background (a CI runner, `cmd &`) starts them with SIGINT ignored, and Python then installs no
     KeyboardInterrupt handler, so the child would never see the test's Ctrl-C."""
     signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def ctrl_c_after(command: list[str], delay_s: float, cwd: Path) -> tuple[int, str]:
+    """Run `command` (`python -m ...` arguments) as a terminal would, press Ctrl-C (SIGINT to its
+    process group) after `delay_s` seconds; its exit status and standard error."""
+    import time
+
+    process = subprocess.Popen(
+        [sys.executable, *command],
+        cwd=cwd,
+        stderr=subprocess.PIPE,
+        stdout=subprocess.DEVNULL,
+        text=True,
+        start_new_session=True,
+        preexec_fn=sigint_as_from_a_terminal,
+    )
+    time.sleep(delay_s)
+    os.killpg(process.pid, signal.SIGINT)
+    _, err = process.communicate(timeout=120)
+    return process.returncode, err

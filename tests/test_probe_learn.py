@@ -465,25 +465,9 @@ def test_a_real_ctrl_c_while_torch_imports_is_one_line(delay_s, tmp_path):
     """A SIGINT while `python -m learn` imports torch (~2 s on the 2-core CPU): held until the
     imports end, then one `interrupted:` line and 130. Unheld, one landing in the import machinery's
     weakref callbacks was only printed and the command ran on (here: to its error on --data)."""
-    import signal
-    import subprocess
-    import sys
-    import time
+    from .crafted import ctrl_c_after
 
-    from .crafted import sigint_as_from_a_terminal
-
-    root = Path(__file__).resolve().parents[1]
-    process = subprocess.Popen(
-        [sys.executable, "-m", "learn", "train", "--data", str(tmp_path / "none"), "--out", str(tmp_path / "o")],
-        cwd=root,
-        stderr=subprocess.PIPE,
-        stdout=subprocess.DEVNULL,
-        text=True,
-        start_new_session=True,
-        preexec_fn=sigint_as_from_a_terminal,
-    )
-    time.sleep(delay_s)
-    os.killpg(process.pid, signal.SIGINT)
-    _, err = process.communicate(timeout=120)
-    assert process.returncode == 130 and err.strip().startswith("interrupted"), err[-3000:]
+    command = ["-m", "learn", "train", "--data", str(tmp_path / "none"), "--out", str(tmp_path / "o")]
+    code, err = ctrl_c_after(command, delay_s, Path(__file__).resolve().parents[1])
+    assert code == 130 and err.strip().startswith("interrupted"), err[-3000:]
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err[-3000:]

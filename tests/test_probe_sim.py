@@ -14,8 +14,6 @@ from __future__ import annotations
 import os
 import shutil
 import signal
-import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -24,7 +22,7 @@ import numpy as np
 import pytest
 
 from .cli_runner import run_commands
-from .crafted import sigint_as_from_a_terminal
+from .crafted import ctrl_c_after
 from .test_sim_input_faults import chirp_file, tiny_shard
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -275,19 +273,8 @@ def test_interrupt_while_a_library_swallows_it_is_raised_after():
 def test_ctrl_c_while_the_command_line_loads_is_one_line(delay_s, tmp_path):
     """Ctrl-C in the first moments (Python starting, the package and its libraries loading):
     exit code 130 and one line; it was a trace, or nothing at all and the render ran on."""
-    process = subprocess.Popen(
-        [sys.executable, "-m", "acoustic_sim", *f"{RENDER} --out {tmp_path}/a.png".split()],
-        cwd=ROOT,
-        stderr=subprocess.PIPE,
-        stdout=subprocess.DEVNULL,
-        text=True,
-        start_new_session=True,
-        preexec_fn=sigint_as_from_a_terminal,
-    )
-    time.sleep(delay_s)
-    os.killpg(process.pid, signal.SIGINT)
-    _, err = process.communicate(timeout=120)
-    assert process.returncode == 130 and err.strip().splitlines() == ["interrupted"], err[-3000:]
+    code, err = ctrl_c_after(["-m", "acoustic_sim", *f"{RENDER} --out {tmp_path}/a.png".split()], delay_s, ROOT)
+    assert code == 130 and err.strip().splitlines() == ["interrupted"], err[-3000:]
     assert not (tmp_path / "a.png").exists()
 
 
