@@ -80,6 +80,19 @@ def fit_scattering_energy(
     signals = np.asarray(signals, dtype=np.float32)
     if signals.shape != (len(poses), config.microphone_count, config.record_samples):
         raise ValueError(f"signals must be (pings, microphones, samples) for these poses, got {signals.shape}")
+    fs, window = config.chirp.sample_rate_hz, skip_window(config, skip_s)
+    first = int(np.ceil((skip_s + (SKIP_TAPER_S if skip_s else 0.0)) * fs))  # past the skip's ramp
+    length = max(1, round(bin_s * fs))
+    bins = (config.record_samples - first) // length
+    if bins < 2:
+        raise ValueError(f"bin_s {bin_s} leaves {bins} bins after the skipped {skip_s} s: give shorter bins")
+    span = slice(first, first + bins * length)
+    recorded = np.zeros(bins)  # ping by ping: a float64 copy of every ping at once would be the recording's size x 2
+    for ping in signals:
+        heard = (ping[:, span] * window[span]).astype(np.float64)
+        recorded += (heard.reshape(-1, bins, length) ** 2).sum(axis=(0, 2))
+    if not (recorded > 0).all():
+        raise ValueError("a bin of the recordings holds no energy at all: no noise, no echo; fit by the waveform")
     tracer = dataclasses.replace(tracer or TracerConfig(), scattering=True)
     sonar = Sonar(fit.sonar(config), tracer, device=device, scattered_faces=True)  # the fitted gains and delays
     arrivals = sonar.trace(scene, np.asarray(poses, dtype=np.float64))
@@ -91,17 +104,6 @@ def fit_scattering_energy(
     classes = len(fit.classes)
     reflections, (kept, scattered) = keys[:, :classes], np.split(keys[:, classes:], 2, axis=1)
     scatters = found.scatters
-    fs, window = config.chirp.sample_rate_hz, skip_window(config, skip_s)
-    first = int(np.ceil((skip_s + (SKIP_TAPER_S if skip_s else 0.0)) * fs))  # past the skip's ramp
-    length = max(1, round(bin_s * fs))
-    bins = (config.record_samples - first) // length
-    if bins < 2:
-        raise ValueError(f"bin_s {bin_s} leaves {bins} bins after the skipped {skip_s} s: give shorter bins")
-    span = slice(first, first + bins * length)
-    heard = (signals * window)[:, :, span].astype(np.float64).reshape(len(signals), -1, bins, length)
-    recorded = (heard**2).sum(axis=(0, 1, 3))
-    if not (recorded > 0).all():
-        raise ValueError("a bin of the recordings holds no energy at all: no noise, no echo; fit by the waveform")
     check_memory_for(
         len(keys) * config.microphone_count * config.record_samples * 8,
         f"the energy fit's signature signals of one ping ({len(keys)} signatures)",
