@@ -88,7 +88,40 @@ def warp_device(device=None):
     import warp as wp
 
     quiet_warp()
-    return wp.get_device(device)
+    found = wp.get_device(device)
+    if found.is_cuda and found.alias not in _pools_set:
+        _pools_set.add(found.alias)
+        _keep_freed_gpu_memory(found)
+    return found
+
+
+POOL_ENV = "SONAR2LIDAR_CUDA_POOL"
+"""keep (the default) or release: what a GPU's memory pool does with memory freed in this process."""
+_pools_set: set[str] = set()  # the GPUs whose pool this process has set up
+
+
+def cuda_pool() -> str:
+    """SONAR2LIDAR_CUDA_POOL: "keep" (the pool holds what it has reserved, as torch's caching
+    allocator does) or "release" (CUDA's default: freed memory goes back to the driver at every
+    synchronize)."""
+    import os
+
+    chosen = os.environ.get(POOL_ENV, "keep")
+    if chosen not in ("keep", "release"):
+        raise ValueError(f"{POOL_ENV}={chosen!r}: use keep or release")
+    return chosen
+
+
+def _keep_freed_gpu_memory(device) -> None:
+    """Keep the memory Warp's arrays free on `device` in its pool (unless SONAR2LIDAR_CUDA_POOL=release).
+    Every batch of pings allocates and frees its buffers, and each ping's results are copied back with a
+    synchronize; with CUDA's default release threshold of 0 every synchronize hands the freed memory back
+    to the driver and the next batch maps it again, driver calls that the processes sharing a host wait
+    on each other for. A process keeps at most its own high-water mark."""
+    import warp as wp
+
+    if cuda_pool() == "keep" and device.is_mempool_enabled:
+        wp.set_mempool_release_threshold(device, 2**64 - 1)
 
 
 def warp_voice() -> bool:

@@ -109,3 +109,34 @@ def test_how_workers_wait_for_their_gpu_is_spin_or_block(monkeypatch):
     with pytest.raises(RuntimeError, match="refused"):
         workers._set_cuda_wait(1)
     assert asked == [(1, workers.CU_CTX_SCHED_BLOCKING_SYNC)]
+
+
+def test_a_gpus_pool_keeps_freed_memory_unless_told_to_release(monkeypatch):
+    """SONAR2LIDAR_CUDA_POOL: by default a GPU's pool keeps what the engine frees (release threshold
+    at its maximum), once per GPU and process; "release" leaves CUDA's default; a device without a
+    pool is left alone; anything else is refused naming the two."""
+    import types
+
+    import warp as wp
+
+    from acoustic_sim import devices
+
+    set_to = []
+    monkeypatch.setattr(wp, "set_mempool_release_threshold", lambda device, value: set_to.append((device.alias, value)))
+    gpu = types.SimpleNamespace(alias="cuda:1", is_cuda=True, is_mempool_enabled=True)
+    monkeypatch.setattr(wp, "get_device", lambda name=None: gpu)
+    monkeypatch.setattr(devices, "_pools_set", set())
+    monkeypatch.delenv(devices.POOL_ENV, raising=False)
+    devices.warp_device("cuda:1")
+    devices.warp_device("cuda:1")  # set once
+    assert set_to == [("cuda:1", 2**64 - 1)]
+
+    monkeypatch.setenv(devices.POOL_ENV, "release")
+    devices._keep_freed_gpu_memory(gpu)
+    devices._keep_freed_gpu_memory(types.SimpleNamespace(alias="cuda:2", is_cuda=True, is_mempool_enabled=False))
+    monkeypatch.setenv(devices.POOL_ENV, "keep")
+    devices._keep_freed_gpu_memory(types.SimpleNamespace(alias="cuda:2", is_cuda=True, is_mempool_enabled=False))
+    assert len(set_to) == 1
+    monkeypatch.setenv(devices.POOL_ENV, "hold")
+    with pytest.raises(ValueError, match="use keep or release"):
+        devices.cuda_pool()
