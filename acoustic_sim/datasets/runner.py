@@ -50,12 +50,12 @@ HELPER_NICENESS_ENV = "SONAR2LIDAR_HELPER_NICENESS"
 
 def host_helpers(workers: int, requested: int | None = None) -> int:
     """Helper processes each of `workers` rendering processes gets for its host work (`run_tasks`):
-    `requested`, else the cores left per worker after its own (at most MAX_HELPERS), where that
-    is at least 2; else 0 (threads), as where fork is not available. A helper has its own
-    interpreter lock (threads share the rendering's), but one helper a kind keeps only one
-    preparation ahead and one write in flight, as threads do, and adds the copies between
-    processes: on the H100 machine 4 workers made 1,574 frames/s with one helper each, 2,007
-    with two, 2,122 with three (benchmarks/results/generate_cuda_same_job/run5_session26)."""
+    `requested`, else the cores left per worker after its own (at most MAX_HELPERS); 0 (threads)
+    only where no core is left, or fork is not available. A helper has its own interpreter lock
+    (threads share the rendering's): on the H100 machine 4 workers made 1,574 frames/s with one
+    helper each, 2,007 with two, 2,122 with three (benchmarks/results/generate_cuda_same_job/
+    run5_session26); 16 workers over two GPUs of 32 cores made 5,782 `randomised` frames/s with
+    threads (two H200s), 9,912 with one helper each (two H100s; multi_gpu/session36)."""
     from ..devices import cpu_cores
 
     if workers < 1:
@@ -67,7 +67,7 @@ def host_helpers(workers: int, requested: int | None = None) -> int:
     if not sys.platform.startswith("linux"):
         return 0
     spare = min(MAX_HELPERS, cpu_cores() // workers - 1)
-    return spare if spare >= 2 else 0
+    return max(spare, 0)
 
 
 @dataclass(frozen=True)
