@@ -281,10 +281,24 @@ def _export(args) -> int:
     return 0
 
 
-def build_parser() -> argparse.ArgumentParser:
-    with interrupt_after():  # trimesh, which scenes imports, would swallow a Ctrl-C
-        import scenes
+class _Parser(argparse.ArgumentParser):
+    """A parser whose description may be a function, called only when its help is shown: generate's
+    lists the suites, whose module imports scenes (trimesh, SciPy: ~1 s)."""
 
+    def format_help(self) -> str:
+        if callable(self.description):
+            self.description = self.description()
+        return super().format_help()
+
+
+def _suites() -> str:
+    from .datasets.suites import SUITES
+
+    listed = "; ".join(f"{name}: {suite.description.rstrip('.')}" for name, suite in SUITES.items())
+    return COMMANDS["generate"]["description"].format(suites=listed)
+
+
+def build_parser() -> argparse.ArgumentParser:
     from .config import NOISE_KINDS, TracerConfig
 
     tracer = TracerConfig()
@@ -293,9 +307,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m acoustic_sim", description=DESCRIPTION, formatter_class=HelpFormatter, epilog=EXAMPLES
     )
     parser.add_argument("--debug", action="store_true", help="show the full trace of an error (anywhere on the line)")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND", parser_class=_Parser)
     render = sub.add_parser("render", formatter_class=HelpFormatter, **COMMANDS["render"])
-    add_scene_options(render, scenes.BUILDERS, MESH_OPTIONS)
+    add_scene_options(render, MESH_OPTIONS)
     render.add_argument("--seed", type=int, default=0, help="seeds the scene, trajectory and noise")
     render.add_argument("--frames", type=int, default=100, help="trajectory length in poses")
     render.add_argument("--dt", type=float, default=0.1, help="time between poses [s]")
@@ -324,20 +338,13 @@ def build_parser() -> argparse.ArgumentParser:
     render.add_argument("--verbose", action="store_true", help=VERBOSE_HELP)
     render.set_defaults(handler=_render)
 
-    add_calibrate_parser(sub, scenes.BUILDERS)
+    add_calibrate_parser(sub)
 
-    from .datasets.suites import SUITES
-
-    text = COMMANDS["generate"] | {
-        "description": COMMANDS["generate"]["description"].format(
-            suites="; ".join(f"{name}: {suite.description.rstrip('.')}" for name, suite in SUITES.items())
-        )
-    }
-    gen = sub.add_parser("generate", formatter_class=HelpFormatter, **text)
+    gen = sub.add_parser("generate", formatter_class=HelpFormatter, **COMMANDS["generate"] | {"description": _suites})
     gen.add_argument(
         "--suite",
         required=True,
-        help=f"one of {sorted(SUITES)}, crossengine, crossengine_rough, or a suite file (.toml/.json; its "
+        help="a suite listed above, crossengine, crossengine_rough, or a suite file (.toml/.json; its "
         "scenarios may be mesh files of your building: mesh = FILE)",
     )
     gen.add_argument("--out", required=True, help="output folder")
@@ -366,7 +373,7 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--verbose", action="store_true", help=VERBOSE_HELP)
     gen.set_defaults(handler=_generate)
 
-    from .formats.chirp import EPISODE_GAP_S, PLANE_TOLERANCE_M
+    from .formats import EPISODE_GAP_S, PLANE_TOLERANCE_M
 
     imp = sub.add_parser("import", formatter_class=HelpFormatter, **COMMANDS["import"])
     imp.add_argument("recordings", nargs="+", help="raw PDM files in time order, or one CHIRP file")
@@ -414,6 +421,8 @@ def main(argv: list[str] | None = None) -> int:
 
     def command() -> int:
         args = build_parser().parse_args([a for a in argv if a != "--debug"])  # --debug: anywhere on the line
+        with interrupt_after():  # trimesh, which scenes imports, would swallow a Ctrl-C
+            import scenes  # noqa: F401  (every command's scenes, datasets or engine import it)
         return args.handler(args)
 
     return run_command(command, argv, USER_ERRORS)

@@ -19,7 +19,7 @@ from .cli_text import COMMANDS, MESH_OPTIONS, SET_HELP, VERBOSE_HELP
 PATH_OPTIONS = ("recordings", "poses", "svg", "mesh", "materials", "out")
 
 
-def add_calibrate_parser(sub, builders) -> None:
+def add_calibrate_parser(sub) -> None:
     cal = sub.add_parser("calibrate", formatter_class=HelpFormatter, **COMMANDS["calibrate"])
     cal.add_argument(
         "recordings",
@@ -28,7 +28,7 @@ def add_calibrate_parser(sub, builders) -> None:
     )
     cal.add_argument("--poses", help="of signals in a .npy: their sensor-to-world poses (N, 4, 4) in a .npy")
     cal.add_argument("--episode", type=int, help="of a dataset: the episode (one room) to fit to")
-    add_scene_options(cal, builders, MESH_OPTIONS, default=None)
+    add_scene_options(cal, MESH_OPTIONS, default=None)
     cal.add_argument(
         "--scene-from-data",
         action="store_true",

@@ -9,10 +9,15 @@ MESH_ONLY = ("up", "units", "materials")
 """render's options that say how to read a --mesh file (cli_text.MESH_OPTIONS); None when not given."""
 
 
-def add_scene_options(parser, builders, mesh_options: dict, *, default: str = "office") -> None:
-    """--scene (one of `builders`) or --svg or --mesh, how to read a mesh, and --scene-arg."""
+BUILDER_NAMES = ("box_room", "corridor", "office", "polygon_room", "random_world")
+"""scenes.BUILDERS' names (tests hold them equal), known without importing scenes: trimesh and SciPy
+take ~1 s to import, which `--help` and a mistyped option's refusal need not wait for."""
+
+
+def add_scene_options(parser, mesh_options: dict, *, default: str = "office") -> None:
+    """--scene (one of scenes.BUILDERS) or --svg or --mesh, how to read a mesh, and --scene-arg."""
     source = parser.add_mutually_exclusive_group()
-    source.add_argument("--scene", choices=sorted(builders), default=default, help="scene builder")
+    source.add_argument("--scene", choices=BUILDER_NAMES, default=default, help="scene builder")
     source.add_argument("--svg", help="SVG floor plan to extrude instead of a builder")
     source.add_argument("--mesh", help="mesh file (any format trimesh loads) instead of a builder")
     for flag, options in mesh_options.items():  # --up, --units, --materials

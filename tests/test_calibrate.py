@@ -4,6 +4,7 @@ recordings made by the simulator with hidden values."""
 import contextlib
 import dataclasses
 import json
+import types
 from pathlib import Path
 
 import h5py
@@ -213,6 +214,22 @@ def test_with_scattering_frozen_the_reflections_come_out_wrong(scattering_record
     omni = dataclasses.replace(CONFIG, emitter_pattern="omni")
     with pytest.raises(ValueError, match="knots shape a baffled piston: this emitter is omni"):
         fit_surfaces(room, poses, clean, omni, SCATTERING_TRACER, directivity_knots=2)
+
+
+def test_the_energy_stage_refuses_silent_bins_and_too_long_ones():
+    """Recordings with a bin of no energy at all (not even noise: a log ratio has nothing to
+    compare) and bins too long for two after the skipped start are refused before any trace."""
+    fitted = types.SimpleNamespace(scattering_fitted=np.array([False, True]))
+    poses = np.stack([scenes.pose(1.0, 1.0, 0.0, 1.0)] * 2)
+    silent = np.zeros((2, CONFIG.microphone_count, CONFIG.record_samples), np.float32)
+    silent[:, :, : CONFIG.record_samples // 2] = 1e-3  # the second half of every ping is silent
+    with pytest.raises(ValueError, match="holds no energy at all"):
+        fit_scattering_energy(None, poses, silent, CONFIG, fitted)
+    with pytest.raises(ValueError, match="give shorter bins"):
+        whole = CONFIG.record_samples / CONFIG.chirp.sample_rate_hz  # one bin: the whole ping
+        fit_scattering_energy(None, poses, silent + 1e-3, CONFIG, fitted, bin_s=whole)
+    with pytest.raises(ValueError, match="signals must be"):
+        fit_scattering_energy(None, poses, silent[:1], CONFIG, fitted)
 
 
 @pytest.mark.parametrize("where", ["box_room", "office"])

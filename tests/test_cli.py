@@ -28,6 +28,38 @@ def test_module_entry_point_help():
     assert "--scene" in done.stdout and "--out" in done.stdout
 
 
+LOADED = """
+import runpy, sys
+sys.argv = ["acoustic_sim", *sys.argv[1:]]
+try:
+    runpy.run_module("acoustic_sim", run_name="__main__")
+except SystemExit:
+    pass
+print("LOADED", *sorted(m for m in ("trimesh", "scipy", "warp", "h5py") if m in sys.modules))
+"""
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["render", "--help"], ["render", "--scene", "offfice"]])
+def test_help_and_a_mistyped_option_load_no_scene_or_engine_library(argv):
+    """--help and argparse's refusals answer before trimesh, SciPy, Warp or h5py load (~1 s): the
+    parser knows the scene builders' names without importing scenes (checked against it below)."""
+    done = subprocess.run([sys.executable, "-c", LOADED, *argv], capture_output=True, text=True, timeout=60)
+    assert done.stdout.splitlines()[-1] == "LOADED", done.stdout[-300:] + done.stderr[-300:]
+    assert ("offfice" in done.stderr) == ("offfice" in argv)
+
+
+def test_the_parser_lists_every_scene_builder_and_the_suites():
+    import scenes
+    from acoustic_sim.cli_scene import BUILDER_NAMES
+    from acoustic_sim.datasets.suites import SUITES
+
+    assert BUILDER_NAMES == tuple(sorted(scenes.BUILDERS))
+    shown = subprocess.run(
+        [sys.executable, "-m", "acoustic_sim", "generate", "--help"], capture_output=True, text=True, check=True
+    ).stdout
+    assert all(f"{name}:" in " ".join(shown.split()) for name in SUITES)
+
+
 def test_generate_command_and_its_errors(tmp_path, device, capsys):
     """`generate --suite tiny --frames 3` writes one shard and says so; a rerun skips it; bad
     suites, shard counts and a flag the suite cannot take exit with 2 and a message."""

@@ -3,3 +3,8 @@
 engine (`crossengine`). They use the engine's public stages and the dataset files, never its
 kernels.
 """
+
+PLANE_TOLERANCE_M = 0.05
+"""CHIRP import: LiDAR points within this height of the sonar's plane make the 2D scan [m]."""
+EPISODE_GAP_S = 0.5
+"""CHIRP import: a longer pause between pings starts a new episode [s]."""

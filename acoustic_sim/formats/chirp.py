@@ -53,14 +53,12 @@ from clitools.outputs import KeptErrorFile, atomic_folder, atomic_output, check_
 from ..config import ChirpConfig, LidarConfig, SonarConfig
 from ..datasets.shards import COMPRESSION, check_outside, finite_poses, one_run_shards
 from ..engine.lidar import lidar_image, ranges_to_points
-from . import chirp_input
+from . import EPISODE_GAP_S, PLANE_TOLERANCE_M, chirp_input
 from .chirp_dataset import ImportedPings, write_card, write_manifest, write_shards
 from .mcap_export import frame_stamps
 
 FORMAT, FORMAT_VERSION = "chirp", "2.1"
 ACOUSTIC, TRANSMITTER, LIDAR, ODOMETRY = "acoustic_sensor_00", "acoustic_transmitter_00", "lidar_00", "odometry_00"
-PLANE_TOLERANCE_M = 0.05
-EPISODE_GAP_S = 0.5
 BLOCK = 64  # pings read and processed at once
 
 
