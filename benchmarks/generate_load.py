@@ -3,12 +3,15 @@ each GPU's utilisation over each run, for settings compared in rounds.
 
     python benchmarks/generate_load.py --settings cuda:0/5,auto/10,auto/10/block,pair/5 --frames 75000 --out DIR
 
-A setting is DEVICE/WORKERS[/WAIT[/HELPERS[/NICENESS]]]: WAIT is how the workers' CUDA waits (spin,
-CUDA's default, or block: SONAR2LIDAR_CUDA_WAIT), HELPERS the host processes per worker (generate's
-choice if left out or `-`), NICENESS how far below its rendering process a helper is scheduled
-(SONAR2LIDAR_HELPER_NICENESS, 0 if left out). DEVICE `pair` runs two `generate` commands at once,
-one on cuda:0 and one on cuda:1, with WORKERS each and half the frames each: whether two GPUs slow
-each other through the host rather than through one command's machinery. Each run is a fresh
+A setting is DEVICE/WORKERS[/WAIT[/HELPERS[/NICENESS[/POOL]]]]: WAIT is how the workers' CUDA waits
+(spin, CUDA's default, or block: SONAR2LIDAR_CUDA_WAIT), HELPERS the host processes per worker
+(generate's choice if left out or `-`), NICENESS how far below its rendering process a helper is
+scheduled (SONAR2LIDAR_HELPER_NICENESS, 0 if left out), POOL what a GPU's memory pool does with freed
+memory (keep, the package's default, or release, CUDA's: SONAR2LIDAR_CUDA_POOL); with --rounds 2 and
+settings that differ in one field, the rounds alternate them on the same warm machine. DEVICE `pair`
+runs two `generate` commands at once, one on cuda:0 and one on cuda:1, with WORKERS each and half the
+frames each: whether two GPUs slow each other through the host rather than through one command's
+machinery. Each run is a fresh
 process, as a `generate` command is. Beside its frames/s: the share of the host's CPU time busy over
 the run (/proc/stat), the CPU time and page faults of the run's whole process tree (getrusage), each GPU's utilisation
 (nvidia-smi every 250 ms: the mean, the median, and the mean of the samples while the GPUs were in
@@ -51,7 +54,8 @@ import resource
 used = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)]
 tree = {"user_s": sum(u.ru_utime for u in used), "system_s": sum(u.ru_stime for u in used),
         "minor_faults": sum(u.ru_minflt for u in used)}  # this process and every process it waited for
-print("RESULT " + json.dumps({k: summary.get(k) for k in keep} | {"tree": tree}))
+from acoustic_sim.devices import cuda_pool
+print("RESULT " + json.dumps({k: summary.get(k) for k in keep} | {"tree": tree, "pool": cuda_pool()}))
 """
 PARTS_SHOWN = ("start-up", "prepare", "lidar", "sonar", "assemble", "write")  # generate's seconds by part, summed
 # What a sampled thread was doing, by the first of these functions found in its stack.
@@ -145,7 +149,8 @@ def run(setting: str, args, work: Path, out: Path, tag: str, spy: bool = False) 
     wait = rest[0] if rest else "spin"
     helpers = int(rest[1]) if len(rest) > 1 and rest[1] != "-" else None
     niceness = rest[2] if len(rest) > 2 else "0"
-    env = dict(os.environ, SONAR2LIDAR_CUDA_WAIT=wait, SONAR2LIDAR_HELPER_NICENESS=niceness)
+    pool = rest[3] if len(rest) > 3 else "keep"
+    env = dict(os.environ, SONAR2LIDAR_CUDA_WAIT=wait, SONAR2LIDAR_HELPER_NICENESS=niceness, SONAR2LIDAR_CUDA_POOL=pool)
     spec = {"suite": args.suite, "frames": args.frames, "workers": int(workers), "helpers": helpers}
     shutil.rmtree(work, ignore_errors=True)
     sampler = start_sampler(out / f"utilisation_{tag}.csv")
@@ -193,6 +198,7 @@ def run(setting: str, args, work: Path, out: Path, tag: str, spy: bool = False) 
         "cpu_ms_per_frame": {k: 1e3 * tree[f"{k}_s"] / frames for k in ("user", "system")},
         "minor_faults_per_frame": tree["minor_faults"] / frames,
         "helpers": results[0]["helpers"],
+        "pool": results[0]["pool"],
         "devices": sorted({d for r in results for d in r["devices"]}),
     }
 
@@ -244,7 +250,9 @@ def markdown(res: dict) -> str:
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--settings", required=True, help="DEVICE/WORKERS[/WAIT[/HELPERS[/NICENESS]]], comma-separated")
+    parser.add_argument(
+        "--settings", required=True, help="DEVICE/WORKERS[/WAIT[/HELPERS[/NICENESS[/POOL]]]], comma-separated"
+    )
     parser.add_argument("--suite", default="paper")
     parser.add_argument("--frames", type=int, default=75000)
     parser.add_argument("--rounds", type=int, default=2)

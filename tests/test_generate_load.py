@@ -11,15 +11,30 @@ from benchmarks import generate_load
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc/stat, as on the GPU hosts")
 def test_a_run_reports_its_rate_and_the_cpu_it_kept_busy(tmp_path):
     res = generate_load.main(
-        ["--settings", "cpu/1/spin/0", "--suite", "tiny", "--frames", "24", "--rounds", "1", "--out", str(tmp_path)]
+        [
+            "--settings",
+            "cpu/1/spin/0/0/release",
+            "--suite",
+            "tiny",
+            "--frames",
+            "24",
+            "--rounds",
+            "1",
+            "--out",
+            str(tmp_path),
+        ]
     )
     (row,) = res["rows"]
-    assert row["setting"] == "cpu/1/spin/0" and row["frames"] == 24 and row["helpers"] == 0
+    assert row["setting"] == "cpu/1/spin/0/0/release" and row["frames"] == 24 and row["helpers"] == 0
+    assert row["pool"] == "release"  # the setting's last field reaches the generate process
     assert row["frames_per_s"] == pytest.approx(24 / row["seconds"]) and 0 < row["cpu_busy"] <= 1
     assert row["seconds_by_part"]["sonar"] > 0 and row["devices"] == ["cpu"]
     assert row["cpu_ms_per_frame"]["user"] > 0 and row["minor_faults_per_frame"] > 0
     saved = json.loads((tmp_path / "generate_load.json").read_text())
-    assert saved["provenance"]["commit"] and "| cpu/1/spin/0 | 0 |" in (tmp_path / "generate_load.md").read_text()
+    assert (
+        saved["provenance"]["commit"]
+        and "| cpu/1/spin/0/0/release | 0 |" in (tmp_path / "generate_load.md").read_text()
+    )
 
 
 def test_utilisation_while_in_use_leaves_out_the_idle_start(tmp_path):
