@@ -175,7 +175,11 @@ def _report(summary: dict) -> int:
     parts = summary.get("seconds_by_part")
     if parts and summary["shards_written"]:
         started = {"fork": " forked", "spawn": " spawned"}.get(summary.get("worker_start"), "")
-        workers = f" summed over {summary['workers']}{started} workers" if summary.get("workers", 1) > 1 else ""
+        workers = ""
+        if summary.get("workers", 1) > 1:  # and where each one's host work ran (helpers: cores to spare)
+            helpers = summary.get("helpers", 0)
+            workers = f" summed over {summary['workers']}{started} workers"
+            workers += f" ({counted(helpers, 'helper process')} each)" if helpers else " (host work in threads)"
         shown = {k: v for k, v in parts.items() if k != "start-up" or v}  # no workers started: no start-up
         print(f"time by part{workers}: " + ", ".join(f"{k} {v:.1f} s" for k, v in shown.items()))
     return 0
