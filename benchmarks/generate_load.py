@@ -11,13 +11,13 @@ memory (keep, the package's default, or release, CUDA's: SONAR2LIDAR_CUDA_POOL);
 settings that differ in one field, the rounds alternate them on the same warm machine. DEVICE `pair`
 runs two `generate` commands at once, one on cuda:0 and one on cuda:1, with WORKERS each and half the
 frames each: whether two GPUs slow each other through the host rather than through one command's
-machinery. Each run is a fresh
-process, as a `generate` command is. Beside its frames/s: the share of the host's CPU time busy over
-the run (/proc/stat), the CPU time and page faults of the run's whole process tree (getrusage), each GPU's utilisation
-(nvidia-smi every 250 ms: the mean, the median, and the mean of the samples while the GPUs were in
-use), which processes hold a context on which GPU (6 s into the run), and with --spy, a py-spy
-recording of one more run of each named setting (`pip install py-spy`), summed by what the busy
-threads were doing. Writes DIR/generate_load.json and .md (and the raw samples beside them).
+machinery. Each run is a fresh process, as a `generate` command is. Beside its frames/s: the share
+of the host's CPU time busy over the run (/proc/stat), the CPU time and page faults of the run's whole
+process tree (getrusage), each GPU's utilisation (nvidia-smi every 250 ms: the mean, the median, and
+the mean of the samples while the GPUs were in use), which processes hold a context on which GPU (6 s
+into the run), and with --spy, a py-spy recording of one more run of each named setting (`pip install
+py-spy`), summed by what the busy threads were doing. Writes DIR/generate_load.json and .md (and the
+raw samples beside them).
 """
 
 from __future__ import annotations
