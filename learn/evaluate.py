@@ -162,7 +162,7 @@ def _nanstd(v):
 
 
 def inference_timing(
-    model, windows: Windows, *, repeats: int = 20, batch_size: int = 32, budget_s: float = 5.0
+    model, windows: Windows, *, repeats: int = 20, batch_size: int = 32, budget_s: float = 2.0
 ) -> dict:
     """Per-frame latency (batch 1, median) and batched throughput of the model on its device:
     up to `repeats` timed calls after two warm-ups, fewer (at least one) once `budget_s` is spent,
