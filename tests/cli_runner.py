@@ -19,6 +19,9 @@ import sys
 import time
 from pathlib import Path
 
+PRELOADED = {"acoustic_sim": ("scenes", "acoustic_sim.datasets.suites", "acoustic_sim.formats.chirp")}
+"""Modules a package's commands import once parsed (its parser leaves them out to answer --help fast)."""
+
 
 def run_commands(
     commands: dict[str, tuple[str, list[str]]], *, env: dict[str, str], parallel: int, timeout: float = 300.0
@@ -58,7 +61,9 @@ def _serve() -> None:
     import importlib
 
     cli = importlib.import_module(f"{request['package']}.cli")  # the heavy imports, once: nothing starts
-    cli.build_parser()  # imports what --help needs (learn: torch, models; acoustic_sim: scenes, suites, formats)
+    cli.build_parser()  # imports what --help needs (learn: torch, models)
+    for module in PRELOADED.get(request["package"], ()):  # and what acoustic_sim's commands import after parsing
+        importlib.import_module(module)
     import shutil
     import tempfile
 
