@@ -100,16 +100,22 @@ POOL_ENV = "SONAR2LIDAR_CUDA_POOL"
 _pools_set: set[str] = set()  # the GPUs whose pool this process has set up
 
 
+def env_choice(name: str, choices: tuple[str, ...]) -> str:
+    """The environment variable `name`: one of `choices`, the first where it is unset; anything else is
+    refused naming them."""
+    import os
+
+    chosen = os.environ.get(name, choices[0])
+    if chosen not in choices:
+        raise ValueError(f"{name}={chosen!r}: use {' or '.join(choices)}")
+    return chosen
+
+
 def cuda_pool() -> str:
     """SONAR2LIDAR_CUDA_POOL: "keep" (the pool holds what it has reserved, as torch's caching
     allocator does) or "release" (CUDA's default: freed memory goes back to the driver at every
     synchronize)."""
-    import os
-
-    chosen = os.environ.get(POOL_ENV, "keep")
-    if chosen not in ("keep", "release"):
-        raise ValueError(f"{POOL_ENV}={chosen!r}: use keep or release")
-    return chosen
+    return env_choice(POOL_ENV, ("keep", "release"))
 
 
 def _keep_freed_gpu_memory(device) -> None:

@@ -22,7 +22,7 @@ import time
 from collections.abc import Callable, Iterable
 from concurrent.futures import ProcessPoolExecutor, as_completed
 
-from ..devices import cpu_cores, cuda_started, quiet_warp, resolve_device, warp_voice
+from ..devices import cpu_cores, cuda_started, env_choice, quiet_warp, resolve_device, warp_voice
 from .runner import keep_freed_memory
 from .shared_frames import sweep
 
@@ -191,10 +191,7 @@ def _serve(work: Work, device: str) -> dict:
 def cuda_wait() -> str:
     """SONAR2LIDAR_CUDA_WAIT: "spin" (CUDA's default for a process of one context: its waiting
     thread spins a core) or "block" (it sleeps until the GPU signals)."""
-    chosen = os.environ.get(WAIT_ENV, "spin")
-    if chosen not in ("spin", "block"):
-        raise ValueError(f"{WAIT_ENV}={chosen!r}: use spin or block")
-    return chosen
+    return env_choice(WAIT_ENV, ("spin", "block"))
 
 
 def _set_cuda_wait(ordinal: int) -> None:
