@@ -7,12 +7,17 @@ Generation renders one episode (a drive of `episode_frames` frames, 100 in the p
 prepares --episodes episodes of the suite's plan on the host (`SuiteRenderer.prepare`: scene, drive,
 draws), builds their device scenes, renders them one after another (LiDAR and sonar, as a worker
 does), then renders ten of them again under Warp's CUDA activity timing for the GPU-busy time and
-the kernels' share. Prints its figures (an experiment's readout, not a tracked result).
+the kernels' share. With --host-profile N the timed renders run under cProfile and the N functions
+with the most own time in the rendering thread are printed: the host work that leaves a GPU
+idle unless another process has work queued on it (waits for the GPU show as Warp's synchronize
+calls and copies to the host). Prints its figures (an experiment's readout, not a tracked result).
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
+import pstats
 import sys
 import tempfile
 import time
@@ -36,6 +41,7 @@ def main(argv=None) -> None:
     parser.add_argument("--device", default="cuda:0")
     parser.add_argument("--suite", default="paper")
     parser.add_argument("--episodes", type=int, default=40)
+    parser.add_argument("--host-profile", type=int, default=0, metavar="N", help="print the N costliest functions")
     args = parser.parse_args(argv)
     wp.config.quiet = True
     warnings.simplefilter("ignore")  # the suite's scenes say what they leave out
@@ -54,13 +60,22 @@ def main(argv=None) -> None:
     wp.synchronize_device(args.device)
     print(f"device scene: {1e3 * (time.perf_counter() - t0) / 10:.1f} ms an episode")
     seconds: dict[str, float] = defaultdict(float)
+    profile = cProfile.Profile() if args.host_profile else None
     t0 = time.perf_counter()
     for (task, _), p in zip(jobs[11:], prepared[11:], strict=True):
+        if profile:
+            profile.enable()
         renderer.render(task, p, device=args.device, on_frames=None, seconds=seconds)
+        if profile:
+            profile.disable()
     wp.synchronize_device(args.device)
     n = len(jobs) - 11
     parts = ", ".join(f"{k} {1e3 * v / n:.1f}" for k, v in seconds.items())
     print(f"render: {1e3 * (time.perf_counter() - t0) / n:.1f} ms an episode ({parts})")
+    if profile:
+        print(f"host profile of those {n} renders (own time, then cumulative):")
+        pstats.Stats(profile, stream=sys.stdout).sort_stats("tottime").print_stats(args.host_profile)
+        pstats.Stats(profile, stream=sys.stdout).sort_stats("cumulative").print_stats(args.host_profile)
     wp.timing_begin(cuda_filter=wp.TIMING_ALL)
     t0 = time.perf_counter()
     for (task, _), p in zip(jobs[1:11], prepared[1:11], strict=True):
