@@ -337,9 +337,11 @@ def test_the_beams_tree_of_one_triangle_leaves_returns_what_four_triangle_leaves
     """The LiDAR's own BVH (LIDAR_BVH_LEAF_SIZE) against one of the scene's leaf size: every beam
     hits or misses alike, and ranges agree to float32 rounding (a few units in the last place:
     another traversal order meets the same triangles). A tree that lost a face would fail."""
+    from acoustic_sim.engine import lidar as lidar_module
     from acoustic_sim.engine import scene as scene_module
 
     assert scene_module.LIDAR_BVH_LEAF_SIZE != scene_module.BVH_LEAF_SIZE
+    monkeypatch.setattr(lidar_module, "OWN_TREE_RAYS", 0)  # every scan through the LiDAR's tree
     config = dataclasses.replace(HOKUYO, range_max_m=30.0)
     got = []
     for leaf in (scene_module.LIDAR_BVH_LEAF_SIZE, scene_module.BVH_LEAF_SIZE):
@@ -352,3 +354,20 @@ def test_the_beams_tree_of_one_triangle_leaves_returns_what_four_triangle_leaves
     np.testing.assert_array_equal(np.isinf(ones), np.isinf(fours))
     hit = np.isfinite(fours)
     np.testing.assert_allclose(ones[hit], fours[hit], rtol=5e-7, atol=0)
+
+
+def test_only_a_scan_of_many_rays_builds_the_lidars_own_tree(device, monkeypatch):
+    """A dataset episode's scan (100 poses) casts through the scene's tree; one of OWN_TREE_RAYS
+    or more builds the LiDAR's tree, and returns the same ranges to float32 rounding."""
+    from acoustic_sim.engine import lidar as lidar_module
+    from acoustic_sim.engine.scene import warp_scene
+
+    scene = scenes.box_room(seed=1)
+    poses = scenes.trajectory(scene, frames=4, seed=0)
+    lidar = sim.Lidar(HOKUYO, device=device)
+    small = lidar.scan(scene, poses)
+    assert not warp_scene(scene, device).has_lidar_mesh
+    monkeypatch.setattr(lidar_module, "OWN_TREE_RAYS", len(poses) * HOKUYO.beam_count)
+    large = lidar.scan(scene, poses)
+    assert warp_scene(scene, device).has_lidar_mesh
+    np.testing.assert_allclose(large, small, rtol=5e-7, atol=0)

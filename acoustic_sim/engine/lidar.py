@@ -27,6 +27,12 @@ SEED_MODULUS = 2**31 - 1
 # the office (an H200, 2D and 3D scans; 512 cast 0.7x): a warp's rays finish their BVH walks at
 # different times, and small blocks let the SM start the next block sooner.
 SCAN_BLOCK_DIM = 64
+# A scan of fewer rays casts through the scene's own tree (the sonar's, of BVH_LEAF_SIZE leaves)
+# rather than building the LiDAR's tree of one-triangle leaves (scene.LIDAR_BVH_LEAF_SIZE). That tree
+# casts 1.1-1.3x the rays/s, but it is built on the host: a dataset episode (100 poses of 1,081
+# beams, ~0.03 ms of an H100's time) spent ~10 % of its rendering process's CPU building it
+# (py-spy over `generate` on an H100, benchmarks/results/multi_gpu/session37).
+OWN_TREE_RAYS = 10_000_000
 
 
 @dataclass
@@ -159,7 +165,8 @@ class Lidar:
         # 4-byte-per-pose read-back cost far less than numpy on large batches.
         launch(kernels.pose_error, dim=len(poses), inputs=[ws.mesh.id, pose_buf], outputs=[error_buf, behind_buf])
         beams = self.beam_count
-        beam_tree = ws.lidar_mesh.id  # built here, before the threads below, never by two at once
+        own_tree = ws.has_lidar_mesh or len(poses) * beams >= OWN_TREE_RAYS
+        beam_tree = ws.lidar_mesh.id if own_tree else ws.mesh.id  # built here, not by the threads below
         kernel, scene_in = kernels.lidar_scan_opaque, [beam_tree]
         if ws.lidar_sees_through:
             kernel, scene_in = kernels.lidar_scan, [beam_tree, ws.face_lidar_transparent]

@@ -36,7 +36,7 @@ class WarpScene:
     @property
     def lidar_mesh(self) -> wp.Mesh:
         """The same triangles in a BVH of LIDAR_BVH_LEAF_SIZE leaves, for the LiDAR's beams (built
-        on first use: a scene the LiDAR never scans costs no second tree)."""
+        on first use: a scene the LiDAR never scans with many rays costs no second tree)."""
         if self._lidar_mesh is None:
             self._lidar_mesh = wp.Mesh(
                 points=self.mesh.points,
@@ -45,6 +45,10 @@ class WarpScene:
                 bvh_leaf_size=LIDAR_BVH_LEAF_SIZE,
             )
         return self._lidar_mesh
+
+    @property
+    def has_lidar_mesh(self) -> bool:
+        return self._lidar_mesh is not None
 
 
 CURVED_KINDS = ("sphere", "cylinder")  # curved_kind values 0, 1
@@ -144,9 +148,9 @@ def face_edges(scene: Scene, *, sharp_deg: float = 20.0) -> tuple[np.ndarray, np
 # frames (up to 16 % of a frame's peak; benchmarks/dataset_before_after.py). Four it stays.
 BVH_CONSTRUCTOR = "sah"
 BVH_LEAF_SIZE = 4  # triangles a leaf holds at most
-# The LiDAR's beams go through a tree of their own with one-triangle leaves: nothing aims them at
-# edges, and over the paper and randomised suites' drives they return the same ranges as through
-# the four-triangle tree, bit for bit (tests/test_lidar.py), at 1.1-1.3x its rays/s (bench_lidar).
+# A scan of many beams (lidar.OWN_TREE_RAYS) goes through a tree of its own with one-triangle leaves:
+# nothing aims them at edges, and they return the same ranges as through the four-triangle tree, to
+# float32 rounding (tests/test_lidar.py), at 1.1-1.3x its rays/s (bench_lidar).
 LIDAR_BVH_LEAF_SIZE = 1
 
 _CACHE: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
