@@ -201,15 +201,21 @@ def test_the_order_of_the_rays_changes_no_echo(device):
     np.testing.assert_array_equal(sonar.record(sonar.trace(room, poses), pose_count=2), before)
 
 
-def test_host_copies_of_pings_traced_again_take_turns(device):
-    """Two retraced groups can be in flight at once (one queued while the other's checks are
-    unread): their host copies must not share memory, while a third reuses the first's (no
-    page-locked memory is allocated, or freed, per retraced group)."""
+def test_host_copies_of_batches_take_turns_in_two_sets(device):
+    """A batch is queued while the one before it is in flight, its checks unread: their host
+    copies must not share memory, while the batch after reuses the first's, of any smaller shape
+    (no page-locked memory is allocated, or freed, per batch), and a larger batch gets its own."""
     tracer = Sonar(OMNI, max_bounces=1, ray_count=16, device=device).tracer
-    first, second, third = (tracer._retrace_host_checks(4, pinned=False) for _ in range(3))
+    first = tracer._host_checks_for(4, None)
+    second = tracer._host_checks_for(4, first)
     assert {a.ptr for a in first}.isdisjoint(a.ptr for a in second)
-    assert [a.ptr for a in third] == [a.ptr for a in first]
-    assert tracer._retrace_host_checks(9, pinned=False)[0].shape == (9,)  # grows when a group is larger
+    third = tracer._host_checks_for(3, second)
+    assert [a.ptr for a in third] == [a.ptr for a in first] and third[0].shape == (3,)
+    larger = tracer._host_checks_for(9, third)
+    assert larger[0].shape == (9,) and {a.ptr for a in larger}.isdisjoint(a.ptr for a in third)
+    again = tracer._host_checks_for(9, larger)  # the other set grows too
+    assert again[0].shape == (9,) and {a.ptr for a in again}.isdisjoint(a.ptr for a in larger)
+    assert [a.ptr for a in tracer._host_checks_for(5, again)] == [a.ptr for a in larger]
 
 
 def test_pings_that_overflow_the_sequence_table_are_traced_again_larger(device):

@@ -113,7 +113,7 @@ class Arrivals:
 @dataclass
 class TraceBuffers:
     """A batch's device arrays (see `PathTracer._buffers_for`): pose checks, the sequence and
-    image tables, counters, the echoes found, and host copies of what the host reads."""
+    image tables, counters and the echoes found."""
 
     errors: wp.array  # (pings,) float, pose_error
     behind: wp.array  # (pings,) int32, pose_error
@@ -127,7 +127,6 @@ class TraceBuffers:
     scattered: PointEchoes
     hit_faces: wp.array  # (pings, rays, MAX_ORDER) int32 each hit's face; no rays unless faces are recorded
     curved: PointEchoes  # (pings, curved surfaces) echoes off spheres and cylinders
-    host_checks: tuple[wp.array, wp.array, wp.array]  # errors, behind, overflow (page-locked on GPUs)
 
     @property
     def echoes(self) -> TracedEchoes:

@@ -137,8 +137,7 @@ class PathTracer:
             self._directivity = wp.array(pattern.astype(np.float32), dtype=float)
         self._buffer_key: tuple[int, int, int] | None = None  # (pings, table size, curved surfaces)
         self._buffer_sets: list[TraceBuffers] = []  # up to two, taking turns
-        self._retrace_checks: list[tuple[wp.array, wp.array, wp.array]] = []  # two, taking turns
-        self._retrace_turn = 0
+        self._check_sets: list[HostChecks] = []  # up to two, never the batch in flight's
 
     def trace(self, scene: Scene, poses: np.ndarray, *, batch: int = 64) -> Arrivals:
         """Echoes of one ping from each pose, specular and scattered (see the module docstring).
@@ -186,7 +185,7 @@ class PathTracer:
         while todo or queued:
             while todo and len(queued) < 2:  # this batch and the next
                 index, size = todo.popleft()
-                busy = queued[0].buffers if queued else None
+                busy = queued[0] if queued else None
                 queued.append(self._queue_batch(scene, on_device, index, size, busy))
             done = queued.popleft()
             index, size = done.index, done.size
@@ -211,9 +210,7 @@ class PathTracer:
         Batches at the configured table size take turns in two cached sets, one shape at a
         time (a stream of equal batches reuses memory): a batch's echoes live in its set until
         the batch after the next is traced. Pings traced again with a larger table get device
-        buffers of their own, so their echoes never share memory with any other batch's, and
-        host copies that take turns in two reused page-locked sets: at 3 bounces some pings of
-        nearly every batch are traced again, and freeing page-locked memory waits for the GPU."""
+        buffers of their own, so their echoes never share memory with any other batch's."""
         key = (n, size, surfaces)
         cached = size == self.config.table_size
         if cached and self._buffer_key != key:
@@ -225,7 +222,6 @@ class PathTracer:
         tracer = self.config
         capacity = tracer.ray_count * (tracer.max_bounces + 1) if tracer.scattering else 0
         recorded = self.scattered_faces  # else empty: the kernel writes no faces
-        pinned = self.device.is_cuda  # host copies the GPU writes behind its work
         with wp.ScopedDevice(self.device):
             planes = wp.empty((n, size, kernels.MAX_ORDER), dtype=wp.int32)
             buffers = TraceBuffers(
@@ -263,38 +259,43 @@ class PathTracer:
                     count=wp.full(n, surfaces, dtype=wp.int32),
                     order=wp.empty((n, surfaces), dtype=wp.int32),
                 ),
-                host_checks=self._host_checks(n, pinned) if cached else self._retrace_host_checks(n, pinned),
             )
         if cached:
             self._buffer_sets.append(buffers)
         return buffers
 
-    @staticmethod
-    def _host_checks(n: int, pinned: bool) -> tuple[wp.array, wp.array, wp.array]:
-        """Host arrays for a batch's pose errors, poses behind a surface and overflow counts."""
-        return (
+    def _host_checks_for(self, n: int, busy: HostChecks | None) -> HostChecks:
+        """Host arrays for a batch's pose errors, poses behind a surface and overflow counts: the
+        first n rows of one of two reused sets (page-locked on a GPU), never `busy`, those of the
+        one batch whose checks may still be unread. Allocating page-locked memory is slow and
+        freeing it waits for the GPU: batch shapes change with a scene's curved surfaces, the last
+        batch of a trace and every group of pings traced again, and each used to bring new ones."""
+        free = [k for k, checks in enumerate(self._check_sets) if busy is None or checks[0].ptr != busy[0].ptr]
+        fits = [k for k in free if self._check_sets[k][0].shape[0] >= n]
+        if fits:
+            return tuple(a[:n] for a in self._check_sets[fits[0]])
+        pinned = self.device.is_cuda  # the GPU writes them behind its work
+        checks = (
             wp.empty(n, dtype=float, device="cpu", pinned=pinned),
             wp.empty(n, dtype=wp.int32, device="cpu", pinned=pinned),
             wp.empty(n, dtype=wp.int32, device="cpu", pinned=pinned),
         )
-
-    def _retrace_host_checks(self, n: int, pinned: bool) -> tuple[wp.array, wp.array, wp.array]:
-        """The first n rows of one of two reused sets of host arrays. At most two batches are in
-        flight and a batch's checks are read before the batch after the next is queued, so two
-        sets taking turns are never written while still unread."""
-        if not self._retrace_checks or self._retrace_checks[0][0].shape[0] < n:
-            self._retrace_checks = [self._host_checks(n, pinned) for _ in range(2)]
-        self._retrace_turn ^= 1
-        return tuple(a[:n] for a in self._retrace_checks[self._retrace_turn])
+        if len(self._check_sets) < 2:
+            self._check_sets.append(checks)
+        else:  # the set not in flight is too small: a larger one takes its place
+            self._check_sets[free[0]] = checks
+        return checks
 
     def _queue_batch(
-        self, scene: Scene, poses: PosesOnDevice, index: np.ndarray, size: int, busy: TraceBuffers | None
+        self, scene: Scene, poses: PosesOnDevice, index: np.ndarray, size: int, busy: QueuedBatch | None
     ) -> QueuedBatch:
-        """Queue the trace of the checked poses[index] with tables of `size` (into buffers other
-        than `busy`) and the copies of its pose checks and overflow counts to the host."""
+        """Queue the trace of the checked poses[index] with tables of `size` (into buffers and host
+        copies other than those of `busy`, the batch in flight) and the copies of its pose checks
+        and overflow counts to the host."""
         n = len(index)
         ws = warp_scene(scene, self.device)
-        b = self._buffers_for(n, size, ws.curved.count, busy)
+        b = self._buffers_for(n, size, ws.curved.count, busy.buffers if busy else None)
+        checks = self._host_checks_for(n, busy.checks if busy else None)
         emitter = wp.vec3(*self.sonar.emitter_m)
         with wp.ScopedDevice(self.device):
             batch_poses, batch_inverse = poses.select(index)
@@ -312,8 +313,8 @@ class PathTracer:
                 launch=device_calls(self.device)[2],  # the stages run in worker threads too
             )
             self._in_slices(stages.trace_rows, n)
-            ready = self._copy_checks_to_host(b)
-        return QueuedBatch(index, size, b, ready)
+            ready = self._copy_checks_to_host(b, checks)
+        return QueuedBatch(index, size, b, checks, ready)
 
     def _stage_inputs(self, emitter: wp.vec3) -> TracerInputs:
         """What every batch's stages read of this tracer (the rays as they are now)."""
@@ -341,10 +342,10 @@ class PathTracer:
             with ThreadPoolExecutor(threads) as pool:
                 list(pool.map(trace_rows, edges[:-1], edges[1:]))  # list(): raise a thread's error here
 
-    def _copy_checks_to_host(self, b: TraceBuffers) -> wp.Event | None:
+    def _copy_checks_to_host(self, b: TraceBuffers, checks: HostChecks) -> wp.Event | None:
         """Queue the copies of a batch's pose checks and overflow counts to the host, behind its
         trace in stream order; returns the event after them (None on the CPU)."""
-        for device_array, host_array in zip((b.errors, b.behind, b.overflow), b.host_checks, strict=True):
+        for device_array, host_array in zip((b.errors, b.behind, b.overflow), checks, strict=True):
             wp.copy(host_array, device_array)
         return wp.get_stream(self.device).record_event() if self.device.is_cuda else None
 
@@ -355,7 +356,7 @@ class PathTracer:
         `behind`), and return per pose the count of sequence insertions that found no slot."""
         if batch.ready is not None:
             wp.synchronize_event(batch.ready)
-        errors, behind_now, overflow = (a.numpy() for a in batch.buffers.host_checks)
+        errors, behind_now, overflow = (a.numpy() for a in batch.checks)
         raise_for_bad_poses(errors, batch.index)
         if behind is not None:
             behind[batch.index] |= behind_now > 0
@@ -394,12 +395,17 @@ class PosesOnDevice:
         )
 
 
+HostChecks = tuple[wp.array, wp.array, wp.array]  # a batch's pose errors, poses behind, overflow counts
+
+
 @dataclass
 class QueuedBatch:
-    """A batch whose trace is queued: its pose indices, table size, buffers (and echoes), and the
-    event after its host copies (None on the CPU, where launches finish before they return)."""
+    """A batch whose trace is queued: its pose indices, table size, buffers (and echoes), the host
+    copies of its checks, and the event after them (None on the CPU, where launches finish before
+    they return)."""
 
     index: np.ndarray
     size: int
     buffers: TraceBuffers
+    checks: HostChecks
     ready: object | None
