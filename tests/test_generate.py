@@ -185,11 +185,22 @@ def test_helper_processes_prepare_and_write_the_same_shards(reference, tmp_path,
             f.write(f"write {os.getpid()} {mapped}\n")
         real_write(path, frames, **kwargs)
 
+    real_share = shared_frames.SharedFrames.share.__func__
+
+    def share(cls, frames, *args):
+        with log.open("a") as f:
+            f.write(f"share {os.getpid()} {threading.current_thread().name.split('_')[0]}\n")
+        return real_share(cls, frames, *args)
+
     monkeypatch.setattr(gen, "prepare_episode", prepare)
     monkeypatch.setattr(runner, "write_shard", write)
+    monkeypatch.setattr(shared_frames.SharedFrames, "share", classmethod(share))
     leftovers = set(Path(shared_frames.FOLDER).glob("sonar2lidar-*"))
     summary = generate(tmp_path / "out", device, helpers=2)
     who = [line.split() for line in log.read_text().splitlines()]
+    # copied into shared memory beside the rendering, by this process's hand-over thread
+    assert [rest for part, *rest in who if part == "share"] == [[str(os.getpid()), "shard-handover"]]
+    who = [line for line in who if line[0] != "share"]
     assert sorted(part for part, *_ in who) == ["prepare"] * 3 + ["write"] * 2
     here = [(part, *rest) for part, pid, *rest in who if pid == str(os.getpid())]
     assert here == [("write", "False")]  # the last shard, from this process's own arrays

@@ -141,6 +141,8 @@ def run_tasks(
         helpers = 0  # forked helpers and their death with the parent (prctl) are Linux's
     executors, run = [], None
     try:
+        # the hand-over thread first: shut down first, before the helpers it hands shards to
+        executors.append(ThreadPoolExecutor(1, thread_name_prefix="shard-handover"))
         for _ in range(2):  # the preparer, the writer
             if not overlap:
                 executors.append(_AtOnce())
@@ -174,13 +176,15 @@ class _Run:
     hands each full shard to the writer once fewer than `depth` writes are in flight; it keeps the
     entries written (in shard order) and the seconds."""
 
-    def __init__(self, renderer: Renderer, device: str, on_frames, preparer, writer, *, depth: int = 1):
+    def __init__(self, renderer: Renderer, device: str, on_frames, handover, preparer, writer, *, depth: int = 1):
         self.renderer, self.device, self.on_frames = renderer, device, on_frames
         self.preparer, self.writer = preparer, writer  # executors: threads, processes, or _AtOnce
+        self.handover = handover  # a thread: shards into shared memory and on to a helper
         self.depth = depth
         self.seconds = dict.fromkeys(PARTS, 0.0)
         self.entries: list[dict] = []
-        self.writing: deque[tuple[Future, SharedFrames | None]] = deque()  # writes in flight, oldest first
+        # writes in flight, oldest first: each a future of (the write's future, its shared memory)
+        self.writing: deque[Future] = deque()
 
     def render(self, tasks: Iterable[ShardTask]) -> None:
         jobs = ((task, episode) for task in tasks for episode in task.episodes)
@@ -223,33 +227,41 @@ class _Run:
             upcoming.append((*job, self.preparer.submit(_prepare, self.renderer, *job)))
 
     def _hand_to_writer(self, shard: _Shard | None) -> None:
+        """Send a full shard to the writer. To helper processes it goes through shared memory, from
+        the hand-over thread: the copy (~33 MB a `paper` shard, by the system, without the GIL)
+        took ~13 % of a rendering process's CPU on the H100 (py-spy, multi_gpu/session37)."""
         if shard is not None:
             if len(self.writing) >= self.depth:
                 self._wait_for_write()
             t0 = time.perf_counter()
-            shared = SharedFrames.share(shard.frames) if isinstance(self.writer, _Helpers) else None
-            if shared is not None:
-                shard = _Shard(shard.task, shared, shard.records)
-            future = self.writer.submit(_write, self.renderer, shard, self.device)
-            handed = time.perf_counter() - t0
+            if isinstance(self.writer, _Helpers):
+                handed = self.handover.submit(_hand_over, self.writer, shard, self.device)
+            else:
+                handed = Future()
+                write = self.writer.submit(_write, self.renderer, shard, self.device)
+                handed.set_result(((write, None), 0.0))
+            took = time.perf_counter() - t0
             if isinstance(self.writer, _AtOnce):  # it wrote the shard right here: that is the write's
-                handed -= future.result()[1]
-            self.seconds["assemble"] += handed
-            self.writing.append((future, shared))
+                took -= write.result()[1]
+            self.seconds["assemble"] += took
+            self.writing.append(handed)
 
     def _wait_for_write(self) -> None:
-        future, shared = self.writing.popleft()
+        write, shared = self._collect(self.writing.popleft(), "write")  # the hand-over's time is the write's
         try:
-            self.entries.append(self._collect(future, "write"))
+            self.entries.append(self._collect(write, "write"))
         finally:
             if shared is not None:
                 shared.release()
 
     def release_shared(self) -> None:
-        """Remove the shared memory of writes that never ran (a run stopped by an error)."""
-        for _, shared in self.writing:
-            if shared is not None:
-                shared.release()
+        """Remove the shared memory of writes that never ran (a run stopped by an error); called
+        once the hand-over thread has stopped."""
+        for handed in self.writing:
+            if handed.done() and not handed.cancelled() and handed.exception() is None:
+                shared = handed.result()[0][1]
+                if shared is not None:
+                    shared.release()
 
     def _collect(self, future: Future, part: str):
         """A helper's result; the time its work took goes to `part`, the time blocked on it to "waiting"."""
@@ -265,6 +277,22 @@ class _Run:
 def _prepare(renderer: Renderer, task: ShardTask, episode: Episode) -> tuple[Any, float]:
     t0 = time.perf_counter()
     return _helper_renderer(renderer).prepare(task, episode), time.perf_counter() - t0
+
+
+def _hand_over(writer: _Helpers, shard: _Shard, device: str) -> tuple[tuple[Future, SharedFrames | None], float]:
+    """(The hand-over thread) a full shard copied into shared memory and submitted to a helper's
+    write (pickled instead where there is no room in shared memory): (the write's future, the
+    shared memory to release once it is done), and the time it took."""
+    t0 = time.perf_counter()
+    shared = SharedFrames.share(shard.frames)
+    sent = shard if shared is None else _Shard(shard.task, shared, shard.records)
+    try:
+        write = writer.submit(_write, None, sent, device)  # a helper holds the renderer from its fork
+    except BaseException:
+        if shared is not None:
+            shared.release()
+        raise
+    return (write, shared), time.perf_counter() - t0
 
 
 def _write(renderer: Renderer, shard: _Shard, device: str) -> tuple[dict, float]:
