@@ -179,7 +179,8 @@ def _report(summary: dict) -> int:
         if summary.get("workers", 1) > 1:  # and where each one's host work ran (helpers: cores to spare)
             helpers = summary.get("helpers", 0)
             workers = f" summed over {summary['workers']}{started} workers"
-            workers += f" ({counted(helpers, 'helper process')} each)" if helpers else " (host work in threads)"
+            each = counted(helpers, "helper process", "helper processes")
+            workers += f" ({each} each)" if helpers else " (host work in threads)"
         shown = {k: v for k, v in parts.items() if k != "start-up" or v}  # no workers started: no start-up
         print(f"time by part{workers}: " + ", ".join(f"{k} {v:.1f} s" for k, v in shown.items()))
     return 0
