@@ -340,6 +340,21 @@ def test_air_absorption_per_frequency(device):
             assert ratio_db[i] == pytest.approx(-air_absorption_db_per_m(f) * length, abs=0.05)
 
 
+def test_ping_seeds_are_numpys_seed_sequence():
+    """Each ping's noise seed is the first word of numpy's SeedSequence([seed, ping]) (its lowest
+    31 bits), for seeds of one to five 32-bit words (five: the pool of four overflows) and pings
+    up to 2**32 - 1; computed for all pings at once, where one SeedSequence per ping is the reference."""
+    from acoustic_sim.engine.signals import ping_seeds
+
+    pings = np.r_[0, 1, np.random.default_rng(0).integers(2, 2**32 - 1, 40), 2**32 - 1]
+    for seed in (0, 1, 2**32 - 1, 2**32, 2**63 - 1, 2**130 + 11, 987_654_321):
+        want = [np.random.SeedSequence([seed, int(p)]).generate_state(1)[0] & 0x7FFFFFFF for p in pings]
+        got = ping_seeds(seed, pings)
+        assert got.dtype == np.int32
+        np.testing.assert_array_equal(got, want)
+    assert ping_seeds(5, range(3, 3)).shape == (0,)
+
+
 def test_noise_level_and_kind(device):
     """Gaussian noise 20 dB below the strongest sample; uniform noise stays within sqrt(3) std."""
     arrival = single_arrival([2.0, 0.0, 0.0], amplitude=1.0)
