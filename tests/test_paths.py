@@ -218,6 +218,32 @@ def test_host_copies_of_batches_take_turns_in_two_sets(device):
     assert [a.ptr for a in tracer._host_checks_for(5, again)] == [a.ptr for a in larger]
 
 
+def test_a_tracer_that_is_gone_leaves_its_host_copies_to_the_next(device, monkeypatch):
+    """A suite that draws its sonar per episode builds a tracer per episode: the next one takes
+    the page-locked check copies of the one before instead of allocating (and the old one's
+    freeing, which waits for the GPU), and a device keeps at most SPARE_CHECKS_KEPT spare sets."""
+    import gc
+    from collections import defaultdict
+
+    from acoustic_sim.engine import paths
+
+    monkeypatch.setattr(paths, "_SPARE_CHECKS", defaultdict(list))
+    tracer = Sonar(OMNI, max_bounces=1, ray_count=16, device=device).tracer
+    first = tracer._host_checks_for(4, None)
+    before = {first[0].ptr, tracer._host_checks_for(4, first)[0].ptr}
+    del tracer, first
+    gc.collect()
+    after = Sonar(OMNI, max_bounces=2, ray_count=16, device=device).tracer
+    taken = after._host_checks_for(3, None)
+    assert taken[0].shape == (3,) and {taken[0].ptr, after._host_checks_for(3, taken)[0].ptr} == before
+    tracers = [Sonar(OMNI, ray_count=16, device=device).tracer for _ in range(6)]
+    for t in tracers:
+        t._host_checks_for(5, t._host_checks_for(5, None))  # two sets each
+    del tracers
+    gc.collect()
+    assert len(paths._SPARE_CHECKS[str(after.device)]) == paths.SPARE_CHECKS_KEPT
+
+
 def test_pings_that_overflow_the_sequence_table_are_traced_again_larger(device):
     """Of three pings at a mirror box, one inside sees some 340 reflection sequences up to order
     4, one outside facing the box a few, one outside facing away none. With 16 slots per ping

@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import functools
 import warnings
-from collections import deque
+import weakref
+from collections import defaultdict, deque
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -138,6 +139,7 @@ class PathTracer:
         self._buffer_key: tuple[int, int, int] | None = None  # (pings, table size, curved surfaces)
         self._buffer_sets: list[TraceBuffers] = []  # up to two, taking turns
         self._check_sets: list[HostChecks] = []  # up to two, never the batch in flight's
+        weakref.finalize(self, _keep_spare, _SPARE_CHECKS[str(self.device)], self._check_sets)
 
     def trace(self, scene: Scene, poses: np.ndarray, *, batch: int = 64) -> Arrivals:
         """Echoes of one ping from each pose, specular and scattered (see the module docstring).
@@ -274,17 +276,22 @@ class PathTracer:
         fits = [k for k in free if self._check_sets[k][0].shape[0] >= n]
         if fits:
             return tuple(a[:n] for a in self._check_sets[fits[0]])
-        pinned = self.device.is_cuda  # the GPU writes them behind its work
-        checks = (
-            wp.empty(n, dtype=float, device="cpu", pinned=pinned),
-            wp.empty(n, dtype=wp.int32, device="cpu", pinned=pinned),
-            wp.empty(n, dtype=wp.int32, device="cpu", pinned=pinned),
-        )
+        spare = _SPARE_CHECKS[str(self.device)]  # those of tracers that are gone
+        large = [k for k, checks in enumerate(spare) if checks[0].shape[0] >= n]
+        if large:
+            checks = spare.pop(large[0])
+        else:
+            pinned = self.device.is_cuda  # the GPU writes them behind its work
+            checks = (
+                wp.empty(n, dtype=float, device="cpu", pinned=pinned),
+                wp.empty(n, dtype=wp.int32, device="cpu", pinned=pinned),
+                wp.empty(n, dtype=wp.int32, device="cpu", pinned=pinned),
+            )
         if len(self._check_sets) < 2:
             self._check_sets.append(checks)
         else:  # the set not in flight is too small: a larger one takes its place
             self._check_sets[free[0]] = checks
-        return checks
+        return tuple(a[:n] for a in checks)
 
     def _queue_batch(
         self, scene: Scene, poses: PosesOnDevice, index: np.ndarray, size: int, busy: QueuedBatch | None
@@ -396,6 +403,16 @@ class PosesOnDevice:
 
 
 HostChecks = tuple[wp.array, wp.array, wp.array]  # a batch's pose errors, poses behind, overflow counts
+# Host check sets of tracers that are gone, by device, for new tracers to take: a suite that draws
+# its sonar per episode (`randomised`) builds a tracer per episode, and freeing page-locked memory
+# waits for the GPU (a tracer is gone only once its traces are: their copies are queued before any
+# of the next tracer's, on the device's one stream).
+_SPARE_CHECKS: defaultdict[str, list[HostChecks]] = defaultdict(list)
+SPARE_CHECKS_KEPT = 8  # per device: what a few tracers at once leave; more are freed
+
+
+def _keep_spare(spare: list[HostChecks], sets: list[HostChecks]) -> None:
+    spare.extend(sets[: max(SPARE_CHECKS_KEPT - len(spare), 0)])
 
 
 @dataclass
