@@ -68,6 +68,12 @@ class Sonar:
         """The edge band the tracer uses [m] (TracerConfig.edge_width_m resolved for this call)."""
         return self.tracer.edge_width_m
 
+    def recorder(self, absorption: bool = True):
+        """The recorder `simulate` uses (`signals.Recorder`), built on first use: its tables go to
+        the device then, and from pageable memory such an upload waits for the work queued before
+        it, so a caller that queues other work first may build it before."""
+        return signals_recorder(self.config, absorption, str(self.device))
+
     def trace(self, scene: Scene, poses: np.ndarray, *, batch: int = 64) -> Arrivals:
         """Echoes of one ping from each pose; see `PathTracer.trace`."""
         return self.tracer.trace(scene, poses, batch=batch)
@@ -122,7 +128,7 @@ class Sonar:
         if dtype not in (np.float32, np.float16):
             raise ValueError(f"dtype must be float32 or float16, got {dtype}")
         batch = batch or (256 if self.device.is_cuda else 8)
-        recorder = signals_recorder(self.config, absorption, str(self.device))
+        recorder = self.recorder(absorption)
         former = beamformer(
             assumed_array or self.config, samples=self.config.record_samples, processing=processing, device=self.device
         )
