@@ -95,6 +95,17 @@ def warp_device(device=None):
     return found
 
 
+def current_in_thread(device) -> None:
+    """Make `device`'s CUDA context this thread's current one (a no-op for the CPU): the
+    initializer of a thread that works for a GPU. A thread with no context of its own makes CUDA's
+    runtime start device 0's on its first call: each `generate` worker of cuda:1 held a second
+    context on cuda:0 (518 MiB), and its first episode took ~1.5 s longer, the GPU idle meanwhile
+    (two H100s, benchmarks/results/multi_gpu/session37)."""
+    device = warp_device(device)
+    if device.is_cuda:
+        device.make_current()
+
+
 POOL_ENV = "SONAR2LIDAR_CUDA_POOL"
 """keep (the default) or release: what a GPU's memory pool does with memory freed in this process."""
 _pools_set: set[str] = set()  # the GPUs whose pool this process has set up

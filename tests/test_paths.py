@@ -338,6 +338,29 @@ def test_simulate_equals_trace_record_energyscape_step_by_step(device):
     assert np.abs(correlation[~np.eye(len(poses), dtype=bool)]).max() < 0.01
 
 
+def test_simulates_threads_start_with_its_device_current(device, monkeypatch):
+    """Every thread `simulate` starts (recording and beamforming a batch's rows, and on a GPU
+    moving images to the host) first makes the sonar's device current: a thread with no CUDA
+    context made CUDA's runtime open one on GPU 0 for a process working on GPU 1."""
+    import threading
+
+    import acoustic_sim.engine.sonar as sonar_module
+
+    made: list[tuple[str, str]] = []
+    real = sonar_module.current_in_thread
+
+    def record(where):
+        made.append((threading.current_thread().name, str(where)))
+        real(where)
+
+    monkeypatch.setattr(sonar_module, "current_in_thread", record)
+    sonar = Sonar(OMNI, max_bounces=1, ray_count=300, device=device)
+    room = scenes.box_room(tuple(SIZE))
+    sonar.simulate(room, np.stack([scenes.pose(1.0, 2.0, 0.0, 1.0)] * 3), batch=2)
+    assert made and {where for _, where in made} == {str(sonar.device)}
+    assert threading.main_thread().name not in {name for name, _ in made}
+
+
 def test_cpu_threads_split_a_batch_without_changing_a_sample(device):
     """On the CPU a batch's pings are traced, recorded and beamformed in threads (uneven slices
     of 5 pings over 3 threads, noise seeded per ping): arrivals, signals and energyscapes equal

@@ -22,6 +22,7 @@ from tqdm.auto import tqdm
 from scenes import Scene
 
 from ..config import ProcessingConfig, SonarConfig, TracerConfig
+from ..devices import current_in_thread
 from .beamform import beamformer, energyscape
 from .kernels import beamform as beam_kernels
 from .paths import Arrivals, PathTracer
@@ -155,7 +156,7 @@ class Sonar:
                 kept[at[mine]] = signals.numpy()[mine]
 
         bar = tqdm(total=len(poses), unit="ping", disable=not progress, desc="sonar")
-        with ThreadPoolExecutor(threads) as pool:
+        with ThreadPoolExecutor(threads, initializer=current_in_thread, initargs=(self.device,)) as pool:
             for index, keep, echoes in self.tracer.traced(scene, poses, batch):
                 # The echoes are used up here, before the next batch reuses their buffers. Rows left out
                 # (to be traced again) are recorded too, at no extra launch, and dropped.
@@ -191,7 +192,9 @@ class BatchCopies:
         self.dtype = wp.float16 if np.dtype(dtype) == np.float16 else wp.float32
         self.buffers = [wp.empty(shape, dtype=self.dtype, device="cpu", pinned=True) for _ in range(self.DEPTH)]
         self.landings: list[Future | None] = [None] * self.DEPTH  # the helper thread's move out of each buffer
-        self.mover = ThreadPoolExecutor(1, thread_name_prefix="batch-copies")  # one thread: moves land in order
+        self.mover = ThreadPoolExecutor(  # one thread: moves land in order
+            1, thread_name_prefix="batch-copies", initializer=current_in_thread, initargs=(device,)
+        )
         self.turn = 0
 
     def put(self, out: wp.array, rows: np.ndarray, images: np.ndarray, keep: np.ndarray) -> None:
