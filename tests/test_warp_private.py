@@ -4,6 +4,10 @@ a Warp upgrade fails here with a clear message rather than deep in a kernel or a
 
 - `warp._src.context.runtime` (read by `acoustic_sim.devices`): whether Warp has started CUDA, which
   decides whether worker processes may be forked. Where it is gone, workers are always spawned.
+- `Device.make_current()` (called by `acoustic_sim.devices.current_in_thread`): makes a GPU's context
+  current in the calling thread alone, where `wp.ScopedDevice` and `wp.set_device` also change the
+  process's default device. Where it is gone, a worker thread of a process on GPU 1 opens a context
+  on GPU 0 again (~0.5 GB and seconds at a multi-GPU run's start).
 - C++ of Warp's native tile code called from `wp.func_native` snippets (the recorder's row kernel,
   acoustic_sim/engine/kernels/signals.py): the block barrier, atomic adds into a shared tile and tile
   coordinates. tests/test_record.py compiles and runs them; this test names them.
@@ -76,3 +80,16 @@ def test_warp_runtime_is_where_devices_reads_it():
         ) from err
     assert isinstance(runtime.cuda_devices, list)
     assert devices._warp_runtime() is runtime
+
+
+def test_a_device_can_be_made_current_in_one_thread():
+    """Device.make_current exists and takes no argument (on a CPU machine current_in_thread does
+    not call it: there is no context to make current)."""
+    import inspect
+
+    device_class = type(wp.get_device("cpu"))
+    assert callable(getattr(device_class, "make_current", None)), (
+        f"Warp {wp.__version__} has no Device.make_current: update acoustic_sim.devices.current_in_thread"
+    )
+    assert list(inspect.signature(device_class.make_current).parameters) == ["self"]
+    devices.current_in_thread("cpu")  # a no-op on the CPU
