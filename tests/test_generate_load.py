@@ -1,4 +1,4 @@
-"""benchmarks/generate_load.py: frames/s beside the machine's load, and its readers of nvidia-smi and py-spy."""
+"""generate_load.py: frames/s beside the machine's load, its readers of nvidia-smi and py-spy; spy_rendering.py."""
 
 import json
 import sys
@@ -62,3 +62,25 @@ def test_spy_summary_sums_busy_samples_by_activity(tmp_path):
         "other": 0.1,
         "wait for the GPU": 0.05,
     }
+
+
+def test_spy_rendering_counts_the_rendering_threads_alone(tmp_path):
+    """Samples of a worker's rendering thread count; those of helpers forked from it (their stacks
+    hold the fork's frames), of its landing and hand-over threads and of the parent do not."""
+    from benchmarks import spy_rendering
+
+    worker = 'process 9:"python";thread (0x1);_serve (workers.py:1);run_tasks (runner.py:2)'
+    raw = tmp_path / "spy.txt"
+    raw.write_text(
+        f"{worker};_Run.render (runner.py:3);WarpScene.lidar_mesh (scene.py:4);Mesh.__init__ (types.py:5) 3\n"
+        f"{worker};_Run.render (runner.py:3);ping_seeds (signals.py:6) 1\n"
+        f"{worker};_helper_pool (runner.py:7);BaseProcess._bootstrap (process.py:8);_write (shards.py:9) 50\n"
+        f"{worker};BatchCopies._land (sonar.py:10);synchronize_event (context.py:11) 20\n"
+        f"{worker};_hand_over (runner.py:12);SharedFrames.share (shared_frames.py:13) 30\n"
+        'process 1:"python";thread (0x2);make_dataset (generate.py:14) 40\n'
+    )
+    table = spy_rendering.table([("run", str(raw), 2)], rate=100.0)
+    assert "| all, ms an episode | 20.0 |" in table  # 4 samples of 10 ms over 2 episodes
+    assert "| of which the LiDAR's own tree | 75.0 % (15.0) |" in table
+    assert "| ping seeds | 25.0 % (5.0) |" in table
+    assert "| shard into shared memory | 0.0 % (0.0) |" in table
