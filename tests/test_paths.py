@@ -361,6 +361,42 @@ def test_simulates_threads_start_with_its_device_current(device, monkeypatch):
     assert threading.main_thread().name not in {name for name, _ in made}
 
 
+def _gpu_count() -> int:
+    """GPUs nvidia-smi lists (0 without it), asked without starting CUDA in this process."""
+    import shutil
+    import subprocess
+
+    if not shutil.which("nvidia-smi"):
+        return 0
+    listed = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, check=False).stdout
+    return sum(line.startswith("GPU ") for line in listed.splitlines())
+
+
+@pytest.mark.skipif(_gpu_count() < 2, reason="needs two GPUs (run on a lent two-GPU machine)")
+def test_a_process_on_the_second_gpu_holds_no_context_on_the_first():
+    """A process that simulates on cuda:1, as a generate worker does, holds no CUDA context on
+    GPU 0 afterwards (nvidia-smi): one there cost each such worker 518 MiB and its first episode
+    ~1.5 s on two H100s (benchmarks/results/multi_gpu/session37)."""
+    import subprocess
+    import sys
+
+    script = (
+        "import os, subprocess, numpy as np, warp as wp, scenes\n"
+        "from acoustic_sim.engine.sonar import Sonar\n"
+        "import acoustic_sim as sim\n"
+        "room = scenes.box_room((6.0, 4.0, 3.0))\n"
+        "poses = np.stack([scenes.pose(1.0 + 0.1 * i, 2.0, 0.0, 0.3) for i in range(20)])\n"
+        "with wp.ScopedDevice('cuda:1'):\n"
+        "    Sonar(sim.SonarConfig.ertis(), ray_count=2000, device='cuda:1').simulate(room, poses, noise='gaussian')\n"
+        "ask = ['nvidia-smi', '--format=csv,noheader']\n"
+        "gpu0 = subprocess.run([*ask, '--query-gpu=uuid', '-i', '0'], capture_output=True, text=True).stdout.strip()\n"
+        "apps = subprocess.run([*ask, '--query-compute-apps=pid,gpu_uuid'], capture_output=True, text=True).stdout\n"
+        "print('on GPU 0:', any(a.startswith(f'{os.getpid()},') and gpu0 in a for a in apps.splitlines()))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=600, check=True)
+    assert "on GPU 0: False" in done.stdout, done.stdout + done.stderr
+
+
 def test_cpu_threads_split_a_batch_without_changing_a_sample(device):
     """On the CPU a batch's pings are traced, recorded and beamformed in threads (uneven slices
     of 5 pings over 3 threads, noise seeded per ping): arrivals, signals and energyscapes equal
