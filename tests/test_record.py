@@ -344,7 +344,7 @@ def test_ping_seeds_are_numpys_seed_sequence():
     """Each ping's noise seed is the first word of numpy's SeedSequence([seed, ping]) (its lowest
     31 bits), for seeds of one to five 32-bit words (five: the pool of four overflows) and pings
     up to 2**32 - 1; computed for all pings at once, where one SeedSequence per ping is the reference."""
-    from acoustic_sim.engine.signals import ping_seeds
+    from acoustic_sim.engine.seeds import ping_seeds
 
     pings = np.r_[0, 1, np.random.default_rng(0).integers(2, 2**32 - 1, 40), 2**32 - 1]
     for seed in (0, 1, 2**32 - 1, 2**32, 2**63 - 1, 2**130 + 11, 987_654_321):

@@ -55,9 +55,7 @@ class SuiteRenderer:
     (`suites.mesh_files`); the tasks name them only by file name and hash."""
 
     def __init__(self, meshes: dict[str, MeshFile] | None = None) -> None:
-        # (physics, rig before per-episode draws) by what makes them: built once per variant, not per
-        # shard (a `randomised` shard of 2.5 episodes spent ~7 ms of its rendering process on it).
-        self._rigs: dict[str, tuple[Physics, SimConfig]] = {}
+        self._rigs: dict[str, tuple[Physics, SimConfig]] = {}  # by physics and settings: not per shard (~7 ms)
         self.meshes = dict(meshes or {})
 
     def rig(self, task: ShardTask) -> tuple[Physics, SimConfig]:
@@ -184,15 +182,8 @@ def generate(
     `overlap=False` runs each worker's parts one after another (for measuring what the overlap
     gains; the shards are the same); `helpers`: host processes per worker (`runner.host_helpers`)."""
     engine = None if ray_address else _import_beside(ENGINE_MODULES)
-    tasks = plan(
-        suite,
-        out,
-        frames=frames,
-        shards=shards,
-        seed=seed,
-        keep_signals=keep_signals,
-        keep_arrivals=keep_arrivals,
-    )
+    keep = {"keep_signals": keep_signals, "keep_arrivals": keep_arrivals}
+    tasks = plan(suite, out, frames=frames, shards=shards, seed=seed, **keep)
     processes = 1 if ray_address else min(workers, len(tasks))
     check_shard_memory(tasks, processes, 0 if ray_address or not overlap else host_helpers(processes, helpers))
     first: dict[int, Episode] = {}

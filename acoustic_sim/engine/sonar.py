@@ -27,7 +27,8 @@ from .beamform import beamformer, energyscape
 from .kernels import beamform as beam_kernels
 from .paths import Arrivals, PathTracer
 from .poses import check_poses
-from .signals import ping_seeds, record
+from .seeds import ping_seeds
+from .signals import record
 from .signals import recorder as signals_recorder
 
 
