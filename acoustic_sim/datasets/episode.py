@@ -140,8 +140,8 @@ def simulate_episode(
     ready = episode if isinstance(episode, PreparedEpisode) else prepare_episode(episode, physics, nominal, suite)
     t1 = time.perf_counter()
     episode, scene, poses = ready.episode, ready.scene, ready.poses
-    # The sensors before any work is queued: a sonar drawn per episode is new, and its tables
-    # (~0.5 MB of the recorder's filters) would otherwise wait in their upload for the LiDAR's scan.
+    # The sensors before any work is queued: a sonar drawn per episode is new, and the upload of its
+    # recorder's ~0.5 MB of filters waited for the LiDAR's scan (py-spy on an H100, multi_gpu/session37).
     sonar = _sonar(ready.sonar_config, ready.drawn.tracer, str(device))
     sonar.recorder(physics.air_absorption)
     t2 = time.perf_counter()

@@ -14,6 +14,7 @@ PathTracer batches the pings and keeps their buffers; `path_stages` launches the
 from __future__ import annotations
 
 import functools
+import threading
 import warnings
 import weakref
 from collections import defaultdict, deque
@@ -276,11 +277,11 @@ class PathTracer:
         fits = [k for k in free if self._check_sets[k][0].shape[0] >= n]
         if fits:
             return tuple(a[:n] for a in self._check_sets[fits[0]])
-        spare = _SPARE_CHECKS[str(self.device)]  # those of tracers that are gone
-        large = [k for k, checks in enumerate(spare) if checks[0].shape[0] >= n]
-        if large:
-            checks = spare.pop(large[0])
-        else:
+        with _SPARE_LOCK:  # those of tracers that are gone (threads may trace on one device at once)
+            spare = _SPARE_CHECKS[str(self.device)]
+            large = next((k for k, held in enumerate(spare) if held[0].shape[0] >= n), None)
+            checks = spare.pop(large) if large is not None else None
+        if checks is None:
             pinned = self.device.is_cuda  # the GPU writes them behind its work
             checks = (
                 wp.empty(n, dtype=float, device="cpu", pinned=pinned),
@@ -411,8 +412,12 @@ _SPARE_CHECKS: defaultdict[str, list[HostChecks]] = defaultdict(list)
 SPARE_CHECKS_KEPT = 8  # per device: what a few tracers at once leave; more are freed
 
 
+_SPARE_LOCK = threading.Lock()
+
+
 def _keep_spare(spare: list[HostChecks], sets: list[HostChecks]) -> None:
-    spare.extend(sets[: max(SPARE_CHECKS_KEPT - len(spare), 0)])
+    with _SPARE_LOCK:
+        spare.extend(sets[: max(SPARE_CHECKS_KEPT - len(spare), 0)])
 
 
 @dataclass

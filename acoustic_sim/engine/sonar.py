@@ -71,9 +71,9 @@ class Sonar:
         return self.tracer.edge_width_m
 
     def recorder(self, absorption: bool = True):
-        """The recorder `simulate` uses (`signals.Recorder`), built on first use: its tables go to
-        the device then, and from pageable memory such an upload waits for the work queued before
-        it, so a caller that queues other work first may build it before."""
+        """The recorder `simulate` uses (`signals.Recorder`), built on first use, when its tables
+        (~0.5 MB for the eRTIS) go to the device from pageable memory: a caller that queues other
+        work first may build it before (py-spy saw that upload wait behind an episode's LiDAR scan)."""
         return signals_recorder(self.config, absorption, str(self.device))
 
     def trace(self, scene: Scene, poses: np.ndarray, *, batch: int = 64) -> Arrivals:
