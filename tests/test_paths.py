@@ -15,6 +15,7 @@ from acoustic_sim.engine.kernels.image_sources import image_key
 from acoustic_sim.engine.lidar import check_poses
 from acoustic_sim.engine.paths import KIND_SCATTERED, KIND_SPECULAR, PosesOnDevice
 from acoustic_sim.engine.sonar import Sonar
+from benchmarks.provenance import gpus  # nvidia-smi's list, without starting CUDA here
 from scenes.scene import assemble, box_mesh
 
 SIZE = np.array([6.0, 4.0, 3.0])
@@ -361,18 +362,7 @@ def test_simulates_threads_start_with_its_device_current(device, monkeypatch):
     assert threading.main_thread().name not in {name for name, _ in made}
 
 
-def _gpu_count() -> int:
-    """GPUs nvidia-smi lists (0 without it), asked without starting CUDA in this process."""
-    import shutil
-    import subprocess
-
-    if not shutil.which("nvidia-smi"):
-        return 0
-    listed = subprocess.run(["nvidia-smi", "-L"], capture_output=True, text=True, check=False).stdout
-    return sum(line.startswith("GPU ") for line in listed.splitlines())
-
-
-@pytest.mark.skipif(_gpu_count() < 2, reason="needs two GPUs (run on a lent two-GPU machine)")
+@pytest.mark.skipif(len(gpus().get("gpus", [])) < 2, reason="needs two GPUs (run on a lent two-GPU machine)")
 def test_a_process_on_the_second_gpu_holds_no_context_on_the_first():
     """A process that simulates on cuda:1, as a generate worker does, holds no CUDA context on
     GPU 0 afterwards (nvidia-smi): one there cost each such worker 518 MiB and its first episode
