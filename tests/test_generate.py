@@ -169,8 +169,8 @@ def test_overlapped_parts_change_nothing_but_the_time(reference, tmp_path, devic
 def test_helper_processes_prepare_and_write_the_same_shards(reference, tmp_path, device, monkeypatch):
     """With helper processes (the default where cores allow), episodes are prepared and shards
     written in other processes than the rendering one (but the last shard, written after the
-    rendering by its process), two episodes ahead and two writes in flight, and the arrays are
-    the single-thread run's bit for bit."""
+    rendering by its process, on its cores), two episodes ahead and two writes in flight, a
+    helper compressing in one thread; the arrays are the single-thread run's bit for bit."""
     log = tmp_path / "who.txt"
     real_prepare, real_write = gen.prepare_episode, runner.write_shard
 
@@ -182,7 +182,7 @@ def test_helper_processes_prepare_and_write_the_same_shards(reference, tmp_path,
     def write(path, frames, **kwargs):
         mapped = all(in_shared_memory(a[0]) for a in (frames.energyscape, frames.lidar_image))
         with log.open("a") as f:
-            f.write(f"write {os.getpid()} {mapped}\n")
+            f.write(f"write {os.getpid()} {mapped} {kwargs.get('threads')}\n")
         real_write(path, frames, **kwargs)
 
     real_share = shared_frames.SharedFrames.share.__func__
@@ -203,8 +203,8 @@ def test_helper_processes_prepare_and_write_the_same_shards(reference, tmp_path,
     who = [line for line in who if line[0] != "share"]
     assert sorted(part for part, *_ in who) == ["prepare"] * 3 + ["write"] * 2
     here = [(part, *rest) for part, pid, *rest in who if pid == str(os.getpid())]
-    assert here == [("write", "False")]  # the last shard, from this process's own arrays
-    assert [rest for part, pid, *rest in who if part == "write" and pid != str(os.getpid())] == [["True"]]
+    assert here == [("write", "False", "None")]  # the last shard, from this process's own arrays
+    assert [rest for part, pid, *rest in who if part == "write" and pid != str(os.getpid())] == [["True", "1"]]
     assert set(Path(shared_frames.FOLDER).glob("sonar2lidar-*")) == leftovers  # every file removed
     got, want = shard_arrays(tmp_path / "out"), shard_arrays(reference[0])
     assert got.keys() == want.keys()

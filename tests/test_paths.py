@@ -342,7 +342,10 @@ def test_simulate_equals_trace_record_energyscape_step_by_step(device):
 def test_simulates_threads_start_with_its_device_current(device, monkeypatch):
     """Every thread `simulate` starts (recording and beamforming a batch's rows, and on a GPU
     moving images to the host) first makes the sonar's device current: a thread with no CUDA
-    context made CUDA's runtime open one on GPU 0 for a process working on GPU 1."""
+    context made CUDA's runtime open one on GPU 0 for a process working on GPU 1. With one thread
+    (a GPU's, a CPU's of one core) it records in the calling thread, under the sonar's device (a
+    pool's thread cost its start every episode): only a GPU's image mover starts, and the images
+    are the pool's."""
     import threading
 
     import acoustic_sim.engine.sonar as sonar_module
@@ -355,11 +358,27 @@ def test_simulates_threads_start_with_its_device_current(device, monkeypatch):
         real(where)
 
     monkeypatch.setattr(sonar_module, "current_in_thread", record)
-    sonar = Sonar(OMNI, max_bounces=1, ray_count=300, device=device)
     room = scenes.box_room(tuple(SIZE))
-    sonar.simulate(room, np.stack([scenes.pose(1.0, 2.0, 0.0, 1.0)] * 3), batch=2)
+    poses = np.stack([scenes.pose(1.0 + 0.3 * i, 2.0, 0.2 * i, 1.0) for i in range(3)])
+    sonar = Sonar(OMNI, max_bounces=1, ray_count=300, device=device, cpu_threads=2)
+    pooled = sonar.simulate(room, poses, batch=2, noise="gaussian", seed=1).energyscape
     assert made and {where for _, where in made} == {str(sonar.device)}
     assert threading.main_thread().name not in {name for name, _ in made}
+    made.clear()
+    seen = []
+    alone = Sonar(OMNI, max_bounces=1, ray_count=300, device=device, cpu_threads=1)
+    real_recorder = alone.recorder(True)
+
+    def recorder(*args, **kwargs):
+        seen.append((threading.current_thread().name, str(wp.get_device())))
+        return real_recorder(*args, **kwargs)
+
+    alone.recorder = lambda absorption: recorder
+    with wp.ScopedDevice("cpu"):
+        images = alone.simulate(room, poses, batch=2, noise="gaussian", seed=1).energyscape
+    np.testing.assert_array_equal(images, pooled)
+    assert seen == [(threading.current_thread().name, str(alone.device))] * 2
+    assert all(name.startswith("batch-copies") for name, _ in made)
 
 
 @pytest.mark.skipif(len(gpus().get("gpus", [])) < 2, reason="needs two GPUs (run on a lent two-GPU machine)")

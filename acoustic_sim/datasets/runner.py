@@ -46,6 +46,10 @@ MALLOC_KEEP = {-1: 64 << 20, -3: 32 << 20}
 # A helper's niceness above its rendering process's (0: the same): whether a rendering thread back
 # from its GPU should get a core before a write with slack is for benchmarks/generate_load.py to measure.
 HELPER_NICENESS_ENV = "SONAR2LIDAR_HELPER_NICENESS"
+# Threads compressing a shard in a helper: one. Helpers write side by side, so the processes are the
+# parallelism, and more threads only cost CPU: a `randomised` shard took 112-133 ms of CPU in one
+# thread, 168-175 in two and ~203 in four (2-core CPU), and a worker of 12 on 32 cores gave its helpers two.
+HELPER_WRITE_THREADS = 1
 
 
 def host_helpers(workers: int, requested: int | None = None) -> int:
@@ -287,7 +291,7 @@ def _hand_over(writer: _Helpers, shard: _Shard, device: str) -> tuple[tuple[Futu
     shared = SharedFrames.share(shard.frames)
     sent = shard if shared is None else _Shard(shard.task, shared, shard.records)
     try:
-        write = writer.submit(_write, None, sent, device)  # a helper holds the renderer from its fork
+        write = writer.submit(_write, None, sent, device, HELPER_WRITE_THREADS)  # a helper holds the renderer
     except BaseException:
         if shared is not None:
             shared.release()
@@ -295,11 +299,11 @@ def _hand_over(writer: _Helpers, shard: _Shard, device: str) -> tuple[tuple[Futu
     return (write, shared), time.perf_counter() - t0
 
 
-def _write(renderer: Renderer, shard: _Shard, device: str) -> tuple[dict, float]:
+def _write(renderer: Renderer, shard: _Shard, device: str, threads: int | None = None) -> tuple[dict, float]:
     t0 = time.perf_counter()
     if isinstance(shard.frames, SharedFrames):
         shard = _Shard(shard.task, shard.frames.open(), shard.records)
-    _write_shard(shard, _helper_renderer(renderer).shard_header(shard.task), device)
+    _write_shard(shard, _helper_renderer(renderer).shard_header(shard.task), device, threads)
     return shard_entry(shard.task), time.perf_counter() - t0
 
 
@@ -404,7 +408,7 @@ class _Shard:
         self.records.append(record)
 
 
-def _write_shard(shard: _Shard, header: ShardHeader, device: str) -> None:
+def _write_shard(shard: _Shard, header: ShardHeader, device: str, threads: int | None) -> None:
     from .. import __version__
 
     task = shard.task
@@ -430,4 +434,5 @@ def _write_shard(shard: _Shard, header: ShardHeader, device: str) -> None:
         range_m=grid.range_m,
         azimuth_rad=grid.azimuth_rad,
         elevation_deg=header.elevation_deg,
+        threads=threads,
     )

@@ -73,15 +73,18 @@ def write_shard(
     range_m: np.ndarray,
     azimuth_rad: np.ndarray,
     elevation_deg=(0.0,),
+    threads: int | None = None,
 ) -> None:
     """Write a complete shard: to `<name>.tmp` first, then an atomic rename onto `path`. On any
     error (a full or read-only disk) the file is closed and the temporary removed. Energyscapes
-    come (frame, elevation, range, azimuth), or (frame, range, azimuth) for one elevation."""
+    come (frame, elevation, range, azimuth), or (frame, range, azimuth) for one elevation. Chunks
+    are compressed in `threads` threads (default: this process's cores, `devices.cpu_cores`)."""
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     try:
         with KeptErrorFile(tmp) as sink:  # HDF5 crashes after a failed write: it never sees one
-            _write(sink, frames, attrs=attrs, axes=(np.atleast_1d(elevation_deg), range_m, azimuth_rad))
+            axes = (np.atleast_1d(elevation_deg), range_m, azimuth_rad)
+            _write(sink, frames, attrs=attrs, axes=axes, threads=threads)
         sink.raise_kept(path)
     except BaseException:
         tmp.unlink(missing_ok=True)
@@ -89,7 +92,9 @@ def write_shard(
     os.replace(tmp, path)
 
 
-def _write(tmp: Path | KeptErrorFile, frames: ShardFrames, *, attrs: dict, axes: tuple[np.ndarray, ...]) -> None:
+def _write(
+    tmp: Path | KeptErrorFile, frames: ShardFrames, *, attrs: dict, axes: tuple[np.ndarray, ...], threads: int | None
+) -> None:
     def cat(parts: list[np.ndarray]) -> np.ndarray:  # one part (a shard from shared memory): no copy
         return parts[0] if len(parts) == 1 else np.concatenate(parts)
 
@@ -108,7 +113,7 @@ def _write(tmp: Path | KeptErrorFile, frames: ShardFrames, *, attrs: dict, axes:
         f.attrs["frame_count"] = frames.frame_count
         for key, value in attrs.items():
             f.attrs[key] = json.dumps(value) if isinstance(value, dict | list) else value
-        escape = _rows(f, "energyscape", energyscape)
+        escape = _rows(f, "energyscape", energyscape, threads)
         escape.attrs["dims"] = "frame, elevation, range, azimuth"
         escape.attrs["description"] = "beamformed echo envelope (linear, pressure re the call at 1 m)"
         elevation = f.create_dataset("elevation_deg", data=np.asarray(elevation_deg, np.float64), **CHECKSUM)
@@ -117,7 +122,7 @@ def _write(tmp: Path | KeptErrorFile, frames: ShardFrames, *, attrs: dict, axes:
         f.create_dataset("azimuth_rad", data=azimuth_rad, **CHECKSUM).attrs["units"] = "rad, 0 ahead, + to the left"
         ranges = f.create_dataset("lidar/ranges", data=cat(frames.lidar_ranges).astype(np.float32), **COMPRESSION)
         ranges.attrs["units"] = "m, inf = no return"
-        image = _rows(f, "lidar/image", cat(frames.lidar_image).astype(np.uint8))
+        image = _rows(f, "lidar/image", cat(frames.lidar_image).astype(np.uint8), threads)
         image.attrs["dims"] = "frame, range, azimuth"
         image.attrs["description"] = "1 where a LiDAR return falls in the cell (the label)"
         f.create_dataset("pose", data=cat(frames.pose), **CHECKSUM).attrs["description"] = "4x4 sensor-to-world, z up"
@@ -125,7 +130,7 @@ def _write(tmp: Path | KeptErrorFile, frames: ShardFrames, *, attrs: dict, axes:
         f.create_dataset("episode", data=cat(frames.episode).astype(np.int32), **CHECKSUM)
         f.create_dataset("scenario", data=cat(frames.scenario).astype(np.int16), **CHECKSUM)
         if frames.signals:
-            _rows(f, "signals", cat(frames.signals).astype(np.float16))
+            _rows(f, "signals", cat(frames.signals).astype(np.float16), threads)
             f["signals"].attrs["dims"] = "frame, microphone, sample"
         if frames.arrivals:
             group = f.create_group("arrivals")
@@ -134,13 +139,14 @@ def _write(tmp: Path | KeptErrorFile, frames: ShardFrames, *, attrs: dict, axes:
             group.attrs["description"] = "one row per echo; `frame` indexes the shard's frames"
 
 
-def _rows(f: h5py.File, name: str, array: np.ndarray) -> h5py.Dataset:
-    """A compressed dataset chunked by frame, its chunks compressed on every core (`chunks`)."""
+def _rows(f: h5py.File, name: str, array: np.ndarray, threads: int | None) -> h5py.Dataset:
+    """A compressed dataset chunked by frame, its chunks compressed in `threads` threads (`chunks`;
+    None: on every core)."""
     from ..devices import cpu_cores
     from .chunks import write_rows
 
     dataset = f.create_dataset(name, shape=array.shape, dtype=array.dtype, chunks=(1, *array.shape[1:]), **COMPRESSION)
-    write_rows(dataset, array, cpu_cores())
+    write_rows(dataset, array, threads or cpu_cores())
     return dataset
 
 

@@ -8,6 +8,7 @@ Sonar.simulate    all three on the device, batch by batch, without host round tr
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import functools
 import threading
@@ -157,13 +158,21 @@ class Sonar:
                 kept[at[mine]] = signals.numpy()[mine]
 
         bar = tqdm(total=len(poses), unit="ping", disable=not progress, desc="sonar")
-        with ThreadPoolExecutor(threads, initializer=current_in_thread, initargs=(self.device,)) as pool:
+        # One thread (a GPU's) records in this one: a pool's thread cost its start (~2 ms an episode
+        # under load, py-spy of `randomised`, multi_gpu/session37) and a hand-over per batch.
+        pool = None
+        if threads > 1:
+            pool = ThreadPoolExecutor(threads, initializer=current_in_thread, initargs=(self.device,))
+        with pool or contextlib.nullcontext(), wp.ScopedDevice(self.device):
             for index, keep, echoes in self.tracer.traced(scene, poses, batch):
                 # The echoes are used up here, before the next batch reuses their buffers. Rows left out
                 # (to be traced again) are recorded too, at no extra launch, and dropped.
                 batch_rows = functools.partial(finish, index, keep, echoes, ping_seeds(seed, index))
-                edges = np.linspace(0, len(index), min(threads, len(index)) + 1).round().astype(int).tolist()
-                list(pool.map(batch_rows, edges[:-1], edges[1:]))  # list(): raise a thread's error here
+                if pool is None:
+                    batch_rows(0, len(index))
+                else:
+                    edges = np.linspace(0, len(index), min(threads, len(index)) + 1).round().astype(int).tolist()
+                    list(pool.map(batch_rows, edges[:-1], edges[1:]))  # list(): raise a thread's error here
                 bar.update(int(keep.sum()))
                 if on_pings:
                     on_pings(int(keep.sum()))
