@@ -106,6 +106,25 @@ def current_in_thread(device) -> None:
         device.make_current()
 
 
+def sleeping_event(device):
+    """A `wp.Event` on a GPU whose wait puts the waiting thread to sleep until the GPU reaches it
+    (CUDA's blocking sync), where a wait on Warp's own events spins a core (CUDA's default in a
+    process of one context): for threads whose wait is off the critical path. A `generate` worker's
+    thread moving images to the host spun ~30 ms an episode (py-spy of `randomised` on an H100,
+    multi_gpu/session37), 12 workers on 32 cores being ~83 % busy on two H200s. Warp's constructor
+    takes no flags: the event is made by its runtime (tests/test_warp_private.py)."""
+    import warp as wp
+
+    device = warp_device(device)
+    flags = wp.Event.Flags.BLOCKING_SYNC | wp.Event.Flags.DISABLE_TIMING
+    handle = _warp_runtime().core.wp_cuda_event_create(device.context, flags)
+    if not handle:
+        raise RuntimeError(f"CUDA could not create an event on {device}")
+    event = wp.Event(device, cuda_event=handle)
+    event.owner = True  # destroyed with the Event, as Warp's own are
+    return event
+
+
 POOL_ENV = "SONAR2LIDAR_CUDA_POOL"
 """keep (the default) or release: what a GPU's memory pool does with memory freed in this process."""
 _pools_set: set[str] = set()  # the GPUs whose pool this process has set up

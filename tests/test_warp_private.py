@@ -8,6 +8,9 @@ a Warp upgrade fails here with a clear message rather than deep in a kernel or a
   current in the calling thread alone, where `wp.ScopedDevice` and `wp.set_device` also change the
   process's default device. Where it is gone, a worker thread of a process on GPU 1 opens a context
   on GPU 0 again (~0.5 GB and seconds at a multi-GPU run's start).
+- `runtime.core.wp_cuda_event_create` with `wp.Event.Flags.BLOCKING_SYNC`, wrapped by `wp.Event(cuda_event=)`
+  with `owner` set (`acoustic_sim.devices.sleeping_event`): an event whose wait sleeps, for the thread that
+  moves a GPU's images to the host. Where it is gone, that thread's wait would spin a core again.
 - C++ of Warp's native tile code called from `wp.func_native` snippets (the recorder's row kernel,
   acoustic_sim/engine/kernels/signals.py): the block barrier, atomic adds into a shared tile and tile
   coordinates. tests/test_record.py compiles and runs them; this test names them.
@@ -93,3 +96,48 @@ def test_a_device_can_be_made_current_in_one_thread():
     )
     assert list(inspect.signature(device_class.make_current).parameters) == ["self"]
     devices.current_in_thread("cpu")  # a no-op on the CPU
+
+
+def test_a_sleeping_event_is_made_by_warps_runtime():
+    """The blocking-sync flag and the runtime's event constructor exist, and a wp.Event wraps a
+    handle it is given, destroying it at the end where `owner` is set (as devices.sleeping_event does)."""
+    import inspect
+
+    wp.init()
+    assert wp.Event.Flags.BLOCKING_SYNC == 1 and wp.Event.Flags.DISABLE_TIMING == 2  # cudaEventBlockingSync, ...
+    runtime = devices._warp_runtime()
+    assert callable(getattr(runtime.core, "wp_cuda_event_create", None)), (
+        f"Warp {wp.__version__} has no runtime.core.wp_cuda_event_create: update acoustic_sim.devices.sleeping_event"
+    )
+    assert "cuda_event" in inspect.signature(wp.Event.__init__).parameters
+    assert "self.owner" in inspect.getsource(wp.Event.__del__)
+
+
+def test_a_thread_waiting_on_a_sleeping_event_leaves_its_core_idle(device):
+    """Behind ~0.1-1 s of GPU work, a wait on devices.sleeping_event lasts until the work is done
+    and takes a small share of its time on the CPU (a spinning wait takes all of it)."""
+    import time
+
+    import pytest
+
+    if not wp.get_device(device).is_cuda:
+        pytest.skip("needs a CUDA device (run with --device cuda:0)")
+
+    @wp.kernel
+    def busy(steps: int, out: wp.array(dtype=float)):
+        x = wp.float32(0.0)  # a variable the loop may change (a literal stays constant in Warp)
+        for _step in range(steps):
+            x = x * 0.999999 + 1.0
+        out[0] = x
+
+    out = wp.zeros(1, dtype=float, device=device)
+    wp.launch(busy, dim=1, inputs=[10, out], device=device)  # compiled and loaded
+    wp.synchronize_device(device)
+    event = devices.sleeping_event(device)
+    wp.launch(busy, dim=1, inputs=[50_000_000, out], device=device)
+    wp.get_stream(device).record_event(event)
+    wall, cpu = time.perf_counter(), time.thread_time()
+    wp.synchronize_event(event)
+    wall, cpu = time.perf_counter() - wall, time.thread_time() - cpu
+    assert event.is_complete and wall > 0.05, wall
+    assert cpu < 0.2 * wall, (cpu, wall)

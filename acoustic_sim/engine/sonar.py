@@ -23,7 +23,7 @@ from tqdm.auto import tqdm
 from scenes import Scene
 
 from ..config import ProcessingConfig, SonarConfig, TracerConfig
-from ..devices import current_in_thread
+from ..devices import current_in_thread, sleeping_event
 from .beamform import beamformer, energyscape
 from .kernels import beamform as beam_kernels
 from .paths import Arrivals, PathTracer
@@ -202,6 +202,7 @@ class BatchCopies:
         self.dtype = wp.float16 if np.dtype(dtype) == np.float16 else wp.float32
         self.buffers = [wp.empty(shape, dtype=self.dtype, device="cpu", pinned=True) for _ in range(self.DEPTH)]
         self.landings: list[Future | None] = [None] * self.DEPTH  # the helper thread's move out of each buffer
+        self.copied = [sleeping_event(device) for _ in range(self.DEPTH)]  # each buffer's copy done: its mover sleeps
         self.mover = ThreadPoolExecutor(  # one thread: moves land in order
             1, thread_name_prefix="batch-copies", initializer=current_in_thread, initargs=(device,)
         )
@@ -221,7 +222,7 @@ class BatchCopies:
             out = half
         self.stream.wait_stream(wp.get_stream(out.device))
         wp.copy(buffer[: out.shape[0]], out, stream=self.stream)
-        copied = (self.stream.record_event(), out, buffer, rows, keep)  # out: kept alive until copied
+        copied = (self.stream.record_event(self.copied[turn]), out, buffer, rows, keep)  # out: alive until copied
         self.landings[turn] = self.mover.submit(self._land, copied, images)
 
     def land(self, images: np.ndarray) -> None:
