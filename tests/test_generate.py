@@ -269,13 +269,14 @@ def test_shared_frames_round_trip_and_fall_back(tmp_path, monkeypatch):
 
 
 def test_helper_counts(monkeypatch):
-    """Cores left per worker, at most MAX_HELPERS (threads where none is left); a count given is
-    kept, a negative one refused."""
+    """Cores left per worker, at least MIN_HELPERS and at most MAX_HELPERS (threads where none is
+    left); a count given is kept, a negative one refused."""
     assert runner.host_helpers(1, 0) == 0 and runner.host_helpers(8, 3) == 3
     with pytest.raises(ValueError, match="helpers must be >= 0"):
         runner.host_helpers(2, -1)
     monkeypatch.setenv("SONAR2LIDAR_CPU_THREADS", "16")
-    expected = [runner.MAX_HELPERS, 3, 2, 1, 0] if sys.platform.startswith("linux") else [0] * 5
+    expected = [4, 3, 3, 3, 0] if sys.platform.startswith("linux") else [0] * 5  # cores left: 15, 3, 2, 1, 0
+    assert (runner.MIN_HELPERS, runner.MAX_HELPERS) == (3, 4)
     assert [runner.host_helpers(w) for w in (1, 4, 5, 8, 16)] == expected
 
 

@@ -361,6 +361,7 @@ def test_simulates_threads_start_with_its_device_current(device, monkeypatch):
     room = scenes.box_room(tuple(SIZE))
     poses = np.stack([scenes.pose(1.0 + 0.3 * i, 2.0, 0.2 * i, 1.0) for i in range(3)])
     sonar = Sonar(OMNI, max_bounces=1, ray_count=300, device=device, cpu_threads=2)
+    sonar_module._batch_copies.cache_clear()  # a GPU's image mover, started afresh here
     pooled = sonar.simulate(room, poses, batch=2, noise="gaussian", seed=1).energyscape
     assert made and {where for _, where in made} == {str(sonar.device)}
     assert threading.main_thread().name not in {name for name, _ in made}

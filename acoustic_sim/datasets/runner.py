@@ -39,6 +39,11 @@ from .shared_frames import SharedFrames
 PARTS = ("start-up", "prepare", "lidar", "sonar", "assemble", "write", "waiting")
 PR_SET_PDEATHSIG = 1  # Linux prctl: the signal a process gets when its parent dies
 MAX_HELPERS = 4  # host processes beside one rendering process: enough to keep an H100's share fed
+# Where a core is left, at least this many: 12 workers on two H100s of 32 cores (one core left each)
+# rendered `randomised` at 11,408-11,486 frames/s with two helpers each, 11,763-12,082 with three and
+# 12,166 with four, their rendering threads waiting 16-19 s (summed) for preparations and writes with
+# two, 2-4 s with three (benchmarks/results/multi_gpu/session38).
+MIN_HELPERS = 3
 # glibc's malloc: how much freed memory a process keeps (M_TRIM_THRESHOLD: -1) and from what size a
 # block is mapped apart, to go back to the system when freed (M_MMAP_THRESHOLD: -3, at most 32 MB).
 # By default a shard's chunks and copies went back between shards and were page-faulted in again.
@@ -54,12 +59,14 @@ HELPER_WRITE_THREADS = 1
 
 def host_helpers(workers: int, requested: int | None = None) -> int:
     """Helper processes each of `workers` rendering processes gets for its host work (`run_tasks`):
-    `requested`, else the cores left per worker after its own (at most MAX_HELPERS); 0 (threads)
-    only where no core is left, or fork is not available. A helper has its own interpreter lock
-    (threads share the rendering's): on the H100 machine 4 workers made 1,574 frames/s with one
-    helper each, 2,007 with two, 2,122 with three (benchmarks/results/generate_cuda_same_job/
-    run5_session26); 16 workers over two GPUs of 32 cores made 5,782 `randomised` frames/s with
-    threads (two H200s), 9,912 with one helper each (two H100s; multi_gpu/session36)."""
+    `requested`, else the cores left per worker after its own, at least MIN_HELPERS and at most
+    MAX_HELPERS; 0 (threads) only where no core is left, or fork is not available. A helper has its
+    own interpreter lock (threads share the rendering's): on the H100 machine 4 workers made 1,574
+    frames/s with one helper each, 2,007 with two, 2,122 with three (benchmarks/results/
+    generate_cuda_same_job/run5_session26); 16 workers over two GPUs of 32 cores made 5,782
+    `randomised` frames/s with threads (two H200s), 9,912 with one helper each (two H100s;
+    multi_gpu/session36). Helpers mostly wait: their number sets how far ahead episodes are prepared
+    and how many writes may be in flight, which absorbs a slow scene or shard (MIN_HELPERS)."""
     from ..devices import cpu_cores
 
     if workers < 1:
@@ -70,8 +77,8 @@ def host_helpers(workers: int, requested: int | None = None) -> int:
         return requested
     if not sys.platform.startswith("linux"):
         return 0
-    spare = min(MAX_HELPERS, cpu_cores() // workers - 1)
-    return max(spare, 0)
+    spare = cpu_cores() // workers - 1
+    return 0 if spare < 1 else min(MAX_HELPERS, max(spare, MIN_HELPERS))
 
 
 @dataclass(frozen=True)
