@@ -111,8 +111,8 @@ def sleeping_event(device):
     (CUDA's blocking sync), where a wait on Warp's own events spins a core (CUDA's default in a
     process of one context): for threads whose wait is off the critical path. A `generate` worker's
     thread moving images to the host spun ~30 ms an episode (py-spy of `randomised` on an H100,
-    multi_gpu/session37), 12 workers on 32 cores being ~83 % busy on two H200s. Warp's constructor
-    takes no flags: the event is made by its runtime (tests/test_warp_private.py)."""
+    multi_gpu/session37), while 12 workers kept ~80 % of two H100s' 32 cores busy (session38). Warp's
+    constructor takes no flags: the event is made by its runtime (tests/test_warp_private.py)."""
     import warp as wp
 
     device = warp_device(device)

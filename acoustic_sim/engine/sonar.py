@@ -8,9 +8,9 @@ Sonar.simulate    all three on the device, batch by batch, without host round tr
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import functools
+import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -158,24 +158,16 @@ class Sonar:
                 kept[at[mine]] = signals.numpy()[mine]
 
         bar = tqdm(total=len(poses), unit="ping", disable=not progress, desc="sonar")
-        # One thread (a GPU's) records in this one: a pool's thread cost its start (~2 ms an episode
-        # under load, py-spy of `randomised`, multi_gpu/session37) and a hand-over per batch.
-        pool = None
-        if threads > 1:
-            pool = ThreadPoolExecutor(threads, initializer=current_in_thread, initargs=(self.device,))
-        with pool or contextlib.nullcontext(), wp.ScopedDevice(self.device):
-            for index, keep, echoes in self.tracer.traced(scene, poses, batch):
-                # The echoes are used up here, before the next batch reuses their buffers. Rows left out
-                # (to be traced again) are recorded too, at no extra launch, and dropped.
-                batch_rows = functools.partial(finish, index, keep, echoes, ping_seeds(seed, index))
-                if pool is None:
-                    batch_rows(0, len(index))
-                else:
-                    edges = np.linspace(0, len(index), min(threads, len(index)) + 1).round().astype(int).tolist()
-                    list(pool.map(batch_rows, edges[:-1], edges[1:]))  # list(): raise a thread's error here
-                bar.update(int(keep.sum()))
-                if on_pings:
-                    on_pings(int(keep.sum()))
+        pool = recording_threads(self.device, threads)
+        for index, keep, echoes in self.tracer.traced(scene, poses, batch):
+            # The echoes are used up here, before the next batch reuses their buffers. Rows left out
+            # (to be traced again) are recorded too, at no extra launch, and dropped.
+            batch_rows = functools.partial(finish, index, keep, echoes, ping_seeds(seed, index))
+            edges = np.linspace(0, len(index), min(threads, len(index)) + 1).round().astype(int).tolist()
+            list(pool.map(batch_rows, edges[:-1], edges[1:]))  # list(): raise a thread's error here
+            bar.update(int(keep.sum()))
+            if on_pings:
+                on_pings(int(keep.sum()))
         if copies is not None:
             copies.land(images)
         bar.close()
@@ -262,6 +254,23 @@ class BatchCopies:
 @functools.lru_cache(maxsize=4)
 def _batch_copies(device: str, shape: tuple[int, ...], dtype, thread: int) -> BatchCopies:
     return BatchCopies(device, shape, dtype)
+
+
+@functools.lru_cache(maxsize=8)
+def _recording_threads(device: str, threads: int, process: int, caller: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(
+        threads, thread_name_prefix="sonar-record", initializer=current_in_thread, initargs=(device,)
+    )
+
+
+def recording_threads(device, threads: int) -> ThreadPoolExecutor:
+    """The threads `simulate` records and beamforms a batch's rows in, each with the device's
+    context current (a thread without one made CUDA's runtime open a context on GPU 0), kept per
+    device, count and calling thread: a pool made per call cost a `generate` worker its thread's
+    start every episode (~2 ms under load, py-spy of `randomised`, multi_gpu/session37). And per
+    process: a forked child has none of its parent's threads, and its main thread the same ident,
+    so the parent's pool would take its work and never run it."""
+    return _recording_threads(str(device), threads, os.getpid(), threading.get_ident())
 
 
 def batch_copies(device, shape: tuple[int, ...], dtype=np.float32) -> BatchCopies:
