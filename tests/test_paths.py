@@ -384,6 +384,10 @@ def test_a_forked_child_simulates_on_threads_of_its_own():
     parent's images. With the parent's pool (whose threads a child lacks) its simulate hung."""
     import multiprocessing
 
+    from acoustic_sim.devices import cuda_started
+
+    if cuda_started():
+        pytest.skip("this process has started CUDA: a forked child of it cannot use Warp's runtime")
     sonar = Sonar(OMNI, max_bounces=1, ray_count=300, device="cpu", cpu_threads=2)
     want = sonar.simulate(scenes.box_room(tuple(SIZE)), np.stack([scenes.pose(1.0, 2.0, 0.0, 1.0)] * 2)).energyscape
     child = multiprocessing.get_context("fork").Process(target=_simulate_in_child, args=(want,))
