@@ -251,13 +251,20 @@ class BatchCopies:
             images[rows[keep]] = batch[keep]
 
 
+def _this_thread() -> tuple[int, int]:
+    """The key of objects kept per calling thread that hold threads of their own: per process too,
+    since a forked child has none of its parent's threads and its main thread the same ident (the
+    parent's pool would take its work and never run it)."""
+    return os.getpid(), threading.get_ident()
+
+
 @functools.lru_cache(maxsize=4)
-def _batch_copies(device: str, shape: tuple[int, ...], dtype, thread: int) -> BatchCopies:
+def _batch_copies(device: str, shape: tuple[int, ...], dtype, thread: tuple[int, int]) -> BatchCopies:
     return BatchCopies(device, shape, dtype)
 
 
 @functools.lru_cache(maxsize=8)
-def _recording_threads(device: str, threads: int, process: int, caller: int) -> ThreadPoolExecutor:
+def _recording_threads(device: str, threads: int, caller: tuple[int, int]) -> ThreadPoolExecutor:
     return ThreadPoolExecutor(
         threads, thread_name_prefix="sonar-record", initializer=current_in_thread, initargs=(device,)
     )
@@ -266,17 +273,15 @@ def _recording_threads(device: str, threads: int, process: int, caller: int) -> 
 def recording_threads(device, threads: int) -> ThreadPoolExecutor:
     """The threads `simulate` records and beamforms a batch's rows in, each with the device's
     context current (a thread without one made CUDA's runtime open a context on GPU 0), kept per
-    device, count and calling thread: a pool made per call cost a `generate` worker its thread's
-    start every episode (~2 ms under load, py-spy of `randomised`, multi_gpu/session37). And per
-    process: a forked child has none of its parent's threads, and its main thread the same ident,
-    so the parent's pool would take its work and never run it."""
-    return _recording_threads(str(device), threads, os.getpid(), threading.get_ident())
+    device, count and calling thread (`_this_thread`): a pool made per call cost a `generate` worker
+    its thread's start every episode (~2 ms under load, py-spy of `randomised`, multi_gpu/session37)."""
+    return _recording_threads(str(device), threads, _this_thread())
 
 
 def batch_copies(device, shape: tuple[int, ...], dtype=np.float32) -> BatchCopies:
     """Reused BatchCopies for a device and batch shape (page-locked memory is slow to allocate);
-    one per thread, so that two threads simulating on one GPU never share buffers."""
-    return _batch_copies(str(device), tuple(shape), np.dtype(dtype), threading.get_ident())
+    one per thread (`_this_thread`), so that two threads simulating on one GPU never share buffers."""
+    return _batch_copies(str(device), tuple(shape), np.dtype(dtype), _this_thread())
 
 
 @dataclass
