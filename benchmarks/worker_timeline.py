@@ -40,13 +40,25 @@ def log(event: str, **extra) -> None:
 _WRITE = None  # the runner's shard write, wrapped by `timed_write`
 
 
-def timed_write(renderer, shard, device):
+def timed_write(renderer, shard, device, threads=None):
     """The runner's shard write, logged (module level: a helper process receives it by name)."""
     log("write_start")
     try:
-        return _WRITE(renderer, shard, device)
+        return _WRITE(renderer, shard, device, threads)
     finally:
         log("write_end")
+
+
+def logged(function, event: str):
+    """`function`, logging `event` when it returns."""
+
+    def call(*args, **kwargs):
+        try:
+            return function(*args, **kwargs)
+        finally:
+            log(event)
+
+    return call
 
 
 def child(spec: dict) -> dict:
@@ -66,11 +78,15 @@ def child(spec: dict) -> dict:
             log("render_end")
 
     def logged_resolve(device, index=0):  # a worker, CUDA up, picks its device (then reports ready)
-        log("worker_up", launched=workers._LAUNCHED)
-        return resolve(device, index)
+        picked = resolve(device, index)
+        log("worker_up", launched=workers._LAUNCHED, device=picked)
+        return picked
 
     gen.SuiteRenderer.render, workers.resolve_device = logged_render, logged_resolve
     _WRITE, runner._write = runner._write, timed_write
+    runner._helper_pool = logged(runner._helper_pool, "helpers_up")  # twice a worker: preparers, writers
+    pool = workers.LocalWorkers
+    pool.wait_ready, pool.run = logged(pool.wait_ready, "all_ready"), logged(pool.run, "run_end")
     log("call_start")
     summary = gen.generate(
         load_suite(spec["suite"]),
@@ -79,6 +95,7 @@ def child(spec: dict) -> dict:
         shards=spec["shards"],
         device=spec["device"],
         workers=spec["workers"],
+        helpers=spec["helpers"],
         progress=False,
     )
     log("call_end")
@@ -87,8 +104,9 @@ def child(spec: dict) -> dict:
 
 def summarise(events: list[dict]) -> dict:
     """Per rendering process (seconds from the workers' launch, or from the call's start where it
-    rendered alone): CUDA up, first episode, median episode after it, last episode's end, last
-    shard written."""
+    rendered alone): CUDA up, its helpers up, first episode, median episode after it, last episode's
+    end, last shard written; and the parent's moments: all workers up (tasks fed), the workers'
+    run over, the call's end."""
     ups = [e for e in events if e["event"] == "worker_up"]
     t0 = ups[0]["launched"] if ups else min(e["t"] for e in events if e["event"] == "call_start")
     by_pid: dict[int, list[dict]] = {}
@@ -99,7 +117,8 @@ def summarise(events: list[dict]) -> dict:
         begun = [e["t"] - t0 for e in own if e["event"] == "render_start"]
         if not begun:
             continue  # the parent of workers, or a helper
-        up = [e["t"] - t0 for e in own if e["event"] == "worker_up"]
+        up = [e for e in own if e["event"] == "worker_up"]
+        helpers_up = [e["t"] - t0 for e in own if e["event"] == "helpers_up"]
         begun = [e["t"] - t0 for e in own if e["event"] == "render_start"]
         ended = [e["t"] - t0 for e in own if e["event"] == "render_end"]
         writes = [
@@ -109,7 +128,9 @@ def summarise(events: list[dict]) -> dict:
         rows.append(
             {
                 "pid": pid,
-                "up_s": up[0] if up else 0.0,
+                "device": up[0]["device"] if up else None,
+                "up_s": up[0]["t"] - t0 if up else 0.0,
+                "helpers_up_s": max(helpers_up) if helpers_up else None,
                 "first_episode_at_s": begun[0],
                 "first_episode_s": ended[0] - begun[0],
                 "median_episode_s": later[len(later) // 2] if later else None,
@@ -118,7 +139,10 @@ def summarise(events: list[dict]) -> dict:
                 "last_write_end_s": max(writes),
             }
         )
-    return {"workers": sorted(rows, key=lambda r: r["up_s"])}
+    moments = {e["event"]: e["t"] - t0 for e in events if e["event"] in ("all_ready", "run_end", "call_end")}
+    if rows:
+        moments["last_episode_end"] = max(r["last_episode_end_s"] for r in rows)
+    return {"workers": sorted(rows, key=lambda r: r["up_s"]), "moments_s": moments}
 
 
 def markdown(res: dict) -> str:
@@ -131,16 +155,24 @@ def markdown(res: dict) -> str:
         f"({run['helpers']} helpers a worker). Seconds from the workers' launch; *CUDA up*: the worker "
         "has started CUDA and picks its device; the first episode includes its kernel modules and sensors.",
         "",
-        "| worker | CUDA up | first episode at | first episode s | median episode s | episodes | last episode ends "
-        "| last shard written |",
-        "|---|---|---|---|---|---|---|---|",
+        "| worker | device | CUDA up | helpers up | first episode at | first episode s | median episode s | episodes "
+        "| last episode ends | last shard written |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for i, w in enumerate(res["summary"]["workers"]):
         median = f"{w['median_episode_s']:.3f}" if w["median_episode_s"] is not None else "-"
+        helpers = f"{w['helpers_up_s']:.2f}" if w.get("helpers_up_s") is not None else "-"
         lines.append(
-            f"| {i} | {w['up_s']:.2f} | {w['first_episode_at_s']:.2f} | {w['first_episode_s']:.2f} | {median} | "
-            f"{w['episodes']} | {w['last_episode_end_s']:.2f} | {w['last_write_end_s']:.2f} |"
+            f"| {i} | {w.get('device') or '-'} | {w['up_s']:.2f} | {helpers} | {w['first_episode_at_s']:.2f} | "
+            f"{w['first_episode_s']:.2f} | {median} | {w['episodes']} | {w['last_episode_end_s']:.2f} | "
+            f"{w['last_write_end_s']:.2f} |"
         )
+    moments = res["summary"].get("moments_s", {})
+    said = {"all_ready": "all workers up (tasks fed)", "last_episode_end": "last episode ends"}
+    said |= {"run_end": "workers done", "call_end": "generate returns"}
+    if moments:
+        told = ", ".join(f"{said[k]} {moments[k]:.2f}" for k in said if k in moments)
+        lines += ["", f"The run's moments (s): {told}"]
     return "\n".join(lines) + "\n\n" + provenance_line(res["provenance"]) + "\n"
 
 
@@ -151,6 +183,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--shards", type=int, default=None)
     parser.add_argument("--workers", type=int, default=4)
     parser.add_argument("--device", default="cuda:0")
+    parser.add_argument("--helpers", type=int, default=None, help="helper processes a worker (default: the rule's)")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
     parser.add_argument("--child", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -158,7 +191,7 @@ def main(argv=None) -> dict:
         print(json.dumps(child(json.loads(args.child))))
         return {}
     spec = {"suite": args.suite, "frames": args.frames, "shards": args.shards, "workers": args.workers}
-    spec["device"] = args.device
+    spec |= {"device": args.device, "helpers": args.helpers}
     with tempfile.TemporaryDirectory() as tmp:
         events_dir = Path(tmp) / "events"
         events_dir.mkdir()
