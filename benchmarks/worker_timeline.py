@@ -84,7 +84,7 @@ def child(spec: dict) -> dict:
 
     gen.SuiteRenderer.render, workers.resolve_device = logged_render, logged_resolve
     _WRITE, runner._write = runner._write, timed_write
-    runner._helper_pool = logged(runner._helper_pool, "helpers_up")  # twice a worker: preparers, writers
+    runner.helper_pool = logged(runner.helper_pool, "helpers_up")  # twice a worker: preparers, writers
     pool = workers.LocalWorkers
     pool.wait_ready, pool.run = logged(pool.wait_ready, "all_ready"), logged(pool.run, "run_end")
     log("call_start")

@@ -145,7 +145,7 @@ import resource, sys
 import h5py
 import numpy as np
 from acoustic_sim.datasets.chunks import write_rows
-from acoustic_sim.datasets.runner import keep_freed_memory
+from acoustic_sim.datasets.helper_processes import keep_freed_memory
 from acoustic_sim.datasets.shards import COMPRESSION
 if sys.argv[1] == "keep":
     keep_freed_memory()

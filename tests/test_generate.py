@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 import acoustic_sim.datasets.generate as gen
+import acoustic_sim.datasets.helper_processes as helper_processes
 import acoustic_sim.datasets.runner as runner
 import acoustic_sim.datasets.shared_frames as shared_frames
 import acoustic_sim.datasets.workers as workers
@@ -291,18 +292,18 @@ def test_helpers_run_at_the_niceness_asked(monkeypatch):
     own = os.nice(0)
     for asked, expected in ((None, own), ("7", min(19, own + 7))):
         if asked is None:
-            monkeypatch.delenv(runner.HELPER_NICENESS_ENV, raising=False)
+            monkeypatch.delenv(helper_processes.HELPER_NICENESS_ENV, raising=False)
         else:
-            monkeypatch.setenv(runner.HELPER_NICENESS_ENV, asked)
-        pool = runner._helper_pool(1, None)
+            monkeypatch.setenv(helper_processes.HELPER_NICENESS_ENV, asked)
+        pool = helper_processes.helper_pool(1, None)
         try:
             assert pool.submit(_niceness, None).result() == expected
         finally:
             pool.shutdown()
     for bad in ("-2", "20", "low"):
-        monkeypatch.setenv(runner.HELPER_NICENESS_ENV, bad)
+        monkeypatch.setenv(helper_processes.HELPER_NICENESS_ENV, bad)
         with pytest.raises(ValueError, match="SONAR2LIDAR_HELPER_NICENESS"):
-            runner._helper_pool(1, None)
+            helper_processes.helper_pool(1, None)
 
 
 def test_foreign_corrupt_and_other_version_files(reference, tmp_path, device):
@@ -542,3 +543,61 @@ def test_a_worker_takes_its_next_shard_only_during_the_last_episode_of_this_one(
         ("render", episodes[2]),
     ]
     assert [e["file"] for e in entries] == ["shard-00000.h5", "shard-00001.h5"]
+
+
+def test_a_workers_turn_spans_its_first_episode_only(tmp_path, device, monkeypatch):
+    """run_tasks holds a given turn (the run's workers start their GPUs one at a time) from before
+    its device is made current until its first episode is rendered, and gives it back on an error."""
+    tasks = gen.plan(SUITE, tmp_path, frames=FRAMES, shards=2, seed=7)
+    events = []
+    real_simulate = gen.simulate_episode
+
+    class Turn:
+        def take(self) -> float:
+            events.append("take")
+            return 0.0
+
+        def give_back(self) -> None:
+            events.append("give back")
+
+    def simulate(ready, *args, **kwargs):
+        events.append("render")
+        return real_simulate(ready, *args, **kwargs)
+
+    monkeypatch.setattr(gen, "simulate_episode", simulate)
+    gen.run_tasks(tasks, gen.SuiteRenderer(), device, turn=Turn())
+    assert events[:3] == ["take", "render", "give back"] and events.count("render") == 3
+    assert "take" not in events[1:]  # each later give-back is a no-op (`workers.DeviceTurn`)
+
+    def failing(*args, **kwargs):
+        events.append("render")
+        raise RuntimeError("a bad first episode")
+
+    events.clear()
+    monkeypatch.setattr(gen, "simulate_episode", failing)
+    with pytest.raises(RuntimeError, match="bad first episode"):
+        gen.run_tasks(
+            gen.plan(SUITE, tmp_path / "b", frames=FRAMES, shards=2, seed=7), gen.SuiteRenderer(), device, turn=Turn()
+        )
+    assert events == ["take", "render", "give back"]
+
+
+def test_a_device_turn_is_one_at_a_time_and_given_back_once(monkeypatch):
+    """workers.DeviceTurn over a lock shared by the run's workers: a second taker waits (here: past
+    the timeout, then goes on without it); a give-back twice releases once; a worker on a CPU takes
+    no turn, nor a process that is not a worker."""
+    import multiprocessing
+
+    lock = multiprocessing.get_context("fork" if sys.platform.startswith("linux") else "spawn").Lock()
+    first, second = workers.DeviceTurn(lock), workers.DeviceTurn(lock)
+    first.take()
+    assert not lock.acquire(block=False)  # held
+    monkeypatch.setattr(workers, "TURN_TIMEOUT_S", 0.2)
+    assert second.take() >= 0.2 and not second._held  # passed over a turn never given back
+    first.give_back()
+    first.give_back()  # again: nothing (a second release would free the lock for two takers)
+    assert lock.acquire(block=False)
+    lock.release()
+    assert workers.device_turn("cuda:0") is None  # not a worker
+    monkeypatch.setattr(workers, "_TURN", lock)
+    assert isinstance(workers.device_turn("cuda:1"), workers.DeviceTurn) and workers.device_turn("cpu") is None

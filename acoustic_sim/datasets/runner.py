@@ -9,15 +9,11 @@ shard beside the rendering, collecting episodes into shards, and the shard's att
 
 from __future__ import annotations
 
-import ctypes
-import multiprocessing
-import os
-import signal
 import sys
 import time
 from collections import deque
 from collections.abc import Callable, Iterable
-from concurrent.futures import Future, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Protocol
@@ -26,6 +22,7 @@ import numpy as np
 
 from ..config import PolarGrid
 from ..devices import quiet_warp
+from .helper_processes import Helpers, helper_pool, helper_renderer
 from .manifest import About, shard_entry
 from .plan import Episode, ShardTask
 from .shards import ShardFrames, write_shard
@@ -37,20 +34,12 @@ from .shared_frames import SharedFrames
 # record, adding it to its shard, handing full shards to their writer): on two H100s up to ~23-30 ms an
 # episode of each rendering process lay outside every other part (benchmarks/results/multi_gpu/session33).
 PARTS = ("start-up", "prepare", "lidar", "sonar", "assemble", "write", "waiting")
-PR_SET_PDEATHSIG = 1  # Linux prctl: the signal a process gets when its parent dies
 MAX_HELPERS = 4  # host processes beside one rendering process: enough to keep an H100's share fed
 # Where a core is left, at least this many: 12 workers on two H100s of 32 cores (one core left each)
 # rendered `randomised` at 11,408-11,486 frames/s with two helpers each, 11,763-12,082 with three and
 # 12,166 with four, their rendering threads waiting 16-19 s (summed) for preparations and writes with
 # two, 2-4 s with three (benchmarks/results/multi_gpu/session38).
 MIN_HELPERS = 3
-# glibc's malloc: how much freed memory a process keeps (M_TRIM_THRESHOLD: -1) and from what size a
-# block is mapped apart, to go back to the system when freed (M_MMAP_THRESHOLD: -3, at most 32 MB).
-# By default a shard's chunks and copies went back between shards and were page-faulted in again.
-MALLOC_KEEP = {-1: 64 << 20, -3: 32 << 20}
-# A helper's niceness above its rendering process's (0: the same): whether a rendering thread back
-# from its GPU should get a core before a write with slack is for benchmarks/generate_load.py to measure.
-HELPER_NICENESS_ENV = "SONAR2LIDAR_HELPER_NICENESS"
 # Threads compressing a shard in a helper: one. Helpers write side by side, so the processes are the
 # parallelism, and more threads only cost CPU: a `randomised` shard took 112-133 ms of CPU in one
 # thread, 168-175 in two and ~203 in four (2-core CPU), and a worker of 12 on 32 cores gave its helpers two.
@@ -132,6 +121,7 @@ def run_tasks(
     *,
     overlap: bool = True,
     helpers: int = 0,
+    turn=None,
 ) -> tuple[list[dict], dict]:
     """Render and write shards, in order; returns (their manifest entries, seconds per part).
 
@@ -146,8 +136,9 @@ def run_tasks(
     lock, `helpers` episodes ahead and up to `helpers` writes in flight. The arrays are the same
     either way. Seconds per part: "prepare", "lidar", "sonar", "write" (time each took, wherever it
     ran), "assemble" (the rendering thread's own host work between renderings) and "waiting" (the
-    rendering thread blocked on a preparation or a write). `on_frames(n)`
-    reports progress."""
+    rendering thread blocked on a preparation, a write or its `turn`). `on_frames(n)` reports
+    progress. A `turn` (`workers.DeviceTurn`, shared with the run's other workers) is held while
+    this process starts its device and renders its first episode."""
     if not sys.platform.startswith("linux"):
         helpers = 0  # forked helpers and their death with the parent (prctl) are Linux's
     executors, run = [], None
@@ -158,21 +149,15 @@ def run_tasks(
             if not overlap:
                 executors.append(_AtOnce())
             elif helpers > 0:  # forked before Warp starts here where it has not yet (they never use it)
-                executors.append(_helper_pool(helpers, renderer))
+                executors.append(helper_pool(helpers, renderer))
             else:
                 executors.append(ThreadPoolExecutor(1))
         import warp as wp
 
         quiet_warp()
         device = str(wp.get_device(device))
-        run = _Run(renderer, device, on_frames, *executors, depth=max(1, helpers if overlap else 1))
-        # The device this run renders on is the current one while it does: whatever Warp does
-        # without naming a device (page-locked allocations, a mesh's tree) then stays on it. On
-        # two GPUs every worker of cuda:1 had also opened a context on cuda:0 (~0.5 GB there
-        # each), and its LiDAR took 26.5 s summed against 14.8 s with its own GPU current
-        # (benchmarks/results/multi_gpu/session30).
-        with wp.ScopedDevice(device):
-            run.render(tasks)
+        run = _Run(renderer, device, on_frames, *executors, depth=max(1, helpers if overlap else 1), turn=turn)
+        run.render(tasks)
     finally:
         for executor in executors:
             executor.shutdown(wait=True, cancel_futures=True)
@@ -187,8 +172,8 @@ class _Run:
     hands each full shard to the writer once fewer than `depth` writes are in flight; it keeps the
     entries written (in shard order) and the seconds."""
 
-    def __init__(self, renderer: Renderer, device: str, on_frames, handover, preparer, writer, *, depth: int = 1):
-        self.renderer, self.device, self.on_frames = renderer, device, on_frames
+    def __init__(self, renderer: Renderer, device: str, on_frames, handover, preparer, writer, *, depth=1, turn=None):
+        self.renderer, self.device, self.on_frames, self.turn = renderer, device, on_frames, turn
         self.preparer, self.writer = preparer, writer  # executors: threads, processes, or _AtOnce
         self.handover = handover  # a thread: shards into shared memory and on to a helper
         self.depth = depth
@@ -198,9 +183,26 @@ class _Run:
         self.writing: deque[Future] = deque()
 
     def render(self, tasks: Iterable[ShardTask]) -> None:
+        import warp as wp
+
         jobs = ((task, episode) for task in tasks for episode in task.episodes)
         upcoming: deque = deque()
-        self._take(jobs, upcoming)
+        self._take(jobs, upcoming)  # the first preparations run while this process waits for its turn
+        if self.turn is not None:
+            self.seconds["waiting"] += self.turn.take()
+        try:
+            # The device this run renders on is the current one while it does: whatever Warp does
+            # without naming a device (page-locked allocations, a mesh's tree) then stays on it. On
+            # two GPUs every worker of cuda:1 had also opened a context on cuda:0 (~0.5 GB there
+            # each), and its LiDAR took 26.5 s summed against 14.8 s with its own GPU current
+            # (benchmarks/results/multi_gpu/session30).
+            with wp.ScopedDevice(self.device):
+                self._render(jobs, upcoming)
+        finally:
+            if self.turn is not None:
+                self.turn.give_back()
+
+    def _render(self, jobs, upcoming: deque) -> None:
         shard = None
         while upcoming:
             task, episode, preparation = upcoming.popleft()
@@ -212,6 +214,8 @@ class _Run:
             arrays, record = self.renderer.render(
                 task, ready, device=self.device, on_frames=self.on_frames, seconds=self.seconds
             )
+            if self.turn is not None:
+                self.turn.give_back()  # the first episode's done: the next worker's turn
             t0 = time.perf_counter()
             shard.add(episode, arrays, record)
             self.seconds["assemble"] += time.perf_counter() - t0
@@ -245,7 +249,7 @@ class _Run:
             if len(self.writing) >= self.depth:
                 self._wait_for_write()
             t0 = time.perf_counter()
-            if isinstance(self.writer, _Helpers):
+            if isinstance(self.writer, Helpers):
                 handed = self.handover.submit(_hand_over, self.writer, shard, self.device)
             else:
                 handed = Future()
@@ -287,10 +291,10 @@ class _Run:
 
 def _prepare(renderer: Renderer, task: ShardTask, episode: Episode) -> tuple[Any, float]:
     t0 = time.perf_counter()
-    return _helper_renderer(renderer).prepare(task, episode), time.perf_counter() - t0
+    return helper_renderer(renderer).prepare(task, episode), time.perf_counter() - t0
 
 
-def _hand_over(writer: _Helpers, shard: _Shard, device: str) -> tuple[tuple[Future, SharedFrames | None], float]:
+def _hand_over(writer: Helpers, shard: _Shard, device: str) -> tuple[tuple[Future, SharedFrames | None], float]:
     """(The hand-over thread) a full shard copied into shared memory and submitted to a helper's
     write (pickled instead where there is no room in shared memory): (the write's future, the
     shared memory to release once it is done), and the time it took."""
@@ -310,73 +314,8 @@ def _write(renderer: Renderer, shard: _Shard, device: str, threads: int | None =
     t0 = time.perf_counter()
     if isinstance(shard.frames, SharedFrames):
         shard = _Shard(shard.task, shard.frames.open(), shard.records)
-    _write_shard(shard, _helper_renderer(renderer).shard_header(shard.task), device, threads)
+    _write_shard(shard, helper_renderer(renderer).shard_header(shard.task), device, threads)
     return shard_entry(shard.task), time.perf_counter() - t0
-
-
-# A helper process's renderer, inherited from the rendering process at the fork: what it is sent
-# with each call is None (a renderer may hold a user's meshes: pickled once per episode otherwise).
-_RENDERER: Renderer | None = None
-
-
-def _helper_renderer(sent: Renderer | None) -> Renderer:
-    return _RENDERER if sent is None else sent
-
-
-class _Helpers(ProcessPoolExecutor):
-    """Forked helper processes that hold the renderer from the fork: calls leave it out."""
-
-    def submit(self, fn, renderer, *args):
-        return super().submit(fn, None, *args)
-
-
-def _helper_pool(count: int, renderer: Renderer) -> _Helpers:
-    """`count` helper processes, forked now (all at once: fork starts them on the first call)."""
-    global _RENDERER
-    _RENDERER = renderer
-    fork = multiprocessing.get_context("fork")
-    niceness = helper_niceness()  # checked here: a helper's error would only break the pool
-    pool = _Helpers(count, mp_context=fork, initializer=_init_helper, initargs=(os.getpid(), niceness))
-    for started in [pool.submit(_started, None) for _ in range(count)]:
-        started.result()
-    return pool
-
-
-def _started(_renderer) -> int:
-    return os.getpid()
-
-
-def keep_freed_memory() -> None:
-    """Let this process's malloc keep up to 64 MB of freed memory instead of returning it at once,
-    and serve blocks up to a shard's size from it (glibc only; a no-op elsewhere). Called in the
-    processes generate starts, never in a caller's. Writing a shard in two threads page-faulted 8.6
-    times a frame without it, 0.1 with it, on the 2-core CPU (tests/test_chunks.py)."""
-    mallopt = getattr(ctypes.CDLL(None), "mallopt", None)  # this process's C library, as for prctl below
-    if mallopt is None:
-        return
-    for option, value in MALLOC_KEEP.items():
-        mallopt(option, value)
-
-
-def _init_helper(parent: int, niceness: int) -> None:
-    """A helper ignores Ctrl-C (its rendering process is stopped by the parent) and dies at once
-    with its rendering process (even one killed by SIGKILL), so that no helper goes on writing a
-    shard that the parent, having stopped the run, is about to remove."""
-    keep_freed_memory()
-    os.nice(niceness)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    ctypes.CDLL(None, use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
-    if os.getppid() != parent:  # it died before the line above
-        os._exit(1)
-
-
-def helper_niceness() -> int:
-    """SONAR2LIDAR_HELPER_NICENESS: how much less a helper's scheduling priority is than its
-    rendering process's, 0 (the default) to 19."""
-    chosen = os.environ.get(HELPER_NICENESS_ENV, "0")
-    if not chosen.isdigit() or int(chosen) > 19:
-        raise ValueError(f"{HELPER_NICENESS_ENV}={chosen!r}: use a whole number from 0 to 19")
-    return int(chosen)
 
 
 class _AtOnce:
