@@ -74,7 +74,7 @@ def test_spy_rendering_counts_the_rendering_threads_alone(tmp_path):
     raw.write_text(
         f"{worker};_Run.render (runner.py:3);WarpScene.lidar_mesh (scene.py:4);Mesh.__init__ (types.py:5) 3\n"
         f"{worker};_Run.render (runner.py:3);ping_seeds (signals.py:6) 1\n"
-        f"{worker};_helper_pool (runner.py:7);BaseProcess._bootstrap (process.py:8);_write (shards.py:9) 50\n"
+        f"{worker};helper_pool (helper_processes.py:7);BaseProcess._bootstrap (process.py:8);_write (shards.py:9) 50\n"
         f"{worker};BatchCopies._land (sonar.py:10);synchronize_event (context.py:11) 20\n"
         f"{worker};_hand_over (runner.py:12);SharedFrames.share (shared_frames.py:13) 30\n"
         'process 1:"python";thread (0x2);make_dataset (generate.py:14) 40\n'

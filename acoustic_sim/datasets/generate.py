@@ -45,7 +45,7 @@ from .physics import Physics, rig
 from .plan import Episode, ShardTask, check_shard_memory, plan
 from .runner import PARTS, Renderer, ShardHeader, host_helpers, run_tasks
 from .suites import Suite, mesh_files
-from .workers import LocalWorkers, device_turn
+from .workers import LocalWorkers
 
 
 class SuiteRenderer:
@@ -348,8 +348,7 @@ def _worker_share(
     tasks: Iterable[ShardTask], device: str, on_frames, *, renderer: Renderer, overlap: bool, helpers: int = 0
 ) -> dict:
     """A worker process's share of a run (shards from the queue all workers share); its seconds by part."""
-    turn = device_turn(device)
-    return run_tasks(tasks, renderer, device, on_frames, overlap=overlap, helpers=helpers, turn=turn)[1]
+    return run_tasks(tasks, renderer, device, on_frames, overlap=overlap, helpers=helpers)[1]
 
 
 def _ray():

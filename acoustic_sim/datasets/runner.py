@@ -121,7 +121,6 @@ def run_tasks(
     *,
     overlap: bool = True,
     helpers: int = 0,
-    turn=None,
 ) -> tuple[list[dict], dict]:
     """Render and write shards, in order; returns (their manifest entries, seconds per part).
 
@@ -136,9 +135,8 @@ def run_tasks(
     lock, `helpers` episodes ahead and up to `helpers` writes in flight. The arrays are the same
     either way. Seconds per part: "prepare", "lidar", "sonar", "write" (time each took, wherever it
     ran), "assemble" (the rendering thread's own host work between renderings) and "waiting" (the
-    rendering thread blocked on a preparation, a write or its `turn`). `on_frames(n)` reports
-    progress. A `turn` (`workers.DeviceTurn`, shared with the run's other workers) is held while
-    this process starts its device and renders its first episode."""
+    rendering thread blocked on a preparation or a write). `on_frames(n)`
+    reports progress."""
     if not sys.platform.startswith("linux"):
         helpers = 0  # forked helpers and their death with the parent (prctl) are Linux's
     executors, run = [], None
@@ -156,8 +154,16 @@ def run_tasks(
 
         quiet_warp()
         device = str(wp.get_device(device))
-        run = _Run(renderer, device, on_frames, *executors, depth=max(1, helpers if overlap else 1), turn=turn)
-        run.render(tasks)
+        run = _Run(renderer, device, on_frames, *executors, depth=max(1, helpers if overlap else 1))
+        # The device this run renders on is the current one while it does: whatever Warp does
+        # without naming a device (page-locked allocations, a mesh's tree) then stays on it. On
+        # two GPUs every worker of cuda:1 had also opened a context on cuda:0 (~0.5 GB there
+        # each), and its LiDAR took 26.5 s summed against 14.8 s with its own GPU current
+        # (benchmarks/results/multi_gpu/session30). The driver makes contexts one process at a
+        # time, machine-wide (one took 0.12 s alone, 1.2-1.5 s each for 12 workers at once on two
+        # H100s), yet workers taking turns rendered no faster (multi_gpu/session39).
+        with wp.ScopedDevice(device):
+            run.render(tasks)
     finally:
         for executor in executors:
             executor.shutdown(wait=True, cancel_futures=True)
@@ -172,8 +178,8 @@ class _Run:
     hands each full shard to the writer once fewer than `depth` writes are in flight; it keeps the
     entries written (in shard order) and the seconds."""
 
-    def __init__(self, renderer: Renderer, device: str, on_frames, handover, preparer, writer, *, depth=1, turn=None):
-        self.renderer, self.device, self.on_frames, self.turn = renderer, device, on_frames, turn
+    def __init__(self, renderer: Renderer, device: str, on_frames, handover, preparer, writer, *, depth: int = 1):
+        self.renderer, self.device, self.on_frames = renderer, device, on_frames
         self.preparer, self.writer = preparer, writer  # executors: threads, processes, or _AtOnce
         self.handover = handover  # a thread: shards into shared memory and on to a helper
         self.depth = depth
@@ -183,26 +189,9 @@ class _Run:
         self.writing: deque[Future] = deque()
 
     def render(self, tasks: Iterable[ShardTask]) -> None:
-        import warp as wp
-
         jobs = ((task, episode) for task in tasks for episode in task.episodes)
         upcoming: deque = deque()
-        self._take(jobs, upcoming)  # the first preparations run while this process waits for its turn
-        if self.turn is not None:
-            self.seconds["waiting"] += self.turn.take()
-        try:
-            # The device this run renders on is the current one while it does: whatever Warp does
-            # without naming a device (page-locked allocations, a mesh's tree) then stays on it. On
-            # two GPUs every worker of cuda:1 had also opened a context on cuda:0 (~0.5 GB there
-            # each), and its LiDAR took 26.5 s summed against 14.8 s with its own GPU current
-            # (benchmarks/results/multi_gpu/session30).
-            with wp.ScopedDevice(self.device):
-                self._render(jobs, upcoming)
-        finally:
-            if self.turn is not None:
-                self.turn.give_back()
-
-    def _render(self, jobs, upcoming: deque) -> None:
+        self._take(jobs, upcoming)
         shard = None
         while upcoming:
             task, episode, preparation = upcoming.popleft()
@@ -214,8 +203,6 @@ class _Run:
             arrays, record = self.renderer.render(
                 task, ready, device=self.device, on_frames=self.on_frames, seconds=self.seconds
             )
-            if self.turn is not None:
-                self.turn.give_back()  # the first episode's done: the next worker's turn
             t0 = time.perf_counter()
             shard.add(episode, arrays, record)
             self.seconds["assemble"] += time.perf_counter() - t0

@@ -32,14 +32,6 @@ START_ENV = "SONAR2LIDAR_WORKER_START"
 WAIT_ENV = "SONAR2LIDAR_CUDA_WAIT"  # how a worker's CUDA context waits for its GPU: spin (CUDA's default) or block
 CU_CTX_SCHED_BLOCKING_SYNC = 0x04
 READY_TIMEOUT_S = 300.0  # a worker not up by then is stuck (a spawned one imports in ~4 s)
-# The CUDA driver makes contexts and loads kernel modules for one process at a time, machine-wide,
-# sharing itself fairly among those asking: on two H100s one context took 0.12 s alone, 0.6-0.67 s
-# for each of 6 at once, 1.2-1.5 s for each of 12, and every worker of 12 began its first episode
-# 1.3 s after its helpers were up and spent ~1 s in it (13 modules; 0.36 s alone): the GPUs idled
-# ~3.4 s before all rendered (benchmarks/results/multi_gpu/session39). Taking turns, the first
-# worker renders while the last still waits. A turn not given back by then (a worker that died
-# holding it) is passed over.
-TURN_TIMEOUT_S = 60.0
 
 
 def start_method() -> str:
@@ -74,7 +66,7 @@ class LocalWorkers:
         self._counts = context.Queue()  # frames as the workers simulate them, for the parent's bar
         self._abort = context.Event()  # set: workers take no further task
         claimed = context.Value("i", 0)  # the next worker index (a Value: no queue feeder thread at the fork)
-        init = (claimed, self._tasks, self._ready, self._counts, self._abort, context.Lock(), os.getpid())
+        init = (claimed, self._tasks, self._ready, self._counts, self._abort, os.getpid())
         init += (max(1, cpu_cores() // count), warp_voice(), self.start_method, time.time())
         self._pool = ProcessPoolExecutor(count, mp_context=context, initializer=_init_worker, initargs=init)
         self._closed = self._fed = False
@@ -152,42 +144,17 @@ class LocalWorkers:
 
 
 _INDEX = 0
-_TASKS = _READY = _PROGRESS = _ABORT = _TURN = None
+_TASKS = _READY = _PROGRESS = _ABORT = None
 _START = "spawn"
 _LAUNCHED = 0.0  # time.time() when the parent started the workers
 
 
-class DeviceTurn:
-    """A worker's turn, among the run's workers, to start its CUDA context and render its first
-    episode (`runner.run_tasks`'s `turn`): `take()` waits for it (at most TURN_TIMEOUT_S) and
-    returns the seconds waited; `give_back()` ends it (again: nothing)."""
-
-    def __init__(self, lock):
-        self._lock, self._held = lock, False
-
-    def take(self) -> float:
-        t0 = time.perf_counter()
-        self._held = self._lock.acquire(timeout=TURN_TIMEOUT_S)
-        return time.perf_counter() - t0
-
-    def give_back(self) -> None:
-        if self._held:
-            self._held = False
-            self._lock.release()
-
-
-def device_turn(device: str) -> DeviceTurn | None:
-    """This worker process's turn to start `device` (a GPU), or None (a CPU, or not a worker)."""
-    return DeviceTurn(_TURN) if _TURN is not None and device.startswith("cuda") else None
-
-
-def _init_worker(claimed, tasks, ready, progress, abort, turn, parent, cpu_threads, quiet, start, launched):
-    global _INDEX, _TASKS, _READY, _PROGRESS, _ABORT, _TURN, _START, _LAUNCHED
+def _init_worker(claimed, tasks, ready, progress, abort, parent, cpu_threads, quiet, start, launched):
+    global _INDEX, _TASKS, _READY, _PROGRESS, _ABORT, _START, _LAUNCHED
     with claimed.get_lock():
         _INDEX = claimed.value
         claimed.value += 1
-    _TASKS, _READY, _PROGRESS, _ABORT, _TURN = tasks, ready, progress, abort, turn
-    _START, _LAUNCHED = start, launched
+    _TASKS, _READY, _PROGRESS, _ABORT, _START, _LAUNCHED = tasks, ready, progress, abort, start, launched
     keep_freed_memory()
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole process group: the parent stops us
     quiet_warp(quiet, start=False)  # the parent's voice (a spawned worker would start with the default)
