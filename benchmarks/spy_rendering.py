@@ -25,7 +25,7 @@ FUNCTIONS = {
     "page-locked frees": "CpuPinnedAllocator.deallocate",
     "recorder built (a drawn sonar)": "Recorder.__init__",
     "tracer built (a drawn sonar)": "PathTracer.__init__",
-    "rig per shard": "SuiteRenderer.rig",
+    "the rig looked up (made once a physics)": "SuiteRenderer.rig",
     "ping seeds": "ping_seeds",
     "LiDAR image": "lidar_image",
     "waiting on the GPU (spinning)": "synchronize_event",
