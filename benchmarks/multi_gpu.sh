@@ -7,7 +7,7 @@
 #                                               # at once, blocking waits, py-spy (LOAD_FRAMES: sizes to run,
 #                                               # LOAD_SETTINGS, LOAD_SPY=0)
 #   bash benchmarks/multi_gpu.sh timeline WORKDIR  # worker_timeline: one run on one GPU and one on all, per worker
-#   bash benchmarks/multi_gpu.sh start WORKDIR  # start_costs: a worker's start step by step, 1..10 processes at once
+#   bash benchmarks/multi_gpu.sh start WORKDIR  # start_costs: a worker's start step by step, 1..12 processes at once
 #   bash benchmarks/multi_gpu.sh ray   WORKDIR  # a local Ray cluster (ray start --head) writes one process's shards
 #   bash benchmarks/multi_gpu.sh ddp   WORKDIR  # bench_learn --ddp: windows/s on 1..N GPUs, efficiency
 #   bash benchmarks/multi_gpu.sh train WORKDIR  # one GPU at the network's batch B (16; paper 12) vs N GPUs at B/N each,
@@ -75,7 +75,7 @@ timeline() {
 start_costs() {
   stamp start
   # which step of a worker's start is served one process at a time (it grew ~0.15 s a process on two H200s)
-  python benchmarks/start_costs.py --device auto --processes "${START_PROCESSES:-1,2,4,6,8,10}" --out "$R/start_costs"
+  python benchmarks/start_costs.py --device auto --processes "${START_PROCESSES:-1,2,4,6,8,12}" --out "$R/start_costs"
 }
 
 ray_cluster() {

@@ -7,7 +7,9 @@ episode ~0.11 s longer (benchmarks/results/multi_gpu/h200x2_session28): some ste
 process at a time. Here N processes are forked at once (as `generate` forks its workers, the
 parent never starting CUDA), released together, and each times its own steps in order:
 
-- `cuda`: Warp and its device up (`wp.init`, the device's context);
+- `warp`: Warp up (`wp.init`: its libraries and the CUDA driver) and the device picked;
+- `context`: the device's CUDA context made (Warp makes it on first use; on two H100s one took 0.12 s
+  alone, 1.2-1.5 s each for 12 processes at once: benchmarks/results/multi_gpu/session39);
 - `sensors`: the sonar and the LiDAR built (the tracer's rays on the device; the recorder's and the
   beamformer's kernels made);
 - `modules`: every kernel module registered by then loaded from the kernel cache (`wp.force_load`);
@@ -39,7 +41,7 @@ from acoustic_sim.datasets.generate import ENGINE_MODULES  # noqa: E402
 from benchmarks.provenance import markdown as provenance_line  # noqa: E402
 from benchmarks.provenance import write_json  # noqa: E402
 
-STEPS = ("cuda", "sensors", "modules", "pinned", "device", "episode")
+STEPS = ("warp", "context", "sensors", "modules", "pinned", "device", "episode")
 
 
 def worker(index: int, device: str, start, results) -> None:
@@ -60,8 +62,11 @@ def steps(index: int, device: str) -> dict:
 
     quiet_warp()
     device = resolve_device(device, index)
-    wp.get_device(device)
-    times["cuda"] = time.perf_counter() - t
+    times["warp"] = time.perf_counter() - t
+    t = time.perf_counter()
+    if wp.get_device(device).is_cuda:
+        _ = wp.get_device(device).context  # made here, not inside the next step's first allocation
+    times["context"] = time.perf_counter() - t
     t = time.perf_counter()
     scene, pose, sonar, lidar = sensors(device)
     times["sensors"] = time.perf_counter() - t
@@ -111,7 +116,7 @@ def warm_up(device: str) -> None:
 def run(device: str, processes: int) -> list[dict]:
     """`processes` forked workers released together; each one's step times. The engine is imported
     here first, as `generate` imports it before forking its workers (without it each worker's
-    `cuda` and `sensors` steps carried the imports: 1.6 and 3.3 s alone on an H100 host)."""
+    first steps carried the imports: 1.6 and 3.3 s alone on an H100 host)."""
     for module in (*ENGINE_MODULES, "scenes"):
         importlib.import_module(module)
     context = multiprocessing.get_context("fork")
