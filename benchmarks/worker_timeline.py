@@ -119,7 +119,6 @@ def summarise(events: list[dict]) -> dict:
             continue  # the parent of workers, or a helper
         up = [e for e in own if e["event"] == "worker_up"]
         helpers_up = [e["t"] - t0 for e in own if e["event"] == "helpers_up"]
-        begun = [e["t"] - t0 for e in own if e["event"] == "render_start"]
         ended = [e["t"] - t0 for e in own if e["event"] == "render_end"]
         writes = [
             e["t"] - t0 for q, es in by_pid.items() for e in es if e["event"] == "write_end" and pid in (q, e["ppid"])
