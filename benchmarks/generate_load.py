@@ -57,6 +57,7 @@ tree = {"user_s": sum(u.ru_utime for u in used), "system_s": sum(u.ru_stime for 
 from acoustic_sim.devices import cuda_pool
 print("RESULT " + json.dumps({k: summary.get(k) for k in keep} | {"tree": tree, "pool": cuda_pool()}))
 """
+WARM_FRAMES = 3000  # the untimed run before the timed ones
 PARTS_SHOWN = ("start-up", "prepare", "lidar", "sonar", "assemble", "write")  # generate's seconds by part, summed
 # What a sampled thread was doing, by the first of these functions found in its stack.
 ACTIVITIES = (
@@ -266,8 +267,11 @@ def main(argv=None) -> dict:
     rows, spied = [], {}
     with tempfile.TemporaryDirectory(prefix="generate_load") as folder:
         work = Path(folder) / "data"
-        subprocess.run(  # fill the kernel cache first: no timed run compiles
-            [sys.executable, "-c", CHILD, json.dumps({"suite": args.suite, "frames": min(args.frames, 500),
+        # Fill the kernel cache first, so that no timed run compiles: enough frames for every kind of
+        # scene and rig of the suite (after 800 warm-up frames of `randomised`, 7 of 12 workers' first
+        # episodes still took 2.1-2.7 s: benchmarks/results/multi_gpu/session39).
+        subprocess.run(
+            [sys.executable, "-c", CHILD, json.dumps({"suite": args.suite, "frames": min(args.frames, WARM_FRAMES),
              "device": args.settings.split(",")[0].split("/")[0].replace("pair", "auto"), "workers": 1,
              "helpers": 0, "out": str(work)})],
             cwd=ROOT, capture_output=True, check=False,

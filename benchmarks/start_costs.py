@@ -17,8 +17,11 @@ parent never starting CUDA), released together, and each times its own steps in 
 - `device`: the tracer's device buffers for one batch (a first trace of one ping);
 - `episode`: one ping simulated and one scan, everything loaded (what is left of a first episode).
 
-Writes DIR/start_costs.json and .md: per process count, each step's median and slowest over the
-processes, beside one process's.
+With --own-gpu G, process i sees only GPU i % G (CUDA_VISIBLE_DEVICES, set before Warp starts
+CUDA): whether a driver that starts one GPU per process starts sooner than one that starts all.
+Environment variables the driver reads (CUDA_DEVICE_MAX_CONNECTIONS, say) are tried by setting them
+on the command line. Writes DIR/start_costs.json and .md: per process count, each step's median and
+slowest over the processes, beside one process's.
 """
 
 from __future__ import annotations
@@ -44,8 +47,10 @@ from benchmarks.provenance import write_json  # noqa: E402
 STEPS = ("warp", "context", "sensors", "modules", "pinned", "device", "episode")
 
 
-def worker(index: int, device: str, start, results) -> None:
+def worker(index: int, device: str, start, results, own_gpu: int = 0) -> None:
     """One process's steps, timed after all are released together by `start`."""
+    if own_gpu:
+        os.environ["CUDA_VISIBLE_DEVICES"] = str(index % own_gpu)  # read by the driver at cuInit
     start.wait()
     try:
         results.put({"index": index, **steps(index, device)})
@@ -113,7 +118,7 @@ def warm_up(device: str) -> None:
         pool.apply(steps, (0, device))
 
 
-def run(device: str, processes: int) -> list[dict]:
+def run(device: str, processes: int, own_gpu: int = 0) -> list[dict]:
     """`processes` forked workers released together; each one's step times. The engine is imported
     here first, as `generate` imports it before forking its workers (without it each worker's
     first steps carried the imports: 1.6 and 3.3 s alone on an H100 host)."""
@@ -121,7 +126,7 @@ def run(device: str, processes: int) -> list[dict]:
         importlib.import_module(module)
     context = multiprocessing.get_context("fork")
     start, results = context.Event(), context.Queue()
-    workers = [context.Process(target=worker, args=(i, device, start, results)) for i in range(processes)]
+    workers = [context.Process(target=worker, args=(i, device, start, results, own_gpu)) for i in range(processes)]
     for p in workers:
         p.start()
     time.sleep(0.5)  # all forked and waiting
@@ -140,6 +145,9 @@ def markdown(res: dict) -> str:
         f"# A worker's start, step by step, on {res['device_name']} ({res['cpu_count']} cores)",
         "",
         "N processes forked and released together; per step the median and the slowest over them [s].",
+        f"Each process sees only its own GPU: {'yes' if res.get('own_gpu') else 'no'}; the driver's environment: "
+        + (", ".join(f"{k}={v}" for k, v in res.get("driver_env", {}).items()) or "CUDA's defaults")
+        + ".",
         "",
         "| processes | " + " | ".join(STEPS) + " | all |",
         "|---|" + "---|" * (len(STEPS) + 1),
@@ -157,10 +165,11 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--device", default="cpu", help="cpu, cuda:0, or auto (the GPUs in turn)")
     parser.add_argument("--processes", default="1,2,4", help="process counts to try, comma-separated")
+    parser.add_argument("--own-gpu", type=int, default=0, help="GPUS: process i sees only GPU i %% GPUS")
     parser.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
     args = parser.parse_args(argv)
     warm_up(args.device)
-    rows = [{"processes": n, "workers": run(args.device, n)} for n in map(int, args.processes.split(","))]
+    rows = [{"processes": n, "workers": run(args.device, n, args.own_gpu)} for n in map(int, args.processes.split(","))]
     import warp as wp
 
     from acoustic_sim.devices import quiet_warp, resolve_device
@@ -168,7 +177,8 @@ def main(argv=None) -> dict:
     quiet_warp()
     device = resolve_device(args.device)
     name = wp.get_device(device).name if wp.get_device(device).is_cuda else "CPU"
-    res = {"device": args.device, "device_name": name, "cpu_count": os.cpu_count(), "rows": rows}
+    res = {"device": args.device, "device_name": name, "cpu_count": os.cpu_count(), "own_gpu": args.own_gpu}
+    res |= {"driver_env": {k: v for k, v in os.environ.items() if k.startswith("CUDA_")}, "rows": rows}
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     res = write_json(out / "start_costs.json", res, device=device)
