@@ -10,6 +10,7 @@ import signal
 import subprocess
 import sys
 import time
+import types
 
 import h5py
 import numpy as np
@@ -19,6 +20,7 @@ import acoustic_sim.datasets.folder as folder
 import acoustic_sim.datasets.generate as gen
 from acoustic_sim.datasets.shards import DatasetError, ShardFrames, verify_shard, write_shard
 from acoustic_sim.datasets.suites import SUITES, Physics
+from acoustic_sim.datasets.workers import QUEUES_ENV, WORKER_QUEUES, LocalWorkers
 from learn.data import DataError, load_frames
 
 from .crafted import damage_energyscape_chunk
@@ -192,6 +194,29 @@ def test_a_worker_that_dies_starting_is_an_error_not_a_wait(tmp_path, monkeypatc
     with pytest.raises(BrokenProcessPool):
         gen.generate(SUITE, tmp_path / "out", frames=16, shards=2, workers=2, device="cpu", progress=False)
     assert not (tmp_path / "out").exists() and not multiprocessing.active_children()
+
+
+def work_queues(tasks, device, on_frames) -> dict:
+    """A worker's share that reports the work queues its CUDA context would be made with."""
+    return {"queues": float(os.environ[QUEUES_ENV])}
+
+
+@pytest.mark.parametrize("chosen", [None, "4"])
+def test_a_worker_starts_cuda_with_one_work_queue_unless_the_user_chose(monkeypatch, forked, chosen):
+    """The driver makes contexts one at a time and each queue costs it time: a worker asks for one,
+    and a value the user set reaches the worker unchanged (the parent's own environment untouched)."""
+    if chosen is None:
+        monkeypatch.delenv(QUEUES_ENV, raising=False)
+    else:
+        monkeypatch.setenv(QUEUES_ENV, chosen)
+    pool = LocalWorkers("cpu", 1, work_queues)
+    try:
+        pool.wait_ready()
+        parts = pool.run([], bar=types.SimpleNamespace(update=lambda n: None))
+    finally:
+        pool.close()
+    assert parts["queues"] == float(chosen or WORKER_QUEUES)
+    assert os.environ.get(QUEUES_ENV) == chosen
 
 
 def test_cuda_started_sees_torch_warp_and_a_loaded_driver(monkeypatch):

@@ -31,6 +31,12 @@ Work = Callable[[Iterable, str, Callable[[int], None]], dict]
 START_ENV = "SONAR2LIDAR_WORKER_START"
 WAIT_ENV = "SONAR2LIDAR_CUDA_WAIT"  # how a worker's CUDA context waits for its GPU: spin (CUDA's default) or block
 CU_CTX_SCHED_BLOCKING_SYNC = 0x04
+QUEUES_ENV = "CUDA_DEVICE_MAX_CONNECTIONS"  # the work queues a CUDA context makes on its GPU (8 by default)
+# The driver makes contexts one process at a time, machine-wide, and each queue costs it time: 12
+# workers starting at once over two H100s waited 1.30 s each for their contexts with 8 queues, 0.43 s
+# with one, and rendered no slower with one (6 a GPU, or one alone, whose copies go on a second
+# stream behind its work: benchmarks/results/multi_gpu/session40). A value the user set is kept.
+WORKER_QUEUES = "1"
 READY_TIMEOUT_S = 300.0  # a worker not up by then is stuck (a spawned one imports in ~4 s)
 
 
@@ -159,6 +165,7 @@ def _init_worker(claimed, tasks, ready, progress, abort, parent, cpu_threads, qu
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the whole process group: the parent stops us
     quiet_warp(quiet, start=False)  # the parent's voice (a spawned worker would start with the default)
     os.environ["SONAR2LIDAR_CPU_THREADS"] = str(cpu_threads)  # the workers share the cores (devices.cpu_cores)
+    os.environ.setdefault(QUEUES_ENV, WORKER_QUEUES)  # read by the driver when this process starts CUDA
     threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
 
 
