@@ -3,11 +3,13 @@ each GPU's utilisation over each run, for settings compared in rounds.
 
     python benchmarks/generate_load.py --settings cuda:0/5,auto/10,auto/10/block,pair/5 --frames 75000 --out DIR
 
-A setting is DEVICE/WORKERS[/WAIT[/HELPERS[/NICENESS[/POOL]]]]: WAIT is how the workers' CUDA waits
+A setting is DEVICE/WORKERS[/WAIT[/HELPERS[/NICENESS[/POOL[/QUEUES]]]]]: WAIT is how the workers' CUDA waits
 (spin, CUDA's default, or block: SONAR2LIDAR_CUDA_WAIT), HELPERS the host processes per worker
 (generate's choice if left out or `-`), NICENESS how far below its rendering process a helper is
 scheduled (SONAR2LIDAR_HELPER_NICENESS, 0 if left out), POOL what a GPU's memory pool does with freed
-memory (keep, the package's default, or release, CUDA's: SONAR2LIDAR_CUDA_POOL); with --rounds 2 and
+memory (keep, the package's default, or release, CUDA's: SONAR2LIDAR_CUDA_POOL), QUEUES the work queues
+of each worker's CUDA context (CUDA_DEVICE_MAX_CONNECTIONS; `-` or left out: as this environment has it,
+else the workers' default of one); with --rounds 2 and
 settings that differ in one field, the rounds alternate them on the same warm machine. DEVICE `pair`
 runs two `generate` commands at once, one on cuda:0 and one on cuda:1, with WORKERS each and half the
 frames each: whether two GPUs slow each other through the host rather than through one command's
@@ -38,11 +40,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from acoustic_sim.datasets.workers import QUEUES_ENV, WORKER_QUEUES  # noqa: E402
 from benchmarks.provenance import markdown as provenance_line  # noqa: E402
 from benchmarks.provenance import write_json  # noqa: E402
 
 CHILD = """
-import json, sys, time
+import json, os, sys, time
 from pathlib import Path
 from acoustic_sim.datasets.generate import generate
 from acoustic_sim.datasets.suites import load_suite
@@ -55,7 +58,8 @@ used = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAG
 tree = {"user_s": sum(u.ru_utime for u in used), "system_s": sum(u.ru_stime for u in used),
         "minor_faults": sum(u.ru_minflt for u in used)}  # this process and every process it waited for
 from acoustic_sim.devices import cuda_pool
-print("RESULT " + json.dumps({k: summary.get(k) for k in keep} | {"tree": tree, "pool": cuda_pool()}))
+queues = os.environ.get("CUDA_DEVICE_MAX_CONNECTIONS")
+print("RESULT " + json.dumps({k: summary.get(k) for k in keep} | {"tree": tree, "pool": cuda_pool(), "queues": queues}))
 """
 WARM_FRAMES = 3000  # the untimed run before the timed ones
 PARTS_SHOWN = ("start-up", "prepare", "lidar", "sonar", "assemble", "write")  # generate's seconds by part, summed
@@ -152,6 +156,8 @@ def run(setting: str, args, work: Path, out: Path, tag: str, spy: bool = False) 
     niceness = rest[2] if len(rest) > 2 else "0"
     pool = rest[3] if len(rest) > 3 else "keep"
     env = dict(os.environ, SONAR2LIDAR_CUDA_WAIT=wait, SONAR2LIDAR_HELPER_NICENESS=niceness, SONAR2LIDAR_CUDA_POOL=pool)
+    if len(rest) > 4 and rest[4] != "-":
+        env[QUEUES_ENV] = rest[4]
     spec = {"suite": args.suite, "frames": args.frames, "workers": int(workers), "helpers": helpers}
     shutil.rmtree(work, ignore_errors=True)
     sampler = start_sampler(out / f"utilisation_{tag}.csv")
@@ -200,6 +206,8 @@ def run(setting: str, args, work: Path, out: Path, tag: str, spy: bool = False) 
         "minor_faults_per_frame": tree["minor_faults"] / frames,
         "helpers": results[0]["helpers"],
         "pool": results[0]["pool"],
+        # what the rendering processes' contexts were made with (None: CUDA's default, one process)
+        "queues": results[0]["queues"] or (WORKER_QUEUES if int(workers) > 1 else None),
         "devices": sorted({d for r in results for d in r["devices"]}),
     }
 

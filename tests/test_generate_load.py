@@ -13,7 +13,7 @@ def test_a_run_reports_its_rate_and_the_cpu_it_kept_busy(tmp_path):
     res = generate_load.main(
         [
             "--settings",
-            "cpu/1/spin/0/0/release",
+            "cpu/1/spin/0/0/release/4",
             "--suite",
             "tiny",
             "--frames",
@@ -25,15 +25,15 @@ def test_a_run_reports_its_rate_and_the_cpu_it_kept_busy(tmp_path):
         ]
     )
     (row,) = res["rows"]
-    assert row["setting"] == "cpu/1/spin/0/0/release" and row["frames"] == 24 and row["helpers"] == 0
-    assert row["pool"] == "release"  # the setting's last field reaches the generate process
+    assert row["setting"] == "cpu/1/spin/0/0/release/4" and row["frames"] == 24 and row["helpers"] == 0
+    assert row["pool"] == "release" and row["queues"] == "4"  # the setting's fields reach the generate process
     assert row["frames_per_s"] == pytest.approx(24 / row["seconds"]) and 0 < row["cpu_busy"] <= 1
     assert row["seconds_by_part"]["sonar"] > 0 and row["devices"] == ["cpu"]
     assert row["cpu_ms_per_frame"]["user"] > 0 and row["minor_faults_per_frame"] > 0
     saved = json.loads((tmp_path / "generate_load.json").read_text())
     assert (
         saved["provenance"]["commit"]
-        and "| cpu/1/spin/0/0/release | 0 |" in (tmp_path / "generate_load.md").read_text()
+        and "| cpu/1/spin/0/0/release/4 | 0 |" in (tmp_path / "generate_load.md").read_text()
     )
 
 
