@@ -19,8 +19,9 @@ parent never starting CUDA), released together, and each times its own steps in 
 
 With --own-gpu G, process i sees only GPU i % G (CUDA_VISIBLE_DEVICES, set before Warp starts
 CUDA): whether a driver that starts one GPU per process starts sooner than one that starts all.
-Environment variables the driver reads (CUDA_DEVICE_MAX_CONNECTIONS, say) are tried by setting them
-on the command line. Writes DIR/start_costs.json and .md: per process count, each step's median and
+Each process makes its context with one work queue, as a generate worker does, unless
+CUDA_DEVICE_MAX_CONNECTIONS is set on the command line (8 is CUDA's default); other variables the
+driver reads are tried the same way. Writes DIR/start_costs.json and .md: per process count, each step's median and
 slowest over the processes, beside one process's.
 """
 
@@ -41,6 +42,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from acoustic_sim.datasets.generate import ENGINE_MODULES  # noqa: E402
+from acoustic_sim.datasets.workers import QUEUES_ENV, WORKER_QUEUES  # noqa: E402
 from benchmarks.provenance import markdown as provenance_line  # noqa: E402
 from benchmarks.provenance import write_json  # noqa: E402
 
@@ -49,8 +51,9 @@ STEPS = ("warp", "context", "sensors", "modules", "pinned", "device", "episode")
 
 def worker(index: int, device: str, start, results, own_gpu: int = 0) -> None:
     """One process's steps, timed after all are released together by `start`."""
+    os.environ.setdefault(QUEUES_ENV, WORKER_QUEUES)  # as a generate worker does (both read at cuInit)
     if own_gpu:
-        os.environ["CUDA_VISIBLE_DEVICES"] = str(index % own_gpu)  # read by the driver at cuInit
+        os.environ["CUDA_VISIBLE_DEVICES"] = str(index % own_gpu)
     start.wait()
     try:
         results.put({"index": index, **steps(index, device)})
@@ -178,7 +181,8 @@ def main(argv=None) -> dict:
     device = resolve_device(args.device)
     name = wp.get_device(device).name if wp.get_device(device).is_cuda else "CPU"
     res = {"device": args.device, "device_name": name, "cpu_count": os.cpu_count(), "own_gpu": args.own_gpu}
-    res |= {"driver_env": {k: v for k, v in os.environ.items() if k.startswith("CUDA_")}, "rows": rows}
+    driver_env = {k: v for k, v in os.environ.items() if k.startswith("CUDA_")}
+    res |= {"driver_env": {QUEUES_ENV: WORKER_QUEUES} | driver_env, "rows": rows}  # the processes' own
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     res = write_json(out / "start_costs.json", res, device=device)
