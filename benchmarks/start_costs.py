@@ -21,8 +21,8 @@ With --own-gpu G, process i sees only GPU i % G (CUDA_VISIBLE_DEVICES, set befor
 CUDA): whether a driver that starts one GPU per process starts sooner than one that starts all.
 Each process makes its context with one work queue, as a generate worker does, unless
 CUDA_DEVICE_MAX_CONNECTIONS is set on the command line (8 is CUDA's default); other variables the
-driver reads are tried the same way. Writes DIR/start_costs.json and .md: per process count, each step's median and
-slowest over the processes, beside one process's.
+driver reads are tried the same way. Writes DIR/start_costs.json and .md: per process count, each
+step's median and slowest over the processes, beside one process's.
 """
 
 from __future__ import annotations
