@@ -15,10 +15,11 @@ runs two `generate` commands at once, one on cuda:0 and one on cuda:1, with WORK
 frames each: whether two GPUs slow each other through the host rather than through one command's
 machinery. Each run is a fresh process, as a `generate` command is. Beside its frames/s: the share
 of the host's CPU time busy over the run (/proc/stat), the CPU time and page faults of the run's whole
-process tree (getrusage), each GPU's utilisation (nvidia-smi every 250 ms: the mean, the median, and
-the mean of the samples while the GPUs were in use), which processes hold a context on which GPU (6 s
-into the run), and with --spy, a py-spy recording of one more run of each named setting (`pip install
-py-spy`), summed by what the busy threads were doing. Writes DIR/generate_load.json and .md (and the
+process tree (getrusage), each GPU's utilisation (nvidia-smi every 250 ms: the mean and median of all
+samples; over the timed run its mean and its idle seconds, those of the run's first and last 4 s apart,
+where two GPUs lose most), which processes hold a context on which GPU (6 s into the run), and with
+--spy, a py-spy recording of one more run of each named setting (`pip install py-spy`), summed by
+what the busy threads were doing. Writes DIR/generate_load.json and .md (and the
 raw samples beside them).
 """
 
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import itertools
 import json
 import os
 import re
@@ -35,6 +37,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from datetime import datetime
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -50,6 +53,7 @@ from pathlib import Path
 from acoustic_sim.datasets.generate import generate
 from acoustic_sim.datasets.suites import load_suite
 spec = json.loads(sys.argv[1])
+started = time.time()  # generate's timed run begins at its call
 summary = generate(load_suite(spec["suite"]), Path(spec["out"]), frames=spec["frames"], device=spec["device"],
                    workers=spec["workers"], progress=False, helpers=spec["helpers"])
 keep = ("frames", "seconds", "frames_per_s", "seconds_by_part", "devices", "helpers")
@@ -59,9 +63,12 @@ tree = {"user_s": sum(u.ru_utime for u in used), "system_s": sum(u.ru_stime for 
         "minor_faults": sum(u.ru_minflt for u in used)}  # this process and every process it waited for
 from acoustic_sim.devices import cuda_pool
 queues = os.environ.get("CUDA_DEVICE_MAX_CONNECTIONS")
-print("RESULT " + json.dumps({k: summary.get(k) for k in keep} | {"tree": tree, "pool": cuda_pool(), "queues": queues}))
+mine = {"tree": tree, "pool": cuda_pool(), "queues": queues, "started": started}
+print("RESULT " + json.dumps({k: summary.get(k) for k in keep} | mine))
 """
 WARM_FRAMES = 3000  # the untimed run before the timed ones
+SAMPLE_S = 0.25  # nvidia-smi's sampling interval
+EDGE_S = 4.0  # a run's start and end, where two GPUs lose most of their idle time (multi_gpu/session39)
 PARTS_SHOWN = ("start-up", "prepare", "lidar", "sonar", "assemble", "write")  # generate's seconds by part, summed
 # What a sampled thread was doing, by the first of these functions found in its stack.
 ACTIVITIES = (
@@ -95,29 +102,43 @@ def start_sampler(path: Path):
     """nvidia-smi writing each GPU's utilisation every 250 ms to `path`; None without nvidia-smi."""
     if shutil.which("nvidia-smi") is None:
         return None
-    query = ["nvidia-smi", "--query-gpu=index,utilization.gpu", "--format=csv,noheader,nounits", "-lms", "250"]
+    fields = "--query-gpu=timestamp,index,utilization.gpu"
+    query = ["nvidia-smi", fields, "--format=csv,noheader,nounits", "-lms", str(int(SAMPLE_S * 1000))]
     return subprocess.Popen(query, stdout=path.open("w"), stderr=subprocess.DEVNULL)
 
 
-def utilisation(path: Path) -> dict:
-    """Per GPU: mean, median, and the mean over the samples taken while any GPU was in use."""
-    by_gpu: dict[int, list[int]] = collections.defaultdict(list)
+def utilisation(path: Path, window: tuple[float, float] | None = None) -> dict:
+    """Per GPU: the mean and median of all its samples, and over `window` (the timed run's start and end,
+    time.time()): the mean, the seconds busy (utilisation x time), the seconds idle, and of those the
+    idle seconds in the window's first and last EDGE_S. A sample is nvidia-smi's share of the time
+    some kernel ran on the GPU lately, so these are estimates to ~0.25 s. Lines: `timestamp, gpu, %`."""
+    by_gpu: dict[int, list[tuple[float, int]]] = collections.defaultdict(list)
     for line in path.read_text().splitlines():
         try:
-            gpu, value = (int(x) for x in line.split(","))
+            stamp, gpu, value = (x.strip() for x in line.split(","))
+            by_gpu[int(gpu)].append((datetime.strptime(stamp, "%Y/%m/%d %H:%M:%S.%f").timestamp(), int(value)))
         except ValueError:
-            continue
-        by_gpu[gpu].append(value)
-    if not by_gpu:
-        return {}
-    busy = [i for i, values in enumerate(zip(*by_gpu.values(), strict=False)) if max(values) > 0]
-    return {
-        gpu: {
-            "mean": statistics.fmean(values),
-            "median": statistics.median(values),
-            "in_use_mean": statistics.fmean([values[i] for i in busy]) if busy else 0.0,
-        }
-        for gpu, values in by_gpu.items()
+            continue  # nvidia-smi's "[N/A]" or a line cut by the run's end
+    return {gpu: _gpu_use(samples, window) for gpu, samples in by_gpu.items()}
+
+
+def _gpu_use(samples: list[tuple[float, int]], window: tuple[float, float] | None) -> dict:
+    values = [value for _, value in samples]
+    use = {"mean": statistics.fmean(values), "median": statistics.median(values), "in_use_mean": 0.0}
+    start, end = window or (samples[0][0], samples[-1][0])
+    run = [(t, value) for t, value in samples if start <= t <= end]
+    if not run:
+        return use
+    times = [t for t, _ in run]
+    steps = [b - a for a, b in itertools.pairwise(times)]
+    steps.append(statistics.median(steps) if steps else SAMPLE_S)  # the last sample's share of time
+    idle = [(t, (1 - value / 100) * step) for (t, value), step in zip(run, steps, strict=True)]
+    return use | {
+        "in_use_mean": statistics.fmean(value for _, value in run),
+        "busy_s": sum(value / 100 * step for (_, value), step in zip(run, steps, strict=True)),
+        "idle_s": sum(s for _, s in idle),
+        "idle_first_s": sum(s for t, s in idle if t < start + EDGE_S),
+        "idle_last_s": sum(s for t, s in idle if t > end - EDGE_S),
     }
 
 
@@ -186,6 +207,7 @@ def run(setting: str, args, work: Path, out: Path, tag: str, spy: bool = False) 
         if recorder is not None:
             recorder.wait()  # it ends with its --duration or its target, its recording written
     seconds = max(r["seconds"] for r in results)
+    timed = (min(r["started"] for r in results), max(r["started"] + r["seconds"] for r in results))
     frames = sum(r["frames"] for r in results)
     parts, tree = collections.Counter(), collections.Counter()
     for r in results:
@@ -199,7 +221,7 @@ def run(setting: str, args, work: Path, out: Path, tag: str, spy: bool = False) 
         "each_frames_per_s": [r["frames_per_s"] for r in results],
         "wall_s": wall,
         "cpu_busy": 1 - (idle1 - idle0) / (all1 - all0) if all1 > all0 else None,
-        "gpus": utilisation(out / f"utilisation_{tag}.csv") if sampler is not None else {},
+        "gpus": utilisation(out / f"utilisation_{tag}.csv", timed) if sampler is not None else {},
         "contexts": held,
         "seconds_by_part": dict(parts),
         "cpu_ms_per_frame": {k: 1e3 * tree[f"{k}_s"] / frames for k in ("user", "system")},
@@ -235,21 +257,30 @@ def markdown(res: dict) -> str:
         f"On {res['device_name']} ({res['cpu_count']} cores); each setting once a round, {res['rounds']} rounds, "
         "each run a fresh process. *CPU busy*: the share of all cores' time not idle over the whole run "
         "(its start and end included); *CPU ms a frame* and *page faults a frame*: the run's process tree's "
-        "own (getrusage), start-up included; *GPU in use*: each GPU's mean utilisation over the samples while "
-        "any GPU was busy.",
+        "own (getrusage), start-up included; *GPU in use*: each GPU's mean utilisation over the timed run "
+        "(`generate`'s seconds; in brackets: over all samples, the process's imports and end included); *GPU "
+        f"idle*: each GPU's idle seconds in the timed run, of which in its first and its last {EDGE_S:g} s "
+        "(from nvidia-smi's samples: estimates).",
         "",
         "| setting | round | frames/s | seconds | CPU busy | CPU ms a frame (user + system) | page faults a frame "
-        "| GPU in use (mean) | helpers | " + " | ".join(PARTS_SHOWN) + " |",
-        "|---|---|---|---|---|---|---|---|---|" + "---|" * len(PARTS_SHOWN),
+        "| GPU in use (mean) | GPU idle s (first, last) | helpers | " + " | ".join(PARTS_SHOWN) + " |",
+        "|---|---|---|---|---|---|---|---|---|---|" + "---|" * len(PARTS_SHOWN),
     ]
     for row in res["rows"]:
         gpus = ", ".join(f"{g}: {u['in_use_mean']:.0f} % ({u['mean']:.0f})" for g, u in row["gpus"].items()) or "-"
+        idle = [
+            f"{g}: {u['idle_s']:.1f} ({u['idle_first_s']:.1f}, {u['idle_last_s']:.1f})"
+            for g, u in row["gpus"].items()
+            if "idle_s" in u
+        ]
         busy = f"{row['cpu_busy']:.2f}" if row["cpu_busy"] is not None else "-"
         part, cpu = row["seconds_by_part"], row["cpu_ms_per_frame"]
         lines.append(
             f"| {row['setting']} | {row['round']} | {row['frames_per_s']:,.0f} | {row['seconds']:.1f} | {busy} | "
             f"{cpu['user']:.2f} + {cpu['system']:.2f} | {row['minor_faults_per_frame']:.0f} | "
-            f"{gpus} | {row['helpers']} | " + " | ".join(f"{part.get(k, 0):.1f}" for k in PARTS_SHOWN) + " |"
+            f"{gpus} | {', '.join(idle) or '-'} | {row['helpers']} | "
+            + " | ".join(f"{part.get(k, 0):.1f}" for k in PARTS_SHOWN)
+            + " |"
         )
     for setting, summary in res.get("spy", {}).items():
         lines += ["", f"py-spy, `{setting}`: busy threads' samples by activity", ""]

@@ -37,12 +37,29 @@ def test_a_run_reports_its_rate_and_the_cpu_it_kept_busy(tmp_path):
     )
 
 
-def test_utilisation_while_in_use_leaves_out_the_idle_start(tmp_path):
+def test_utilisation_is_read_over_the_timed_run_with_its_idle_ends(tmp_path):
+    """Samples before the run (a previous process's tail) and after it count in the plain mean
+    alone; within the run, busy and idle seconds from each sample's share of time, and the idle
+    seconds of the run's first and last EDGE_S apart."""
+    from datetime import datetime
+
+    def stamp(second: float) -> str:
+        return datetime.fromtimestamp(1_800_000_000 + second).strftime("%Y/%m/%d %H:%M:%S.%f")[:-3]
+
+    # one sample a second; GPU 0: a stale 11 % first, idle to 9 s, busy 9-17 s, idle after; GPU 1 idle
+    lines = []
+    for second in range(21):
+        busy = 100 if 9 <= second < 18 else (11 if second == 0 else 0)
+        lines += [f"{stamp(second)}, 0, {busy}", f"{stamp(second)}, 1, 0"]
     samples = tmp_path / "u.csv"
-    samples.write_text("0, 0\n1, 0\n0, 0\n1, 0\n0, 80\n1, 60\n0, 100\n1, 0\n[N/A]\n")
-    got = generate_load.utilisation(samples)
-    assert got[0] == {"mean": 45.0, "median": 40.0, "in_use_mean": 90.0}
-    assert got[1] == {"mean": 15.0, "median": 0.0, "in_use_mean": 30.0}
+    samples.write_text("\n".join([*lines, "[N/A]", f"{stamp(21)}, 0"]) + "\n")
+    got = generate_load.utilisation(samples, window=(1_800_000_000 + 5, 1_800_000_000 + 19))
+    zero = got[0]
+    assert zero["mean"] == pytest.approx((11 + 9 * 100) / 21)  # every sample
+    assert zero["busy_s"] == pytest.approx(9) and zero["idle_s"] == pytest.approx(6)  # 15 samples of 1 s in 5..19
+    assert zero["in_use_mean"] == pytest.approx(900 / 15)
+    assert zero["idle_first_s"] == pytest.approx(4) and zero["idle_last_s"] == pytest.approx(2)  # 5-8; 18, 19
+    assert got[1]["busy_s"] == 0 and got[1]["idle_s"] == pytest.approx(15)
 
 
 def test_spy_summary_sums_busy_samples_by_activity(tmp_path):
