@@ -62,7 +62,8 @@ used = [resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAG
 tree = {"user_s": sum(u.ru_utime for u in used), "system_s": sum(u.ru_stime for u in used),
         "minor_faults": sum(u.ru_minflt for u in used)}  # this process and every process it waited for
 from acoustic_sim.devices import cuda_pool
-queues = os.environ.get("CUDA_DEVICE_MAX_CONNECTIONS")
+from acoustic_sim.datasets.workers import QUEUES_ENV
+queues = os.environ.get(QUEUES_ENV)
 mine = {"tree": tree, "pool": cuda_pool(), "queues": queues, "started": started}
 print("RESULT " + json.dumps({k: summary.get(k) for k in keep} | mine))
 """
