@@ -30,6 +30,8 @@ def test_a_run_reports_its_rate_and_the_cpu_it_kept_busy(tmp_path):
     assert row["frames_per_s"] == pytest.approx(24 / row["seconds"]) and 0 < row["cpu_busy"] <= 1
     assert row["seconds_by_part"]["sonar"] > 0 and row["devices"] == ["cpu"]
     assert row["cpu_ms_per_frame"]["user"] > 0 and row["minor_faults_per_frame"] > 0
+    # timed from make_dataset's call, as generate's seconds are: after its imports, plan and scene checks
+    assert row["before_s"] > 0 and row["timed"][1] - row["timed"][0] == pytest.approx(row["seconds"])
     saved = json.loads((tmp_path / "generate_load.json").read_text())
     assert (
         saved["provenance"]["commit"]
