@@ -41,9 +41,11 @@ def sigint_as_from_a_terminal() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
-def ctrl_c_after(command: list[str], delay_s: float, cwd: Path) -> tuple[int, str]:
+def ctrl_c_after(command: list[str], delay_s: float, cwd: Path, *, loaded: str = "") -> tuple[int, str]:
     """Run `command` (`python -m ...` arguments) as a terminal would, press Ctrl-C (SIGINT to its
-    process group) after `delay_s` seconds; its exit status and standard error."""
+    process group) after `delay_s` seconds, counted from when the process has mapped a library whose
+    file name holds `loaded` if one is given (a moment inside that library's import, however fast the
+    machine); its exit status and standard error."""
     import time
 
     process = subprocess.Popen(
@@ -55,6 +57,14 @@ def ctrl_c_after(command: list[str], delay_s: float, cwd: Path) -> tuple[int, st
         start_new_session=True,
         preexec_fn=sigint_as_from_a_terminal,
     )
+    maps = Path(f"/proc/{process.pid}/maps")
+    while loaded and process.poll() is None:
+        try:
+            if loaded in maps.read_text():
+                break
+        except OSError:  # the process is gone: its exit status says why
+            break
+        time.sleep(0.002)
     time.sleep(delay_s)
     os.killpg(process.pid, signal.SIGINT)
     _, err = process.communicate(timeout=120)
